@@ -1,0 +1,57 @@
+"""Shared helpers of the benchmark scripts: machine description and result headers."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import platform
+import shlex
+import sys
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def machine() -> str:
+    import torch
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    cpu = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
+    return (
+        f"{cpu}; {os.cpu_count()} CPU cores visible, torch threads {torch.get_num_threads()}; "
+        f"GPU: {gpu}; Python {platform.python_version()}, torch {torch.__version__}"
+    )
+
+
+def command() -> str:
+    return "python -m benchmarks." + Path(sys.argv[0]).stem + (
+        " " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if len(sys.argv) > 1 else ""
+    )
+
+
+def header(title: str, cmd: str | None = None) -> str:
+    import lagsindy
+
+    return (
+        f"# {title}\n\n"
+        f"- command: `{cmd or command()}`\n"
+        f"- date: {_dt.date.today().isoformat()}\n"
+        f"- machine: {machine()}\n"
+        f"- lagsindy {lagsindy.__version__}\n\n"
+    )
+
+
+def write(name: str, text: str) -> Path:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / name
+    path.write_text(text)
+    print(f"wrote {path}")
+    return path

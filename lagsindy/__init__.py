@@ -1,0 +1,16 @@
+"""lagsindy: sparse identification of Lagrangians from trajectories (xL-SINDy)."""
+
+from .dynamics import MechanicalModel, SingularMassMatrixError, rollout_error
+from .estimator import LagrangianSINDy
+from .library import CandidateLibrary
+
+__version__ = "0.1.0.dev0"
+
+__all__ = [
+    "CandidateLibrary",
+    "LagrangianSINDy",
+    "MechanicalModel",
+    "SingularMassMatrixError",
+    "rollout_error",
+    "__version__",
+]

@@ -1,0 +1,464 @@
+r"""Mechanical models: a Lagrangian, dissipation and inputs, and their equations of motion.
+
+A :class:`MechanicalModel` is the one object behind both the benchmark systems and the
+models that :class:`~lagsindy.LagrangianSINDy` learns. From a Lagrangian
+:math:`L(q, \dot q)`, a Rayleigh dissipation function :math:`D(q, \dot q)`, extra
+generalized forces :math:`Q(q, \dot q)` and an input matrix :math:`B`, it derives
+once, symbolically,
+
+.. math::
+
+    M(q, \dot q)\,\ddot q + h(q, \dot q) = B u + Q - \partial D / \partial \dot q,
+    \qquad M = \nabla_{\dot q}^2 L,\;
+    h = (\nabla_q \nabla_{\dot q} L)\, \dot q - \nabla_q L,
+
+and evaluates it with lambdified numpy code (vectorised over samples) for inverse
+dynamics, forward dynamics and simulation with :func:`scipy.integrate.solve_ivp`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import sympy as sp
+from scipy.integrate import solve_ivp
+
+from ._expr import canonical, check_coordinate_names, symbols_for
+
+# A mass matrix whose eigenvalues differ in sign, or whose smallest magnitude
+# eigenvalue is below this fraction of the largest, is treated as singular.
+MASS_MATRIX_RCOND = 1e-10
+
+
+class SingularMassMatrixError(ValueError):
+    """The mass matrix of a model is singular or indefinite at some state.
+
+    A Lagrangian is only a valid mechanical model where its mass matrix
+    ``d2L/dqdot2`` is definite (positive, or negative for a Lagrangian learned up to
+    a negative scale from passive data). Attributes ``t``, ``q``, ``qd`` and
+    ``eigenvalues`` locate the failure.
+    """
+
+    def __init__(self, message, *, t=None, q=None, qd=None, eigenvalues=None):
+        super().__init__(message)
+        self.t, self.q, self.qd, self.eigenvalues = t, q, qd, eigenvalues
+
+
+def _lambdify_entries(args, exprs):
+    """One numpy function for a list of expressions, broadcasting constants."""
+    f = sp.lambdify(args, list(exprs), modules="numpy", cse=True)
+
+    def evaluate(*values):
+        shape = np.broadcast(*values).shape if values else ()
+        out = f(*values)
+        return [np.broadcast_to(np.asarray(v, dtype=float), shape) for v in out]
+
+    return evaluate
+
+
+class MechanicalModel:
+    """Equations of motion of a Lagrangian system, and their simulation.
+
+    Parameters
+    ----------
+    lagrangian : sympy.Expr or str
+        :math:`L(q, \\dot q)` over the coordinates and their velocities (named
+        ``<coordinate>_dot``). Strings are parsed without ``eval``.
+    coordinates : sequence of str
+        Generalized coordinate names, e.g. ``["x", "theta"]``.
+    dissipation : sympy.Expr or str, optional
+        Rayleigh dissipation function :math:`D`; its generalized force is
+        :math:`-\\partial D / \\partial \\dot q`.
+    forces : sequence of sympy.Expr or str, optional
+        Extra generalized forces :math:`Q(q, \\dot q)` (one per coordinate), for
+        non-smooth effects such as Coulomb friction.
+    input_matrix : array-like of shape (n_dof, n_inputs), optional
+        How inputs :math:`u` enter: generalized force :math:`B u`. Default: the
+        identity (one input per coordinate).
+    name : str, optional
+        Display name.
+
+    Attributes
+    ----------
+    n_dof : int
+    n_inputs : int
+
+    Examples
+    --------
+    >>> from lagsindy import MechanicalModel
+    >>> pendulum = MechanicalModel("0.5*theta_dot**2 + 9.81*cos(theta)", ["theta"])
+    >>> states = pendulum.simulate([0.1, 0.0], [0.0, 0.5, 1.0])
+    >>> states.shape
+    (3, 2)
+    """
+
+    def __init__(
+        self,
+        lagrangian,
+        coordinates: Sequence[str],
+        *,
+        dissipation=None,
+        forces=None,
+        input_matrix=None,
+        name: str | None = None,
+    ):
+        self.coordinates = check_coordinate_names(coordinates)
+        self.lagrangian = canonical(lagrangian, self.coordinates)
+        self.dissipation = (
+            sp.Integer(0) if dissipation is None else canonical(dissipation, self.coordinates)
+        )
+        n = len(self.coordinates)
+        if forces is None:
+            self.forces = [sp.Integer(0)] * n
+        else:
+            forces = list(forces)
+            if len(forces) != n:
+                raise ValueError(
+                    f"forces must have one entry per coordinate ({n}), got {len(forces)}"
+                )
+            self.forces = [canonical(f, self.coordinates) for f in forces]
+        if input_matrix is None:
+            self.input_matrix = np.eye(n)
+        else:
+            b = np.asarray(input_matrix, dtype=float)
+            if b.ndim == 1:
+                b = b[:, None]
+            if b.ndim != 2 or b.shape[0] != n:
+                raise ValueError(
+                    f"input_matrix must have shape (n_dof={n}, n_inputs), got {b.shape}"
+                )
+            self.input_matrix = b
+        self.name = name or "model"
+
+    # ------------------------------------------------------------------ symbolic
+    @property
+    def n_dof(self) -> int:
+        return len(self.coordinates)
+
+    @property
+    def n_inputs(self) -> int:
+        return self.input_matrix.shape[1]
+
+    @property
+    def symbols(self):
+        """``(q, qd, qdd)`` lists of sympy symbols."""
+        return symbols_for(self.coordinates)
+
+    def _derive(self):
+        cache = self.__dict__.get("_equations")
+        if cache is not None:
+            return cache
+        q, qd, _ = self.symbols
+        L = self.lagrangian
+        grad_qd = [sp.diff(L, v) for v in qd]
+        mass = sp.Matrix([[sp.diff(g, v) for v in qd] for g in grad_qd])
+        bias = [
+            sum(sp.diff(grad_qd[i], q[j]) * qd[j] for j in range(self.n_dof)) - sp.diff(L, q[i])
+            for i in range(self.n_dof)
+        ]
+        generalized = [
+            self.forces[i] - sp.diff(self.dissipation, qd[i]) for i in range(self.n_dof)
+        ]
+        energy = sum(v * g for v, g in zip(qd, grad_qd)) - L
+        cache = {
+            "mass": mass,
+            "bias": [sp.expand(b) for b in bias],
+            "forces": generalized,
+            "energy": energy,
+        }
+        self._equations = cache
+        return cache
+
+    def equations_of_motion(self) -> list:
+        """Symbolic equations ``M qdd + h - Q = B u`` (left-hand sides), one per coordinate."""
+        eq = self._derive()
+        _, _, qdd = self.symbols
+        lhs = eq["mass"] * sp.Matrix(qdd)
+        return [sp.simplify(lhs[i] + eq["bias"][i] - eq["forces"][i]) for i in range(self.n_dof)]
+
+    def mass_matrix_expr(self) -> sp.Matrix:
+        """Symbolic mass matrix ``d2L/dqdot2``."""
+        return self._derive()["mass"]
+
+    def _numeric(self):
+        cache = self.__dict__.get("_compiled")
+        if cache is not None:
+            return cache
+        eq = self._derive()
+        q, qd, _ = self.symbols
+        args = list(q) + list(qd)
+        n = self.n_dof
+        mass_entries = [eq["mass"][i, j] for i in range(n) for j in range(n)]
+        rest = [eq["bias"][i] - eq["forces"][i] for i in range(n)]
+        cache = {
+            "terms": _lambdify_entries(args, mass_entries + rest),
+            "energy": _lambdify_entries(args, [eq["energy"]]),
+        }
+        self._compiled = cache
+        return cache
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state.pop("_compiled", None)  # lambdified code is rebuilt lazily
+        return state
+
+    # ------------------------------------------------------------------ numeric
+    def _split_state(self, q, qd):
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        qd = np.atleast_2d(np.asarray(qd, dtype=float))
+        if q.shape[-1] != self.n_dof or qd.shape != q.shape:
+            raise ValueError(
+                f"q and qd must have shape (n_samples, {self.n_dof}), got {q.shape} "
+                f"and {qd.shape}"
+            )
+        return q, qd
+
+    def _mass_and_rest(self, q, qd):
+        values = self._numeric()["terms"](*q.T, *qd.T)
+        n = self.n_dof
+        mass = np.stack(values[: n * n], axis=-1).reshape(q.shape[0], n, n)
+        rest = np.stack(values[n * n :], axis=-1)
+        return mass, rest
+
+    def mass_matrix(self, q, qd) -> np.ndarray:
+        """Mass matrix at each sample, shape (n_samples, n_dof, n_dof)."""
+        q, qd = self._split_state(q, qd)
+        return self._mass_and_rest(q, qd)[0]
+
+    def inverse_dynamics(self, q, qd, qdd) -> np.ndarray:
+        """Generalized forces ``B u`` needed for the accelerations, shape (n_samples, n_dof)."""
+        q, qd = self._split_state(q, qd)
+        qdd = np.atleast_2d(np.asarray(qdd, dtype=float))
+        mass, rest = self._mass_and_rest(q, qd)
+        return np.einsum("sij,sj->si", mass, qdd) + rest
+
+    def forward_dynamics(self, q, qd, tau=None, *, t=None) -> np.ndarray:
+        """Accelerations under generalized forces ``tau``, shape (n_samples, n_dof).
+
+        Parameters
+        ----------
+        q, qd : array-like of shape (n_samples, n_dof)
+        tau : array-like of shape (n_samples, n_dof), optional
+            Generalized forces (already multiplied by the input matrix).
+        t : array-like, optional
+            Times, only used to locate a singular mass matrix in the error.
+
+        Raises
+        ------
+        SingularMassMatrixError
+            Where the mass matrix is singular or indefinite.
+        """
+        q, qd = self._split_state(q, qd)
+        mass, rest = self._mass_and_rest(q, qd)
+        rhs = -rest if tau is None else np.asarray(tau, dtype=float).reshape(rest.shape) - rest
+        self._check_mass(mass, q, qd, t)
+        return np.linalg.solve(mass, rhs[..., None])[..., 0]
+
+    def _check_mass(self, mass, q, qd, t=None):
+        eig = np.linalg.eigvalsh(mass)
+        big = np.abs(eig).max(axis=1)
+        bad = ~(
+            (np.all(eig > MASS_MATRIX_RCOND * big[:, None], axis=1)
+             | np.all(eig < -MASS_MATRIX_RCOND * big[:, None], axis=1))
+            & (big > 0)
+        )
+        if np.any(bad):
+            i = int(np.flatnonzero(bad)[0])
+            when = ""
+            if t is not None:
+                tt = np.broadcast_to(np.asarray(t, dtype=float), (q.shape[0],))[i]
+                when = f" at t={tt:.6g}"
+            state = ", ".join(
+                f"{n}={a:.6g}, {n}_dot={b:.6g}" for n, a, b in zip(self.coordinates, q[i], qd[i])
+            )
+            raise SingularMassMatrixError(
+                f"the mass matrix of {self.name} is singular or indefinite{when} "
+                f"(sample {i}: {state}; eigenvalues {np.array2string(eig[i], precision=4)}); "
+                "the Lagrangian is not a valid mechanical model at this state. "
+                "Check the learned terms (lower lam, more data or a wider library), "
+                "or start the simulation elsewhere.",
+                t=None if t is None else float(np.broadcast_to(t, (q.shape[0],))[i]),
+                q=q[i].copy(),
+                qd=qd[i].copy(),
+                eigenvalues=eig[i].copy(),
+            )
+
+    def energy(self, q, qd) -> np.ndarray:
+        """Energy function ``sum qdot dL/dqdot - L`` at each sample, shape (n_samples,)."""
+        q, qd = self._split_state(q, qd)
+        return self._numeric()["energy"](*q.T, *qd.T)[0].copy()
+
+    # ------------------------------------------------------------------ simulation
+    def _input_function(self, tau, t, batch):
+        """Turn ``tau`` (None, array sampled at t, or callable) into u(t, states)."""
+        m = self.n_inputs
+        if tau is None:
+            return None
+        if callable(tau):
+            return tau
+        arr = np.asarray(tau, dtype=float)
+        t = np.asarray(t, dtype=float)
+        if batch is None:
+            if arr.ndim == 1 and m == 1:
+                arr = arr[:, None]
+            if arr.shape != (t.shape[0], m):
+                raise ValueError(
+                    f"tau sampled at t must have shape ({t.shape[0]}, {m}), got {arr.shape}"
+                )
+            return lambda tt, _x: np.array([np.interp(tt, t, arr[:, j]) for j in range(m)])
+        if arr.shape != (batch, t.shape[0], m):
+            raise ValueError(
+                f"tau for {batch} trajectories must have shape ({batch}, {t.shape[0]}, {m}), "
+                f"got {arr.shape}"
+            )
+        return lambda tt, _x: np.stack(
+            [[np.interp(tt, t, arr[b, :, j]) for j in range(m)] for b in range(batch)]
+        )
+
+    def simulate(
+        self,
+        x0,
+        t,
+        tau=None,
+        *,
+        method: str = "DOP853",
+        rtol: float = 1e-9,
+        atol: float = 1e-9,
+        max_step: float = np.inf,
+    ) -> np.ndarray:
+        """Integrate the equations of motion from ``x0`` over the times ``t``.
+
+        Parameters
+        ----------
+        x0 : array-like of shape (2 * n_dof,) or (n_trajectories, 2 * n_dof)
+            Initial state ``[q..., qdot...]``; a 2-D array integrates a batch of
+            trajectories together (vectorised, one shared step size).
+        t : array-like of shape (n_times,)
+            Increasing output times; integration starts at ``t[0]``.
+        tau : None, array-like or callable, optional
+            Inputs ``u`` (``n_inputs`` per time; generalized force ``B u``): ``None``
+            (unforced), an array sampled at ``t`` (shape (n_times, n_inputs), or
+            (n_trajectories, n_times, n_inputs) for a batch; linearly interpolated),
+            or a callable ``tau(t, state)`` returning (n_inputs,) or
+            (n_trajectories, n_inputs).
+        method : str, default="DOP853"
+            Any :func:`scipy.integrate.solve_ivp` method.
+        rtol, atol : float, default=1e-9
+        max_step : float, default=inf
+
+        Returns
+        -------
+        ndarray of shape (n_times, 2 * n_dof) or (n_trajectories, n_times, 2 * n_dof)
+
+        Raises
+        ------
+        SingularMassMatrixError
+            When the mass matrix becomes singular or indefinite along the way (the
+            message names the time and the state).
+        RuntimeError
+            When the integrator fails for another reason.
+        """
+        x0 = np.asarray(x0, dtype=float)
+        t = np.asarray(t, dtype=float).ravel()
+        n = self.n_dof
+        batch = None if x0.ndim == 1 else x0.shape[0]
+        if x0.shape[-1] != 2 * n or x0.ndim > 2:
+            raise ValueError(
+                f"x0 must have shape ({2 * n},) or (n_trajectories, {2 * n}), got {x0.shape}"
+            )
+        if t.size < 1 or np.any(np.diff(t) <= 0):
+            raise ValueError("t must be a non-empty, strictly increasing array of times")
+        u_fn = self._input_function(tau, t, batch)
+        b_mat = self.input_matrix
+        rows = 1 if batch is None else batch
+
+        def rhs(tt, y):
+            x = y.reshape(rows, 2 * n)
+            q, qd = x[:, :n], x[:, n:]
+            mass, rest = self._mass_and_rest(q, qd)
+            force = -rest
+            if u_fn is not None:
+                u = np.asarray(u_fn(tt, x[0] if batch is None else x), dtype=float)
+                force = force + np.reshape(u, (rows, -1)) @ b_mat.T
+            self._check_mass(mass, q, qd, tt)
+            qdd = np.linalg.solve(mass, force[..., None])[..., 0]
+            return np.concatenate([qd, qdd], axis=1).ravel()
+
+        if t.size == 1:
+            return x0.copy()[None] if batch is None else x0.copy()[:, None]
+        sol = solve_ivp(
+            rhs, (t[0], t[-1]), x0.ravel(), method=method, t_eval=t, rtol=rtol,
+            atol=atol, max_step=max_step,
+        )
+        if sol.status != 0:
+            raise RuntimeError(f"integration of {self.name} failed: {sol.message}")
+        states = sol.y.T.reshape(t.size, rows, 2 * n)
+        return states[:, 0] if batch is None else states.transpose(1, 0, 2)
+
+    def trajectory_to_X(self, states, tau=None) -> np.ndarray:
+        """``[q, qdot, qddot]`` rows from simulated states, with exact accelerations.
+
+        Parameters
+        ----------
+        states : array-like of shape (n_samples, 2 * n_dof)
+        tau : array-like of shape (n_samples, n_dof), optional
+            Generalized forces ``B u`` at the same samples.
+        """
+        states = np.atleast_2d(np.asarray(states, dtype=float))
+        n = self.n_dof
+        qdd = self.forward_dynamics(states[:, :n], states[:, n:], tau)
+        return np.concatenate([states, qdd], axis=1)
+
+    # ------------------------------------------------------------------ display
+    def equation(self, precision: int = 4) -> str:
+        """Readable ``L = ...`` (and ``D = ...``, forces) with rounded numbers."""
+        def fmt(e):
+            return str(sp.sympify(e).xreplace(
+                {f: sp.Float(f, precision) for f in sp.sympify(e).atoms(sp.Float)}
+            ))
+
+        lines = [f"L = {fmt(self.lagrangian)}"]
+        if self.dissipation != 0:
+            lines.append(f"D = {fmt(self.dissipation)}")
+        for name, f in zip(self.coordinates, self.forces):
+            if f != 0:
+                lines.append(f"Q_{name} = {fmt(f)}")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return f"MechanicalModel({self.name!r}, coordinates={self.coordinates}, L={self.lagrangian})"
+
+    def __str__(self) -> str:
+        return self.equation()
+
+
+def rollout_error(model_a: MechanicalModel, model_b: MechanicalModel, x0, t, tau=None) -> dict:
+    """Integrate two models from the same state and compare their trajectories.
+
+    Used as the paper's validation metric: train on 5 s, integrate both the learned
+    and the true model for a further horizon and measure how far they drift apart.
+
+    Returns
+    -------
+    dict with keys ``"max_abs_q"`` (largest absolute position difference),
+    ``"rmse_q"``, ``"states_a"``, ``"states_b"``; a model that fails to integrate
+    gives ``inf`` errors and the exception text under ``"error"``.
+    """
+    sa = model_a.simulate(x0, t, tau)
+    try:
+        sb = model_b.simulate(x0, t, tau)
+    except (SingularMassMatrixError, RuntimeError, np.linalg.LinAlgError) as exc:
+        return {"max_abs_q": np.inf, "rmse_q": np.inf, "states_a": sa, "states_b": None,
+                "error": str(exc)}
+    n = model_a.n_dof
+    diff = sa[..., :n] - sb[..., :n]
+    return {
+        "max_abs_q": float(np.abs(diff).max()),
+        "rmse_q": float(np.sqrt(np.mean(diff**2))),
+        "states_a": sa,
+        "states_b": sb,
+    }
+
+
+InputFunction = Callable[[float, np.ndarray], np.ndarray]

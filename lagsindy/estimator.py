@@ -1,0 +1,670 @@
+"""The :class:`LagrangianSINDy` estimator (scikit-learn API).
+
+The estimator validates input, builds the library, the Euler-Lagrange operator and
+the solver from flat hyperparameters, runs the solver and stores the results. The
+mathematics lives in :mod:`lagsindy.euler_lagrange` and :mod:`lagsindy.solvers`.
+"""
+
+from __future__ import annotations
+
+import warnings
+from numbers import Integral, Real
+
+import numpy as np
+import sympy as sp
+import torch
+from sklearn.base import BaseEstimator, RegressorMixin, _fit_context, clone
+from sklearn.metrics import r2_score
+from sklearn.utils import check_random_state
+from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
+from sklearn.utils.validation import check_is_fitted, validate_data
+
+from . import _validation as val
+from ._expr import canonical, state_names
+from ._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
+from .dynamics import MechanicalModel
+from .euler_lagrange import EulerLagrangeOperator, forward_accelerations
+from .library import CandidateLibrary
+from .solvers import BalancedGram, staged_fista, warn_not_converged
+
+_CASES = {"auto", "forces", "fixed", "acceleration"}
+# Eigenvalue ratio of the scaled Gram matrix below which a combination of terms is
+# treated as having no effect on the data.
+_NULL_RCOND = 1e-11
+
+
+class IdentifiabilityWarning(UserWarning):
+    """The data leave a combination of candidate terms undetermined."""
+# Rows used to rank the candidate fixed terms of case III (a random subsample).
+_SELECTION_ROWS = 4000
+_SELECTION_TOP = 12
+
+
+class LagrangianSINDy(RegressorMixin, BaseEstimator):
+    r"""Sparse identification of a Lagrangian from trajectories (xL-SINDy).
+
+    The Lagrangian is sought as :math:`L = \sum_k c_k \phi_k(q, \dot q)` over the
+    candidate terms of ``library``. The Euler-Lagrange equations make the
+    generalized forces linear in :math:`c`: :math:`\tau = \Theta(q, \dot q, \ddot q)
+    c`. The coefficients minimise, in scaled variables :math:`w`,
+
+    .. math::
+
+        \frac{1}{2n}\|y - \Theta w\|_2^2 + \lambda \|w\|_1
+
+    by FISTA in stages: after each stage terms below a relative ``threshold`` are
+    removed, :math:`\lambda` is divided by ``lam_decay`` and the step raised, until
+    the relative residual is below ``tol`` or ``max_stages`` have run; the final
+    support is refitted without penalty (``debias``).
+
+    Three cases, as in the paper:
+
+    * ``fit(X, tau)``: case I, :math:`y = \tau` (external forces known);
+    * ``fit(X)`` with ``fixed_term``: case III, one known term's coefficient is
+      fixed to 1 and :math:`y = -\Theta_{fixed}`; without ``fixed_term`` every
+      candidate is tried as the fixed term and the one whose model best predicts the
+      measured accelerations is kept (``fixed_term_``);
+    * ``case="acceleration"``: case II (passive data, no prior), non-convex;
+      see :mod:`lagsindy.solvers`.
+
+    Parameters
+    ----------
+    library : CandidateLibrary, default=None
+        Candidate terms. ``None``: ``CandidateLibrary.polynomial(degree=2,
+        angles="all", raw_angles=True)`` over the data's coordinates (the paper's
+        single pendulum library, generalized). Its coordinates, when ``None``, are
+        taken from the DataFrame columns (or named ``q0, q1, ...``).
+    lam : float, default=1e-3
+        The paper's :math:`\lambda`: L1 weight of the first stage, on the scaled
+        problem (columns and target of unit mean square, so ``lam`` is unit-free and
+        ``lam >= 1`` zeroes every coefficient). It plays the role of
+        :class:`sklearn.linear_model.Lasso`'s ``alpha``.
+    alpha : float, default=None
+        The paper's step size. ``None``: ``1/L`` from the Lipschitz constant of the
+        current stage (the largest safe step; it rises by itself as terms leave).
+        A given ``alpha`` is multiplied by ``step_growth`` at each stage, as in the
+        paper; a step that makes FISTA diverge is halved automatically.
+    threshold : float, default=0.05
+        Hard threshold between stages, relative to the largest scaled coefficient
+        (a term is dropped when its contribution to the equations is below
+        ``threshold`` times that of the dominant term).
+    lam_decay : float, default=10.0
+        Division of ``lam`` between stages.
+    step_growth : float, default=2.0
+        Multiplication of a given ``alpha`` between stages.
+    max_stages : int, default=5
+    max_iter : int, default=20000
+        FISTA iterations per stage.
+    tol : float, default=1e-3
+        Stop the stages when the relative residual
+        :math:`\|y - \Theta w\|^2 / \|y\|^2` is at most ``tol``.
+    solver_tol : float, default=1e-7
+        KKT tolerance of each FISTA stage (scaled problem).
+    fixed_term : str or sympy.Expr, default=None
+        Case III: a term known to be in the Lagrangian, whose coefficient is fixed to 1
+        (e.g. ``"theta_dot**2"``).
+    unpenalized : list of str, default=None
+        Terms known to be present: they are not shrunk and never thresholded.
+    case : {"auto", "forces", "fixed", "acceleration"}, default="auto"
+        ``"auto"``: case I when ``tau`` is given, else case III.
+    normalize : bool, default=True
+        Balance row (per coordinate) and column scales; see
+        :class:`lagsindy.solvers.BalancedGram`.
+    debias : bool, default=True
+        Refit the final support without penalty (removes L1 shrinkage).
+    device : str, default="cpu"
+        Torch device for the Euler-Lagrange tensors (``"cuda"`` where available).
+    dtype : {"float64", "float32"}, default="float64"
+    random_state : int, RandomState instance or None, default=None
+        Seeds the subsample used to rank fixed terms in case III and the start of
+        case II; fits are otherwise deterministic.
+    verbose : int, default=0
+        Print stage progress when positive.
+
+    Attributes
+    ----------
+    coef_ : ndarray of shape (n_terms,)
+        Coefficients over ``library_``'s terms (zero where pruned).
+    support_ : ndarray of bool, shape (n_terms,)
+    lagrangian_ : sympy.Expr
+        The learned Lagrangian with numeric coefficients.
+    model_ : MechanicalModel
+        The learned model (equations of motion, simulation).
+    library_ : CandidateLibrary
+        The fitted copy of the library.
+    coordinates_ : list of str
+    n_dof_ : int
+    term_names_ : ndarray of str
+    fixed_term_ : str or None
+    case_ : str
+        ``"forces"`` (I), ``"fixed"`` (III) or ``"acceleration"`` (II).
+    n_iter_ : int
+        FISTA iterations over all stages.
+    stages_ : list of lagsindy.solvers.Stage
+        The sparsification path.
+    residual_ : float
+        Relative residual of the final fit.
+    n_features_in_ : int
+    feature_names_in_ : ndarray of str
+        Only when X was a DataFrame.
+
+    See Also
+    --------
+    CandidateLibrary : candidate terms.
+    MechanicalModel : equations of motion and simulation.
+
+    References
+    ----------
+    A. Purnomo and M. Hayashibe, "Sparse identification of Lagrangian for nonlinear
+    dynamical systems via proximal gradient method", 2023.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from lagsindy import LagrangianSINDy, CandidateLibrary
+    >>> from lagsindy.systems import single_pendulum, make_dataset
+    >>> data = make_dataset(single_pendulum(), n_trajectories=5, duration=2.0,
+    ...                     excitation="paper", random_state=0)
+    >>> est = LagrangianSINDy(single_pendulum().paper_library()).fit(data.X, data.tau)
+    >>> print(est.equation(precision=3))
+    L = 0.5*theta_dot**2 + 9.81*cos(theta)
+    """
+
+    _parameter_constraints: dict = {
+        "library": [HasMethods(["build", "get_feature_names_out"]), None],
+        "lam": [Interval(Real, 0, None, closed="left")],
+        "alpha": [Interval(Real, 0, None, closed="neither"), None],
+        "threshold": [Interval(Real, 0, 1, closed="left")],
+        "lam_decay": [Interval(Real, 1, None, closed="left")],
+        "step_growth": [Interval(Real, 0, None, closed="neither")],
+        "max_stages": [Interval(Integral, 1, None, closed="left")],
+        "max_iter": [Interval(Integral, 1, None, closed="left")],
+        "tol": [Interval(Real, 0, None, closed="left")],
+        "solver_tol": [Interval(Real, 0, None, closed="neither")],
+        "fixed_term": [str, sp.Basic, None],
+        "unpenalized": ["array-like", None],
+        "case": [StrOptions(_CASES)],
+        "normalize": ["boolean"],
+        "debias": ["boolean"],
+        "device": [str, torch.device],
+        "dtype": [StrOptions({"float64", "float32"})],
+        "random_state": ["random_state"],
+        "verbose": ["verbose"],
+    }
+
+    def __init__(
+        self,
+        library=None,
+        *,
+        lam=1e-3,
+        alpha=None,
+        threshold=0.05,
+        lam_decay=10.0,
+        step_growth=2.0,
+        max_stages=5,
+        max_iter=20_000,
+        tol=1e-3,
+        solver_tol=1e-7,
+        fixed_term=None,
+        unpenalized=None,
+        case="auto",
+        normalize=True,
+        debias=True,
+        device="cpu",
+        dtype="float64",
+        random_state=None,
+        verbose=0,
+    ):
+        self.library = library
+        self.lam = lam
+        self.alpha = alpha
+        self.threshold = threshold
+        self.lam_decay = lam_decay
+        self.step_growth = step_growth
+        self.max_stages = max_stages
+        self.max_iter = max_iter
+        self.tol = tol
+        self.solver_tol = solver_tol
+        self.fixed_term = fixed_term
+        self.unpenalized = unpenalized
+        self.case = case
+        self.normalize = normalize
+        self.debias = debias
+        self.device = device
+        self.dtype = dtype
+        self.random_state = random_state
+        self.verbose = verbose
+
+    def __sklearn_tags__(self):
+        tags = super().__sklearn_tags__()
+        tags.target_tags.required = False
+        tags.target_tags.multi_output = True
+        tags.target_tags.single_output = True
+        return tags
+
+    # ------------------------------------------------------------------ input
+    def _check_X(self, X, *, reset: bool, y=None, coordinates=None):
+        """Validate X (and y) and return float64 arrays with columns [q, qd, qdd].
+
+        DataFrame columns are selected by name first, so ``feature_names_in_`` is in
+        the canonical order; then scikit-learn's ``validate_data`` gives its usual
+        messages (sparse, complex, empty, 1-D, too few samples), and the layout and
+        finiteness checks here name the offending column and row.
+        """
+        if val.is_frame(X):
+            if coordinates is None:
+                coordinates = val.coordinates_from_columns(X.columns)
+            X = val.select_state_columns(X, coordinates)
+        if not reset and coordinates is not None and len(np.shape(X)) == 2:
+            if np.shape(X)[1] != 3 * len(coordinates):
+                raise ValueError(val.n_features_message(np.shape(X)[1], len(coordinates)))
+        common = dict(dtype=np.float64, ensure_all_finite=False, reset=reset,
+                      ensure_min_samples=2 if reset else 1)
+        if y is None:
+            Xa = validate_data(self, X, **common)
+            ya = None
+        else:
+            try:
+                Xa, ya = validate_data(self, X, y, multi_output=True, y_numeric=True, **common)
+            except ValueError as exc:
+                if "could not convert" in str(exc) or "dtype" in str(exc):
+                    raise ValueError(
+                        f"X or tau could not be converted to floating point numbers ({exc}); "
+                        "pass numeric data"
+                    ) from None
+                raise
+        if coordinates is None:
+            if Xa.shape[1] % 3:
+                raise ValueError(val.n_features_message(Xa.shape[1], None))
+            coordinates = [f"q{i}" for i in range(Xa.shape[1] // 3)]
+        n_dof = len(coordinates)
+        if Xa.shape[1] != 3 * n_dof:
+            raise ValueError(val.n_features_message(Xa.shape[1], n_dof))
+        val.check_finite(Xa, state_names(coordinates), "X")
+        if ya is not None:
+            ya = self._check_tau(ya, Xa.shape[0], n_dof)
+        return np.asarray(Xa, dtype=np.float64), ya, list(coordinates)
+
+    def _check_tau(self, tau, n_samples, n_dof):
+        arr = val.as_float_array(tau, "tau")
+        if arr.ndim == 1:
+            if n_dof != 1:
+                raise ValueError(
+                    f"tau must have shape (n_samples, n_dof={n_dof}), got a 1-D array; "
+                    "give one generalized force column per coordinate (zeros where "
+                    "nothing drives it)"
+                )
+            arr = arr[:, None]
+        if arr.ndim != 2 or arr.shape[1] != n_dof:
+            raise ValueError(
+                f"tau must have shape (n_samples, n_dof={n_dof}), got {arr.shape}"
+            )
+        if arr.shape[0] != n_samples:
+            raise ValueError(
+                f"X and tau have different numbers of rows: {n_samples} and {arr.shape[0]}"
+            )
+        val.check_finite(arr, [f"tau[{i}]" for i in range(n_dof)], "tau")
+        return arr
+
+    # ------------------------------------------------------------------ fit
+    @_fit_context(prefer_skip_nested_validation=True)
+    def fit(self, X, y=None):
+        """Fit the Lagrangian to trajectories.
+
+        Parameters
+        ----------
+        X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+            Rows ``[q..., q_dot..., q_ddot...]``. DataFrame columns are matched by
+            name (``theta``, ``theta_dot``, ``theta_ddot``).
+        y : array-like of shape (n_samples, n_dof) or (n_samples,), default=None
+            Generalized forces tau (case I). ``None`` for passive data.
+
+        Returns
+        -------
+        self : LagrangianSINDy
+        """
+        device = resolve_device(self.device)
+        dtype = resolve_dtype(self.dtype)
+        library = clone(self.library) if self.library is not None else None
+        lib_coords = None if library is None else library.coordinates
+        if isinstance(lib_coords, str):
+            lib_coords = [lib_coords]
+        Xa, tau, coordinates = self._check_X(X, reset=True, y=y, coordinates=lib_coords)
+        if library is None:
+            library = CandidateLibrary.polynomial(
+                coordinates, angles="all", degree=2, raw_angles=True
+            )
+        elif library.coordinates is None:
+            library.set_params(coordinates=coordinates)
+        library.build()
+        self.library_ = library
+        self.coordinates_ = list(library.coordinates_)
+        self.n_dof_ = len(self.coordinates_)
+        self._y_1d = tau is not None and np.asarray(y).ndim == 1
+        self.term_names_ = library.get_feature_names_out()
+        n_terms = len(library.terms_)
+        if Xa.shape[0] * self.n_dof_ < n_terms:
+            raise ValueError(
+                f"too few samples: {Xa.shape[0]} sample(s) x {self.n_dof_} coordinate(s) "
+                f"give {Xa.shape[0] * self.n_dof_} equations for {n_terms} candidate "
+                "terms; record more data or use a smaller library"
+            )
+        case = self._resolve_case(tau)
+        operator = EulerLagrangeOperator(
+            self.coordinates_, library.terms_, dtype=dtype, device=device
+        )
+        Xt = to_tensor(Xa, dtype=dtype, device=device)
+        tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
+        gram = operator.gram(Xt, tau_t)
+        balanced = BalancedGram(gram, Xa.shape[0], n_terms, normalize=self.normalize)
+        identifiable = balanced.identifiable().cpu().numpy()
+        if not identifiable.any():
+            raise ValueError(
+                "no candidate term varies on the data (every Euler-Lagrange column is "
+                "zero): the velocities and accelerations may all be zero; record motion"
+            )
+        penalty = np.ones(n_terms)
+        for term in self.unpenalized or []:
+            penalty[library.index(term)] = 0.0
+
+        if case == "forces":
+            if balanced.target_scale(n_terms) <= 0:
+                raise ValueError(
+                    "tau is identically zero: for passive data call fit(X) without tau "
+                    "(case III or case='acceleration')"
+                )
+            free = np.flatnonzero(identifiable)
+            coef, result = self._solve(balanced, free, n_terms, 1.0, penalty, 0.0, self.verbose)
+            fixed = None
+            _warn_if_not_identifiable(balanced, free, self.term_names_, allowed=0)
+        elif case == "fixed":
+            coef, result, fixed = self._fit_fixed(balanced, identifiable, penalty, Xt)
+            _warn_if_not_identifiable(
+                balanced, np.flatnonzero(identifiable), self.term_names_, allowed=1
+            )
+        else:  # pragma: no cover - implemented with case II
+            raise NotImplementedError("case='acceleration' is not available yet")
+
+        self.case_ = case
+        self.fixed_term_ = None if fixed is None else str(library.terms_[fixed])
+        self.coef_ = coef
+        self.support_ = coef != 0
+        self.stages_ = result.stages
+        self.n_iter_ = result.n_iter
+        self.residual_ = result.cost
+        if not np.all(np.isfinite(coef)):
+            raise FloatingPointError(
+                "the fit produced non-finite coefficients; check the data scale"
+            )
+        warn_not_converged(result.stages, self.max_iter)
+        if not self.support_.any():
+            warnings.warn(
+                "every term was thresholded away: the learned Lagrangian is zero and "
+                "predicts zero forces. Lower lam or threshold.",
+                UserWarning,
+                stacklevel=2,
+            )
+        self._set_model()
+        self._support_operator(device, dtype)
+        return self
+
+    def _resolve_case(self, tau):
+        if self.case == "auto":
+            return "forces" if tau is not None else "fixed"
+        if self.case == "forces" and tau is None:
+            raise ValueError("case='forces' needs tau: call fit(X, tau)")
+        if self.case in ("fixed", "acceleration") and tau is not None:
+            raise ValueError(
+                f"case={self.case!r} is for passive data; call fit(X) without tau, or "
+                "use case='forces'"
+            )
+        return self.case
+
+    def _solve(self, balanced, free, target, sign, penalty, reference, verbose):
+        datafit, to_coef = balanced.problem(free, target, sign)
+        weights = torch.as_tensor(penalty[free], dtype=datafit.rhs.dtype, device=datafit.rhs.device)
+        result = staged_fista(
+            datafit,
+            lam=self.lam,
+            penalty_weights=weights,
+            threshold=self.threshold,
+            reference=reference,
+            lam_decay=self.lam_decay,
+            step_growth=self.step_growth,
+            alpha=self.alpha,
+            max_stages=self.max_stages,
+            max_iter=self.max_iter,
+            tol=self.tol,
+            solver_tol=self.solver_tol,
+            debias=self.debias,
+            verbose=verbose,
+        )
+        coef = np.zeros(balanced.n_features)
+        coef[free] = to_numpy(to_coef(result.coef))
+        # Stage records in coefficient units, over all terms.
+        scale = to_numpy(to_coef(torch.ones_like(result.coef)))
+        for st in result.stages:
+            full = np.zeros(balanced.n_features)
+            full[free] = st.coef * scale
+            st.coef = full
+            st.support = free[st.support]
+        return coef, result
+
+    def _fit_fixed(self, balanced, identifiable, penalty, Xt):
+        library = self.library_
+        n_terms = len(library.terms_)
+        if self.fixed_term is not None:
+            candidates = [library.index(self.fixed_term)]
+            if not identifiable[candidates[0]]:
+                raise ValueError(
+                    f"the fixed term {self.fixed_term!r} has a zero Euler-Lagrange column "
+                    "on this data, so it cannot set the scale; choose another term"
+                )
+        else:
+            candidates = list(np.flatnonzero(identifiable))
+        fits = []
+        for r in candidates:
+            free = np.array([k for k in np.flatnonzero(identifiable) if k != r])
+            verbose = self.verbose if len(candidates) == 1 else 0
+            with warnings.catch_warnings():
+                # Warnings of candidates that lose are noise; the winner's are re-raised.
+                warnings.simplefilter("ignore")
+                coef, result = self._solve(balanced, free, r, -1.0, penalty, 1.0, verbose)
+            coef[r] = 1.0
+            fits.append((r, coef, result))
+        if len(fits) == 1:
+            return fits[0][1], fits[0][2], fits[0][0]
+        # Rank by relative residual, then score the best few on accelerations.
+        fits.sort(key=lambda f: f[2].cost)
+        shortlist = fits[:_SELECTION_TOP]
+        rng = check_random_state(self.random_state)
+        n = Xt.shape[0]
+        rows = np.sort(rng.choice(n, size=min(n, _SELECTION_ROWS), replace=False))
+        Xs = Xt[torch.as_tensor(rows, device=Xt.device)]
+        best, best_score = None, -np.inf
+        for r, coef, result in shortlist:
+            score = self._acceleration_r2(coef, Xs, None)
+            if self.verbose:
+                print(
+                    f"[lagsindy] fixed term {library.terms_[r]}: {int((coef != 0).sum())} "
+                    f"terms, relative residual {result.cost:.3g}, acceleration R2 {score:.4f}"
+                )
+            # Prefer the higher score; among (near) ties the sparser model.
+            if best is None or score > best_score + 1e-9 or (
+                abs(score - best_score) <= 1e-9 and (coef != 0).sum() < (best[1] != 0).sum()
+            ):
+                best, best_score = (r, coef, result), score
+        r, coef, result = best
+        return coef, result, r
+
+    def _acceleration_r2(self, coef, Xt, tau_t):
+        support = np.flatnonzero(coef)
+        if support.size == 0:
+            return -np.inf
+        op = EulerLagrangeOperator(
+            self.coordinates_, [self.library_.terms_[k] for k in support],
+            dtype=Xt.dtype, device=Xt.device,
+        )
+        c = torch.as_tensor(coef[support], dtype=Xt.dtype, device=Xt.device)
+        qdd_pred = forward_accelerations(op, c, Xt, tau_t)
+        n = self.n_dof_
+        pred = to_numpy(qdd_pred)
+        true = to_numpy(Xt[:, 2 * n : 3 * n])
+        if not np.all(np.isfinite(pred)):
+            return -np.inf
+        return float(r2_score(true, pred, multioutput="variance_weighted"))
+
+    def _set_model(self):
+        terms = self.library_.terms_
+        lag = sp.Add(*[sp.Float(c) * t for c, t in zip(self.coef_, terms) if c != 0])
+        self.lagrangian_ = lag
+        self.model_ = MechanicalModel(lag, self.coordinates_, name="learned model")
+
+    # ------------------------------------------------------------------ predict
+    def _support_operator(self, device, dtype):
+        """Compiled Euler-Lagrange operator of the support (cached, never pickled)."""
+        key = (str(device), str(dtype))
+        cache = self.__dict__.get("_operator_cache")
+        if cache is None or cache[0] != key:
+            support = np.flatnonzero(self.coef_)
+            op = EulerLagrangeOperator(
+                self.coordinates_, [self.library_.terms_[k] for k in support],
+                dtype=dtype, device=device,
+            )
+            coef = torch.as_tensor(self.coef_[support], dtype=dtype, device=device)
+            cache = (key, op, coef)
+            self._operator_cache = cache
+        return cache[1], cache[2]
+
+    def _prepare_predict(self, X):
+        check_is_fitted(self)
+        Xa, _, _ = self._check_X(X, reset=False, coordinates=self.coordinates_)
+        device = resolve_device(self.device)
+        dtype = resolve_dtype(self.dtype)
+        return Xa, to_tensor(Xa, dtype=dtype, device=device)
+
+    def _accelerations(self, Xt, tau):
+        op, coef = self._support_operator(Xt.device, Xt.dtype)
+        if coef.numel() == 0:
+            return np.zeros((Xt.shape[0], self.n_dof_))
+        tau_t = None if tau is None else to_tensor(tau, dtype=Xt.dtype, device=Xt.device)
+        return to_numpy(forward_accelerations(op, coef, Xt, tau_t))
+
+    def predict(self, X):
+        """Generalized forces implied by the learned model (inverse dynamics).
+
+        Parameters
+        ----------
+        X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+
+        Returns
+        -------
+        ndarray of shape (n_samples, n_dof), or (n_samples,) when the model was fit
+        with a 1-D tau.
+        """
+        Xa, Xt = self._prepare_predict(X)
+        op, coef = self._support_operator(Xt.device, Xt.dtype)
+        if coef.numel() == 0:
+            out = np.zeros((Xa.shape[0], self.n_dof_))
+        else:
+            out = to_numpy(op.columns(Xt) @ coef)
+        return out[:, 0] if self._y_1d else out
+
+    def predict_acceleration(self, X, tau=None):
+        """Accelerations predicted by the learned model's forward dynamics.
+
+        ``qdd = M(c)^+ (tau - h(c))`` with the pseudo-inverse of the learned mass
+        matrix (paper eq. 10); the measured accelerations in ``X`` are not used.
+
+        Parameters
+        ----------
+        X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+        tau : array-like of shape (n_samples, n_dof), default=None
+            Generalized forces; ``None`` for passive data.
+
+        Returns
+        -------
+        ndarray of shape (n_samples, n_dof)
+        """
+        Xa, Xt = self._prepare_predict(X)
+        tau = None if tau is None else self._check_tau(tau, Xa.shape[0], self.n_dof_)
+        return self._accelerations(Xt, tau)
+
+    def score(self, X, y=None, sample_weight=None):
+        """R^2 of the model: of forces when ``y`` (tau) is given, else of accelerations.
+
+        With ``y``: :math:`R^2` of :meth:`predict` against ``y``. Without: passive
+        data, whose true forces are all zero, so the :math:`R^2` of the accelerations
+        from :meth:`predict_acceleration` against the measured ``qddot`` in ``X`` is
+        used (invariant to the Lagrangian's scale, so it ranks case III models).
+        Outputs are variance weighted, so a coordinate that is never driven (zero
+        force) does not count.
+
+        Parameters
+        ----------
+        X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+        y : array-like of shape (n_samples, n_dof), default=None
+        sample_weight : array-like of shape (n_samples,), default=None
+
+        Returns
+        -------
+        float
+        """
+        if y is None:
+            Xa, Xt = self._prepare_predict(X)
+            n = self.n_dof_
+            pred = self._accelerations(Xt, None)
+            return float(
+                r2_score(Xa[:, 2 * n : 3 * n], pred, sample_weight=sample_weight,
+                         multioutput="variance_weighted")
+            )
+        pred = self.predict(X)
+        y = np.asarray(y, dtype=float).reshape(np.shape(pred))
+        return float(r2_score(y, pred, sample_weight=sample_weight, multioutput="variance_weighted"))
+
+    # ------------------------------------------------------------------ model
+    def simulate(self, x0, t, tau=None, **kwargs):
+        """Integrate the learned equations of motion (see :meth:`MechanicalModel.simulate`)."""
+        check_is_fitted(self)
+        return self.model_.simulate(x0, t, tau, **kwargs)
+
+    def equation(self, precision: int = 4) -> str:
+        """The learned Lagrangian as readable text, e.g. ``L = 0.5*theta_dot**2 + ...``."""
+        check_is_fitted(self)
+        return self.model_.equation(precision)
+
+    def __getstate__(self):
+        state = super().__getstate__()
+        state.pop("_operator_cache", None)
+        return state
+
+
+def _warn_if_not_identifiable(balanced, free, names, *, allowed):
+    """Warn when the data leave more than ``allowed`` exact null combinations of terms.
+
+    In case I a null combination of Euler-Lagrange columns means the data cannot
+    tell those terms apart (e.g. a constant input is indistinguishable from a linear
+    potential); in case III one null combination is expected (the Lagrangian itself).
+    """
+    if len(free) < 2:
+        return
+    idx = torch.as_tensor(free, device=balanced.gram.device)
+    s = balanced.col_scale[idx]
+    g = balanced.gram[idx][:, idx] / (s[:, None] * s[None, :])
+    evals, evecs = torch.linalg.eigh(g)
+    tiny = evals <= _NULL_RCOND * evals[-1]
+    n_null = int(tiny.sum())
+    if n_null <= allowed:
+        return
+    v = to_numpy(evecs[:, n_null - 1 - allowed] if allowed else evecs[:, 0])
+    order = np.argsort(-np.abs(v))
+    parts = [f"{v[k]:+.3g}*[{names[free[k]]}]" for k in order[:6] if abs(v[k]) > 1e-3]
+    warnings.warn(
+        f"the data do not determine the Lagrangian uniquely: {n_null - allowed} "
+        "combination(s) of candidate terms have (near) zero Euler-Lagrange residual on "
+        f"these trajectories, e.g. {' '.join(parts)} (scaled units). Excite the system "
+        "differently (a constant input cannot be told from a linear potential), add "
+        "trajectories, or remove terms from the library.",
+        IdentifiabilityWarning,
+        stacklevel=3,
+    )

@@ -1,0 +1,406 @@
+"""Candidate libraries of Lagrangian terms.
+
+A :class:`CandidateLibrary` is a parameter object (scikit-learn style: its constructor
+only stores parameters, so ``LagrangianSINDy(library=...)`` can be cloned and grid
+searched through ``library__degree``). Building it produces sympy terms over the named
+coordinates, with two reductions that make the sparse answer unique:
+
+* trivial terms, whose Euler-Lagrange expression vanishes identically (``qdot``,
+  ``q*qdot``, ``qdot*sin(q)``: total time derivatives), are removed;
+* terms whose Euler-Lagrange column is a linear combination of earlier terms' columns
+  (``sin(q)**2`` once ``cos(q)**2`` is in: their sum is a constant) are removed and
+  reported with the combination, keeping the earlier term as the representative.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import sympy as sp
+from sklearn.base import BaseEstimator
+
+from ._expr import canonical, check_coordinate_names, compile_torch, symbols_for
+
+_KINDS = ("polynomial", "separated")
+TRIVIAL_REASON = "trivial: its Euler-Lagrange expression is identically zero"
+DEPENDENCE_TOL = 1e-7
+
+
+def euler_lagrange_expressions(term: sp.Expr, coordinates: Sequence[str]) -> list:
+    """Symbolic Euler-Lagrange expression of one term, one entry per coordinate.
+
+    ``d/dt (d term / d qdot_i) - d term / d q_i`` with the time derivative expanded by
+    the chain rule (it contains the ``*_ddot`` symbols).
+    """
+    q, qd, qdd = symbols_for(coordinates)
+    out = []
+    for i in range(len(q)):
+        p_i = sp.diff(term, qd[i])
+        dt = sum(sp.diff(p_i, q[j]) * qd[j] + sp.diff(p_i, qd[j]) * qdd[j] for j in range(len(q)))
+        out.append(sp.expand(dt - sp.diff(term, q[i])))
+    return out
+
+
+def _monomials(base: Sequence[sp.Expr], degree: int) -> list[sp.Expr]:
+    out = []
+    for d in range(1, degree + 1):
+        for combo in itertools.combinations_with_replacement(base, d):
+            out.append(sp.Mul(*combo))
+    return out
+
+
+class CandidateLibrary(BaseEstimator):
+    """A library of candidate Lagrangian terms over named coordinates.
+
+    Use the builders :meth:`polynomial`, :meth:`separated` and :meth:`from_terms`
+    rather than setting ``kind`` by hand.
+
+    Parameters
+    ----------
+    coordinates : list of str, default=None
+        Coordinate names, e.g. ``["x", "theta"]``; velocities are ``x_dot``,
+        ``theta_dot``. ``None`` lets :class:`~lagsindy.LagrangianSINDy` fill them in
+        from the data at fit time.
+    terms : list of str or sympy.Expr, default=None
+        Extra candidate terms (strings are parsed safely, without ``eval``), added
+        after the generated ones.
+    kind : {"polynomial", "separated"} or None, default=None
+        Generated part of the library. ``"polynomial"``: all monomials of degree
+        1..``degree`` over the base set (per coordinate: the coordinate itself unless
+        it is an angle, its velocity, and ``sin``/``cos`` of angles). ``"separated"``:
+        the paper's construction for the double and spherical pendulum, with the
+        trigonometric set ``{sin q, cos q}`` of the angles and the non-trigonometric
+        set ``{q (non-angles), qdot}`` each expanded to ``degree`` and all cross
+        products of the two added. ``None``: only ``terms``.
+    degree : int, default=2
+        Polynomial degree of the generated part.
+    angles : list of str or "all", default=None
+        Coordinates that get ``sin``/``cos`` functions. ``None``: no angles.
+    raw_angles : bool, default=False
+        Also use the angles themselves as polynomial variables (the paper's single
+        pendulum library does; the others do not).
+    remove_trivial : bool, default=True
+        Drop terms whose Euler-Lagrange expression is identically zero.
+    remove_dependent : bool, default=True
+        Drop terms whose Euler-Lagrange column is a linear combination of earlier
+        terms' columns, recording the combination in ``removed_``.
+
+    Attributes
+    ----------
+    terms_ : list of sympy.Expr
+        Candidate terms after the reductions (available after :meth:`build`; the
+        methods below build on demand).
+    candidates_ : list of sympy.Expr
+        All generated and given terms before the reductions.
+    removed_ : list of tuple (str, str)
+        ``(term, reason)`` for every removed candidate.
+
+    Examples
+    --------
+    >>> from lagsindy import CandidateLibrary
+    >>> lib = CandidateLibrary.polynomial(["theta"], angles=["theta"], degree=2,
+    ...                                   raw_angles=True)
+    >>> len(lib.candidates_), len(lib)
+    (14, 11)
+    >>> lib.removed_[0]
+    ('theta_dot', 'trivial: its Euler-Lagrange expression is identically zero')
+    """
+
+    def __init__(
+        self,
+        coordinates=None,
+        terms=None,
+        *,
+        kind=None,
+        degree=2,
+        angles=None,
+        raw_angles=False,
+        remove_trivial=True,
+        remove_dependent=True,
+    ):
+        self.coordinates = coordinates
+        self.terms = terms
+        self.kind = kind
+        self.degree = degree
+        self.angles = angles
+        self.raw_angles = raw_angles
+        self.remove_trivial = remove_trivial
+        self.remove_dependent = remove_dependent
+
+    # ------------------------------------------------------------------ builders
+    @classmethod
+    def polynomial(cls, coordinates=None, angles=None, degree=2, *, raw_angles=False, **kwargs):
+        """All monomials of degree 1..``degree`` over ``{q, qdot, sin q, cos q}``.
+
+        Angles contribute ``sin``/``cos`` (and themselves only if ``raw_angles``);
+        other coordinates contribute themselves. Velocities always enter.
+        The paper's single pendulum library is
+        ``polynomial(["theta"], angles=["theta"], degree=2, raw_angles=True)``
+        (14 monomials, 12 after removing the trivial ``theta_dot`` and
+        ``theta*theta_dot``), its cart-pendulum library
+        ``polynomial(["x", "theta"], angles=["theta"], degree=3)`` (55 monomials).
+        """
+        return cls(coordinates, kind="polynomial", degree=degree, angles=angles,
+                   raw_angles=raw_angles, **kwargs)
+
+    @classmethod
+    def separated(cls, coordinates=None, angles=None, degree=2, *, raw_angles=False, **kwargs):
+        """Trigonometric and non-trigonometric sets expanded separately, plus cross terms.
+
+        The paper's double pendulum library is
+        ``separated(["theta1", "theta2"], angles="all", degree=2)`` (14 + 5 + 70 = 89
+        candidates), its spherical pendulum library
+        ``separated(["theta", "phi"], angles=["theta"], degree=2)`` (5 + 9 + 45 = 59).
+        """
+        return cls(coordinates, kind="separated", degree=degree, angles=angles,
+                   raw_angles=raw_angles, **kwargs)
+
+    @classmethod
+    def from_terms(cls, coordinates, terms, **kwargs):
+        """A library of the given terms only (strings or sympy expressions)."""
+        return cls(coordinates, list(terms), kind=None, **kwargs)
+
+    # ------------------------------------------------------------------ building
+    def _angle_names(self, names):
+        if self.angles is None:
+            return []
+        if isinstance(self.angles, str):
+            if self.angles == "all":
+                return list(names)
+            angles = [self.angles]
+        else:
+            angles = list(self.angles)
+        unknown = [a for a in angles if a not in names]
+        if unknown:
+            raise ValueError(
+                f"angles {unknown} are not among the coordinates {names}; "
+                "list angles by coordinate name"
+            )
+        return angles
+
+    def _generate(self, names):
+        if self.kind is None:
+            return []
+        if self.kind not in _KINDS:
+            raise ValueError(f"kind must be one of {_KINDS} or None, got {self.kind!r}")
+        if not isinstance(self.degree, (int, np.integer)) or self.degree < 1:
+            raise ValueError(f"degree must be a positive integer, got {self.degree!r}")
+        angles = self._angle_names(names)
+        q, qd, _ = symbols_for(names)
+        raw = [q[i] for i, n in enumerate(names) if n not in angles or self.raw_angles]
+        trig = [f(q[i]) for i, n in enumerate(names) if n in angles for f in (sp.sin, sp.cos)]
+        if self.kind == "polynomial":
+            base = []
+            for i, n in enumerate(names):
+                if n not in angles or self.raw_angles:
+                    base.append(q[i])
+            base += list(qd)
+            base += trig
+            return _monomials(base, self.degree)
+        poly = _monomials(raw + list(qd), self.degree)
+        trig_monomials = _monomials(trig, self.degree) if trig else []
+        cross = [t * p for t in trig_monomials for p in poly]
+        return poly + trig_monomials + cross
+
+    def _params_key(self):
+        params = self.get_params(deep=False)
+        return repr(sorted((k, repr(v)) for k, v in params.items()))
+
+    def build(self):
+        """Generate, parse and reduce the candidate terms; returns ``self``."""
+        if self.coordinates is None:
+            raise ValueError(
+                "the library has no coordinates; pass coordinates=[...] or let "
+                "LagrangianSINDy fill them in from the data"
+            )
+        names = check_coordinate_names(
+            [self.coordinates] if isinstance(self.coordinates, str) else self.coordinates
+        )
+        candidates = self._generate(names)
+        for term in self.terms or []:
+            candidates.append(canonical(term, names))
+        unique, seen = [], set()
+        for c in candidates:
+            c = sp.sympify(c)
+            if c.is_number:
+                continue  # constants are trivial and carry no information
+            if c not in seen:
+                seen.add(c)
+                unique.append(c)
+        if not unique:
+            raise ValueError("the library is empty: give kind='polynomial' or terms=[...]")
+        kept, removed = _reduce(unique, names, self.remove_trivial, self.remove_dependent)
+        kept, removed = list(kept), list(removed)
+        if not kept:
+            raise ValueError(
+                "every candidate term is trivial (its Euler-Lagrange expression is zero); "
+                f"removed: {removed}"
+            )
+        self.coordinates_ = names
+        self.candidates_ = unique
+        self.terms_ = kept
+        self.removed_ = removed
+        self._built_key = self._params_key()
+        self._compiled = None
+        return self
+
+    def _ensure_built(self):
+        if getattr(self, "_built_key", None) != self._params_key():
+            self.build()
+        return self
+
+    def __getattr__(self, name):
+        # Build lazily on first access of a built attribute.
+        if name in ("terms_", "candidates_", "removed_", "coordinates_"):
+            self.build()
+            return self.__dict__[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def __len__(self) -> int:
+        return len(self._ensure_built().terms_)
+
+    def get_feature_names_out(self, input_features=None) -> np.ndarray:
+        """Names of the candidate terms, as strings (sympy's ``str``)."""
+        return np.asarray([str(t) for t in self._ensure_built().terms_], dtype=object)
+
+    def euler_lagrange(self) -> list[list[sp.Expr]]:
+        """Symbolic Euler-Lagrange expressions, ``[term][coordinate]``."""
+        self._ensure_built()
+        return [euler_lagrange_expressions(t, self.coordinates_) for t in self.terms_]
+
+    def to_torch(self):
+        """Compile the terms into ``f(q, qd) -> Tensor (n_terms,)`` for one sample."""
+        self._ensure_built()
+        if self.__dict__.get("_compiled") is None:
+            q, qd, _ = symbols_for(self.coordinates_)
+            self._compiled = compile_torch(self.terms_, (q, qd))
+        return self._compiled
+
+    def index(self, term) -> int:
+        """Position of ``term`` (string or sympy) among the kept terms.
+
+        Raises ``ValueError`` naming the closest reason when the term is not there
+        (never generated, or removed as trivial or dependent).
+        """
+        self._ensure_built()
+        expr = canonical(term, self.coordinates_)
+        for k, t in enumerate(self.terms_):
+            if t == expr or sp.expand(t - expr) == 0:
+                return k
+        for name, reason in self.removed_:
+            if name == str(expr):
+                raise ValueError(f"term {str(expr)!r} is not in the library: {reason}")
+        raise ValueError(
+            f"term {str(expr)!r} is not in the library; its terms are "
+            f"{[str(t) for t in self.terms_][:12]}{' ...' if len(self.terms_) > 12 else ''}"
+        )
+
+    def decompose(self, lagrangian) -> tuple[np.ndarray, float]:
+        """Express a Lagrangian in this library's terms (up to trivial terms).
+
+        Solves ``EL(lagrangian) = sum_k c_k EL(term_k)`` in least squares over random
+        points, so an equivalent Lagrangian written with other representatives
+        (``1 - cos(q)**2`` for ``sin(q)**2``, added constants, total derivatives) maps
+        to the library's own coefficients.
+
+        Returns
+        -------
+        coef : ndarray of shape (n_terms,)
+        residual : float
+            Relative residual; near zero when the library can represent the Lagrangian.
+        """
+        self._ensure_built()
+        expr = canonical(lagrangian, self.coordinates_)
+        rng = np.random.default_rng(12345)
+        a = _el_matrix(self.terms_ + [expr], self.coordinates_, rng, n_points=None)
+        coef, *_ = np.linalg.lstsq(a[:, :-1], a[:, -1], rcond=None)
+        resid = np.linalg.norm(a[:, :-1] @ coef - a[:, -1]) / max(np.linalg.norm(a[:, -1]), 1e-300)
+        coef[np.abs(coef) < 1e-10 * max(1.0, np.abs(coef).max(initial=0))] = 0.0
+        return coef, float(resid)
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state.pop("_compiled", None)
+        return state
+
+    def __repr__(self, N_CHAR_MAX=700):
+        return super().__repr__(N_CHAR_MAX=N_CHAR_MAX)
+
+
+def _el_matrix(terms, coordinates, rng, n_points=None, expressions=None):
+    """Euler-Lagrange columns of ``terms`` at random states: shape (n_points*n_dof, n)."""
+    q, qd, qdd = symbols_for(coordinates)
+    n_dof = len(coordinates)
+    if n_points is None:
+        n_points = int(math.ceil(3 * len(terms) / n_dof)) + 24
+    values = np.concatenate(
+        [
+            rng.uniform(-math.pi, math.pi, (n_points, n_dof)),
+            rng.uniform(-2.0, 2.0, (n_points, n_dof)),
+            rng.uniform(-2.0, 2.0, (n_points, n_dof)),
+        ],
+        axis=1,
+    ).T
+    if expressions is None:
+        expressions = [euler_lagrange_expressions(t, coordinates) for t in terms]
+    flat = [e for exprs in expressions for e in exprs]
+    f = sp.lambdify(list(q) + list(qd) + list(qdd), flat, modules="numpy")
+    with np.errstate(all="ignore"):
+        out = f(*values)
+    cols = np.stack(
+        [np.broadcast_to(np.asarray(v, dtype=float), (n_points,)) for v in out], axis=1
+    )  # (n_points, n_terms * n_dof)
+    return cols.reshape(n_points, len(terms), n_dof).transpose(0, 2, 1).reshape(-1, len(terms))
+
+
+def _reduce(candidates, coordinates, remove_trivial, remove_dependent):
+    """Remove trivial and linearly dependent candidates (in order)."""
+    return _reduce_cached(tuple(candidates), tuple(coordinates), bool(remove_trivial),
+                          bool(remove_dependent))
+
+
+@functools.lru_cache(maxsize=64)
+def _reduce_cached(candidates, coordinates, remove_trivial, remove_dependent):
+    candidates = list(candidates)
+    if not (remove_trivial or remove_dependent):
+        return list(candidates), []
+    expressions = [euler_lagrange_expressions(t, coordinates) for t in candidates]
+    symbolic_zero = [all(e == 0 for e in exprs) for exprs in expressions]
+    a = _el_matrix(candidates, coordinates, np.random.default_rng(0), expressions=expressions)
+    a = a[np.all(np.isfinite(a), axis=1)]
+    norms = np.linalg.norm(a, axis=0)
+    zero_tol = 1e-12 * max(norms.max(initial=0.0), 1e-300)
+    kept_idx, removed = [], []
+    basis = np.zeros((a.shape[0], 0))
+    for k, term in enumerate(candidates):
+        col, norm = a[:, k], norms[k]
+        if symbolic_zero[k] or norm <= zero_tol:
+            if remove_trivial:
+                removed.append((str(term), TRIVIAL_REASON))
+                continue
+            kept_idx.append(k)
+            continue
+        unit = col / norm
+        r = unit - basis @ (basis.T @ unit)
+        r = r - basis @ (basis.T @ r)
+        rn = np.linalg.norm(r)
+        if remove_dependent and rn < DEPENDENCE_TOL:
+            coef, *_ = np.linalg.lstsq(a[:, kept_idx], col, rcond=None)
+            big = max(1.0, np.abs(coef).max(initial=0.0))
+            parts = [
+                f"{c:+.6g}*[{candidates[j]}]"
+                for c, j in zip(coef, kept_idx)
+                if abs(c) > 1e-8 * big
+            ]
+            removed.append(
+                (str(term), "dependent: its Euler-Lagrange column equals " + " ".join(parts))
+            )
+            continue
+        if rn > 1e-12:
+            basis = np.concatenate([basis, (r / rn)[:, None]], axis=1)
+        kept_idx.append(k)
+    return [candidates[k] for k in kept_idx], removed
