@@ -29,6 +29,9 @@ from ._expr import canonical, check_coordinate_names, symbols_for
 # A mass matrix whose eigenvalues differ in sign, or whose smallest magnitude
 # eigenvalue is below this fraction of the largest, is treated as singular.
 MASS_MATRIX_RCOND = 1e-10
+# After a failed integration, a mass matrix whose smallest eigenvalue fell below this
+# fraction of its initial size is named as the cause.
+NEAR_SINGULAR = 1e-3
 
 
 class SingularMassMatrixError(ValueError):
@@ -255,9 +258,16 @@ class MechanicalModel:
         self._check_mass(mass, q, qd, t)
         return np.linalg.solve(mass, rhs[..., None])[..., 0]
 
-    def _check_mass(self, mass, q, qd, t=None):
+    def _check_mass(self, mass, q, qd, t=None, reference=None):
+        """Raise where ``mass`` is indefinite or (relative to ``reference``) singular.
+
+        ``reference`` is a typical eigenvalue magnitude per sample (e.g. at the start of
+        a simulation); without it only the spread within each matrix is used.
+        """
         eig = np.linalg.eigvalsh(mass)
         big = np.abs(eig).max(axis=1)
+        if reference is not None:
+            big = np.maximum(big, reference)
         bad = ~(
             (np.all(eig > MASS_MATRIX_RCOND * big[:, None], axis=1)
              | np.all(eig < -MASS_MATRIX_RCOND * big[:, None], axis=1))
@@ -372,16 +382,22 @@ class MechanicalModel:
         u_fn = self._input_function(tau, t, batch)
         b_mat = self.input_matrix
         rows = 1 if batch is None else batch
+        x_start = x0.reshape(rows, 2 * n)
+        start_mass, _ = self._mass_and_rest(x_start[:, :n], x_start[:, n:])
+        self._check_mass(start_mass, x_start[:, :n], x_start[:, n:], t[0])
+        reference = np.abs(np.linalg.eigvalsh(start_mass)).max(axis=1)
+        last = {}
 
         def rhs(tt, y):
             x = y.reshape(rows, 2 * n)
             q, qd = x[:, :n], x[:, n:]
+            last["t"], last["x"] = tt, x.copy()
             mass, rest = self._mass_and_rest(q, qd)
             force = -rest
             if u_fn is not None:
                 u = np.asarray(u_fn(tt, x[0] if batch is None else x), dtype=float)
                 force = force + np.reshape(u, (rows, -1)) @ b_mat.T
-            self._check_mass(mass, q, qd, tt)
+            self._check_mass(mass, q, qd, tt, reference)
             qdd = np.linalg.solve(mass, force[..., None])[..., 0]
             return np.concatenate([qd, qdd], axis=1).ravel()
 
@@ -392,9 +408,33 @@ class MechanicalModel:
             atol=atol, max_step=max_step,
         )
         if sol.status != 0:
-            raise RuntimeError(f"integration of {self.name} failed: {sol.message}")
+            self._diagnose_failure(last, reference, sol.message)
         states = sol.y.T.reshape(t.size, rows, 2 * n)
         return states[:, 0] if batch is None else states.transpose(1, 0, 2)
+
+    def _diagnose_failure(self, last, reference, message):
+        """After a failed integration: blame a nearly singular mass matrix if there is one."""
+        n = self.n_dof
+        if "x" in last:
+            x = last["x"]
+            mass, _ = self._mass_and_rest(x[:, :n], x[:, n:])
+            small = np.abs(np.linalg.eigvalsh(mass)).min(axis=1) / np.maximum(reference, 1e-300)
+            i = int(np.argmin(small))
+            if small[i] < NEAR_SINGULAR:
+                state = ", ".join(
+                    f"{nm}={a:.6g}, {nm}_dot={b:.6g}"
+                    for nm, a, b in zip(self.coordinates, x[i, :n], x[i, n:])
+                )
+                raise SingularMassMatrixError(
+                    f"the mass matrix of {self.name} became nearly singular at "
+                    f"t={last['t']:.6g} (trajectory {i}: {state}; smallest eigenvalue "
+                    f"{small[i]:.2g} of its value at the start), so the accelerations blow "
+                    f"up and the integrator stopped ({message}). The Lagrangian is not a "
+                    "valid mechanical model there.",
+                    t=float(last["t"]), q=x[i, :n].copy(), qd=x[i, n:].copy(),
+                    eigenvalues=np.linalg.eigvalsh(mass[i]),
+                )
+        raise RuntimeError(f"integration of {self.name} failed: {message}")
 
     def trajectory_to_X(self, states, tau=None) -> np.ndarray:
         """``[q, qdot, qddot]`` rows from simulated states, with exact accelerations.

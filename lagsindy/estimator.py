@@ -23,9 +23,13 @@ from . import _validation as val
 from ._expr import canonical, state_names
 from ._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
 from .dynamics import MechanicalModel
-from .euler_lagrange import EulerLagrangeOperator, forward_accelerations
+from .euler_lagrange import (
+    EulerLagrangeOperator,
+    forward_accelerations,
+    lagrangian_components,
+)
 from .library import CandidateLibrary
-from .solvers import BalancedGram, staged_fista, warn_not_converged
+from .solvers import AccelerationDatafit, BalancedGram, staged_fista, warn_not_converged
 
 _CASES = {"auto", "forces", "fixed", "acceleration"}
 # Eigenvalue ratio of the scaled Gram matrix below which a combination of terms is
@@ -38,6 +42,8 @@ class IdentifiabilityWarning(UserWarning):
 # Rows used to rank the candidate fixed terms of case III (a random subsample).
 _SELECTION_ROWS = 4000
 _SELECTION_TOP = 12
+# Rows used by case II (each iteration costs O(rows * terms * n_dof^2)).
+_CASE_II_ROWS = 20_000
 
 
 class LagrangianSINDy(RegressorMixin, BaseEstimator):
@@ -382,8 +388,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             _warn_if_not_identifiable(
                 balanced, np.flatnonzero(identifiable), self.term_names_, allowed=1
             )
-        else:  # pragma: no cover - implemented with case II
-            raise NotImplementedError("case='acceleration' is not available yet")
+        else:
+            coef, result = self._fit_acceleration(balanced, identifiable, penalty, Xt, operator)
+            fixed = None
 
         self.case_ = case
         self.fixed_term_ = None if fixed is None else str(library.terms_[fixed])
@@ -406,7 +413,34 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             )
         self._set_model()
         self._support_operator(device, dtype)
+        if self.support_.any():
+            self._warn_if_mass_singular(Xt)
         return self
+
+    def _warn_if_mass_singular(self, Xt):
+        """Warn when the learned mass matrix is singular or indefinite on the data."""
+        op, coef = self._support_operator(Xt.device, Xt.dtype)
+        rows = torch.linspace(0, Xt.shape[0] - 1, min(Xt.shape[0], 500), device=Xt.device).long()
+        d = self.n_dof_
+        q, qd = Xt[rows, :d], Xt[rows, d : 2 * d]
+        mass = torch.einsum("skij,k->sij", op.mass_matrices(q, qd), coef[: op.n_terms])
+        eig = torch.linalg.eigvalsh(mass)
+        big = eig.abs().max(dim=1).values.clamp(min=1e-300)
+        definite = (eig > 1e-10 * big[:, None]).all(dim=1) | (eig < -1e-10 * big[:, None]).all(dim=1)
+        bad = 1.0 - float(definite.double().mean())
+        if bad > 0.01:
+            velocities = {str(v) for v in self.lagrangian_.free_symbols}
+            absent = [c for c in self.coordinates_ if f"{c}_dot" not in velocities]
+            hint = (
+                f"; no learned term contains the velocity of {absent}" if absent else ""
+            )
+            warnings.warn(
+                f"the learned mass matrix d2L/dqdot2 is singular or indefinite at {bad:.0%} "
+                f"of the samples{hint}, so the model cannot predict accelerations there. "
+                "In case III try another fixed term, or fixed_term=None to search them all.",
+                UserWarning,
+                stacklevel=3,
+            )
 
     def _resolve_case(self, tau):
         if self.case == "auto":
@@ -496,6 +530,53 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                 best, best_score = (r, coef, result), score
         r, coef, result = best
         return coef, result, r
+
+    def _fit_acceleration(self, balanced, identifiable, penalty, Xt, operator):
+        """Case II: sparse fit of accelerations through the learned mass matrix."""
+        rng = check_random_state(self.random_state)
+        n = Xt.shape[0]
+        rows = np.sort(rng.choice(n, size=min(n, _CASE_II_ROWS), replace=False))
+        Xs = Xt[torch.as_tensor(rows, device=Xt.device)]
+        free = np.flatnonzero(identifiable)
+        sub = EulerLagrangeOperator(
+            self.coordinates_, [self.library_.terms_[k] for k in free],
+            dtype=Xt.dtype, device=Xt.device,
+        )
+        d = self.n_dof_
+        q, qd, qdd = Xs[:, :d], Xs[:, d : 2 * d], Xs[:, 2 * d : 3 * d]
+        mass, n_mat, o = lagrangian_components(sub._fn, q, qd)
+        bias = torch.einsum("skij,sj->ski", n_mat, qd) - o
+        scale = balanced.col_scale[torch.as_tensor(free, device=Xt.device)]
+        datafit = AccelerationDatafit(mass, bias, qdd, scale)
+        # Spectral start (no prior knowledge): the unit vector that best satisfies the
+        # homogeneous Euler-Lagrange equations, i.e. the smallest eigenvector of the
+        # scaled Gram matrix (a dense estimate of the Lagrangian).
+        idx = torch.as_tensor(free, device=Xt.device)
+        g = balanced.gram[idx][:, idx] / (scale[:, None] * scale[None, :])
+        w0 = torch.linalg.eigh(g)[1][:, 0]
+        weights = torch.as_tensor(penalty[free], dtype=Xt.dtype, device=Xt.device)
+        result = staged_fista(
+            datafit, lam=self.lam, penalty_weights=weights, threshold=self.threshold,
+            lam_decay=self.lam_decay, step_growth=self.step_growth, alpha=self.alpha,
+            max_stages=self.max_stages, max_iter=self.max_iter, tol=self.tol,
+            solver_tol=self.solver_tol, debias=self.debias, verbose=self.verbose, w0=w0,
+        )
+        w = result.coef / scale
+        # Present the gauge-free answer with a positive-definite mass matrix and the
+        # largest scaled term at unit size.
+        mc = torch.einsum("skij,k->sij", mass, w)
+        if float(torch.linalg.eigvalsh(mc).mean()) < 0:
+            w = -w
+        big = int(torch.argmax(result.coef.abs()))
+        w = w / abs(float(w[big]))
+        coef = np.zeros(len(self.library_.terms_))
+        coef[free] = to_numpy(w)
+        for st in result.stages:
+            full = np.zeros(len(coef))
+            full[free] = st.coef / to_numpy(scale)
+            st.coef = full
+            st.support = free[st.support]
+        return coef, result
 
     def _acceleration_r2(self, coef, Xt, tau_t):
         support = np.flatnonzero(coef)

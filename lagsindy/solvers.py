@@ -26,7 +26,7 @@ import torch
 from sklearn.exceptions import ConvergenceWarning
 
 _REQUIRED = {
-    "datafit": ("value", "gradient", "lipschitz", "restrict", "relative_residual"),
+    "datafit": ("value", "gradient", "lipschitz", "restrict", "relative_residual", "zeros"),
     "penalty": ("value", "prox", "subdiff_distance", "restrict"),
 }
 
@@ -64,6 +64,9 @@ class GramQuadratic:
     def n_features(self) -> int:
         return self.rhs.shape[0]
 
+    def zeros(self) -> torch.Tensor:
+        return torch.zeros_like(self.rhs)
+
     def value(self, w: torch.Tensor) -> float:
         return float(0.5 * w @ (self.gram @ w) - self.rhs @ w + 0.5 * self.const)
 
@@ -89,14 +92,106 @@ class GramQuadratic:
         idx = torch.as_tensor(idx, dtype=torch.long, device=self.rhs.device)
         return GramQuadratic(self.gram[idx][:, idx], self.rhs[idx], self.const)
 
-    def least_squares(self, rtol: float = 1e-13) -> torch.Tensor:
-        """Minimum-norm unpenalised minimiser (eigen-decomposition of the Gram)."""
+    def least_squares(self, w0=None, rtol: float = 1e-13) -> torch.Tensor:
+        """Minimum-norm unpenalised minimiser (eigen-decomposition of the Gram).
+
+        ``w0`` is accepted for symmetry with non-convex datafits and ignored.
+        """
         if self.n_features == 0:
             return self.rhs.clone()
         evals, evecs = torch.linalg.eigh(self.gram)
         keep = evals > rtol * evals[-1].clamp(min=1e-300)
         inv = torch.where(keep, 1.0 / torch.where(keep, evals, torch.ones_like(evals)), 0.0)
         return evecs @ (inv * (evecs.T @ self.rhs))
+
+
+class AccelerationDatafit:
+    r"""Case II datafit: error of the accelerations predicted by the Lagrangian.
+
+    .. math::
+
+        f(w) = \frac{1}{2n} \sum_s \| D^{-1} (\ddot q_s -
+        \ddot q_{pred,s}(c)) \|^2, \quad
+        \ddot q_{pred} = -\Big(\sum_k c_k M_k\Big)^{+} \sum_k c_k (N_k \dot q - O_k),
+
+    with :math:`c = w / s` (column scales ``s``) and :math:`D` the per-coordinate
+    RMS of the measured accelerations (paper eqs. 10-11). The prediction does not
+    change when :math:`c` is scaled, so the L1 penalty alone would shrink :math:`c`
+    to zero; :meth:`project` fixes the gauge :math:`\|w\|_2 = 1`, on which the L1
+    norm is smallest for sparse :math:`w`. No global Lipschitz constant exists
+    (``lipschitz()`` is ``None``), so solvers use backtracking.
+
+    Parameters
+    ----------
+    mass : Tensor of shape (n_samples, p, n_dof, n_dof)
+        :math:`M_k` per sample.
+    bias : Tensor of shape (n_samples, p, n_dof)
+        :math:`N_k \dot q - O_k` per sample.
+    qdd : Tensor of shape (n_samples, n_dof)
+        Measured accelerations.
+    scale : Tensor of shape (p,)
+        Column scales ``s``.
+    """
+
+    def __init__(self, mass, bias, qdd, scale):
+        self.mass, self.bias, self.qdd, self.scale = mass, bias, qdd, scale
+        rms = torch.sqrt((qdd**2).mean(dim=0))
+        self.acc_scale = torch.where(rms > 0, rms, torch.ones_like(rms))
+        self.const = float(((qdd / self.acc_scale) ** 2).sum(dim=1).mean())
+
+    @property
+    def n_features(self) -> int:
+        return self.scale.shape[0]
+
+    def zeros(self):
+        return torch.zeros_like(self.scale)
+
+    def lipschitz(self):
+        return None
+
+    def project(self, w):
+        norm = torch.linalg.vector_norm(w)
+        return w / norm if float(norm) > 0 else w
+
+    def predict(self, w):
+        c = w / self.scale
+        mc = torch.einsum("skij,k->sij", self.mass, c)
+        bc = torch.einsum("ski,k->si", self.bias, c)
+        # A direct solve: a singular M(c) gives non-finite values, which the line
+        # search rejects (cheaper than a pseudo-inverse and its SVD gradient).
+        out, info = torch.linalg.solve_ex(mc, bc)
+        if bool((info != 0).any()):
+            return torch.full_like(out, math.inf)
+        return -out
+
+    def _loss(self, w):
+        r = (self.qdd - self.predict(w)) / self.acc_scale
+        return 0.5 * (r**2).sum(dim=1).mean()
+
+    def value(self, w) -> float:
+        v = float(self._loss(w))
+        return v if math.isfinite(v) else math.inf
+
+    def gradient(self, w):
+        w = w.detach().requires_grad_(True)
+        with torch.enable_grad():
+            loss = self._loss(w)
+            (grad,) = torch.autograd.grad(loss, w)
+        return torch.nan_to_num(grad.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+
+    def relative_residual(self, w) -> float:
+        if self.const <= 0:
+            return 0.0
+        return 2.0 * self.value(w) / self.const
+
+    def restrict(self, idx):
+        idx = torch.as_tensor(idx, dtype=torch.long, device=self.scale.device)
+        return AccelerationDatafit(self.mass[:, idx], self.bias[:, idx], self.qdd, self.scale[idx])
+
+    def least_squares(self, w0=None, max_iter: int = 2000, tol: float = 1e-10):
+        """Unpenalised minimiser from ``w0`` (local: the problem is not convex)."""
+        res = proximal_gradient(self, L1(0.0), w0, max_iter=max_iter, tol=tol)
+        return res.coef
 
 
 # --------------------------------------------------------------------------- penalty
@@ -212,7 +307,7 @@ def fista(
     _check_contract(datafit, "datafit", "fista")
     _check_contract(penalty, "penalty", "fista")
     p = datafit.n_features
-    w = torch.zeros_like(datafit.rhs) if w0 is None else w0.clone()
+    w = datafit.zeros() if w0 is None else w0.clone()
     if p == 0:
         return SolverResult(w, 0, True, 0.0, 0.0)
     if step is None:
@@ -262,6 +357,55 @@ def fista(
     return SolverResult(w, n_iter, False, stop, step, history, reductions)
 
 
+def proximal_gradient(
+    datafit,
+    penalty,
+    w0: torch.Tensor | None = None,
+    *,
+    step: float | None = None,
+    max_iter: int = 10_000,
+    tol: float = 1e-8,
+    max_backtracks: int = 60,
+) -> SolverResult:
+    r"""Monotone proximal gradient with backtracking, for non-convex datafits.
+
+    Used when the datafit has no global Lipschitz constant (``lipschitz()`` returns
+    ``None``), as in case II. Each step ``w+ = P(prox(w - a grad f(w)))`` is accepted
+    when ``F(w+) <= F(w) - ||w+ - w||^2 / (2a)`` (sufficient decrease), otherwise the
+    step ``a`` is halved; an accepted step lets the next try a larger one. ``P`` is the
+    datafit's ``project`` (the gauge of a scale-invariant datafit), if it has one.
+    Stops when the relative change of ``w`` falls below ``tol``.
+    """
+    project = getattr(datafit, "project", lambda w: w)
+    w = project(datafit.zeros() if w0 is None else w0.clone())
+    step = 1.0 if step is None else float(step)
+    obj = datafit.value(w) + penalty.value(w)
+    history = [obj]
+    reductions = 0
+    change = math.inf
+    n_iter = 0
+    for it in range(1, max_iter + 1):
+        n_iter = it
+        grad = datafit.gradient(w)
+        for _ in range(max_backtracks):
+            w_new = project(penalty.prox(w - step * grad, step))
+            obj_new = datafit.value(w_new) + penalty.value(w_new)
+            decrease = float(((w_new - w) ** 2).sum()) / (2 * step)
+            if math.isfinite(obj_new) and obj_new <= obj - 0.5 * decrease + 1e-15 * abs(obj):
+                break
+            step *= 0.5
+            reductions += 1
+        else:
+            return SolverResult(w, it, False, change, step, history, reductions)
+        change = float((w_new - w).abs().max()) / max(float(w.abs().max()), 1e-300)
+        w, obj = w_new, obj_new
+        history.append(obj)
+        step *= 1.5
+        if change <= tol:
+            return SolverResult(w, it, True, change, step, history, reductions)
+    return SolverResult(w, n_iter, False, change, step, history, reductions)
+
+
 # --------------------------------------------------------------------------- stages
 @dataclass
 class Stage:
@@ -306,6 +450,7 @@ def staged_fista(
     solver_tol: float = 1e-8,
     debias: bool = True,
     verbose: int = 0,
+    w0: torch.Tensor | None = None,
 ) -> StagedResult:
     r"""The xL-SINDy schedule: FISTA stages with hard thresholding between them.
 
@@ -343,20 +488,19 @@ def staged_fista(
         KKT tolerance of each FISTA run.
     debias : bool
     verbose : int
+    w0 : Tensor, optional
+        Starting point of the first stage (zeros by default).
 
     Returns
     -------
     StagedResult
     """
     p = datafit.n_features
-    device = datafit.rhs.device
-    weights = (
-        torch.ones(p, dtype=datafit.rhs.dtype, device=device)
-        if penalty_weights is None
-        else penalty_weights
-    )
+    template = datafit.zeros()
+    device = template.device
+    weights = torch.ones_like(template) if penalty_weights is None else penalty_weights
     support = np.arange(p)
-    w_full = torch.zeros_like(datafit.rhs)
+    w_full = template.clone() if w0 is None else w0.clone()
     stages, total_iter, reductions = [], 0, 0
     converged = True
     cur_lam = float(lam)
@@ -365,8 +509,9 @@ def staged_fista(
         sub = datafit.restrict(support)
         pen = L1(cur_lam, weights[torch.as_tensor(support, device=device)])
         step = None if alpha is None else float(alpha) * step_growth**s
-        res = fista(sub, pen, w_full[torch.as_tensor(support, device=device)],
-                    step=step, max_iter=max_iter, tol=solver_tol)
+        solver = fista if sub.lipschitz() is not None else proximal_gradient
+        res = solver(sub, pen, w_full[torch.as_tensor(support, device=device)],
+                     step=step, max_iter=max_iter, tol=solver_tol)
         total_iter += res.n_iter
         reductions += res.step_reductions
         converged = converged and res.converged
@@ -379,7 +524,7 @@ def staged_fista(
         else:
             keep = torch.ones_like(mags, dtype=torch.bool)
         w_sub = torch.where(keep, w_sub, torch.zeros_like(w_sub))
-        w_full = torch.zeros_like(datafit.rhs)
+        w_full = template.clone()
         w_full[torch.as_tensor(support, device=device)] = w_sub
         cost = datafit.relative_residual(w_full)
         new_support = support[keep.cpu().numpy()]
@@ -398,29 +543,29 @@ def staged_fista(
             break
         cur_lam /= lam_decay
     if debias and len(support):
-        w_full, support = _debias(datafit, support, weights, threshold, reference)
+        w_full, support = _debias(datafit, support, weights, threshold, reference, w_full)
         cost = datafit.relative_residual(w_full)
     return StagedResult(w_full, support, stages, total_iter, converged, cost, reductions)
 
 
-def _debias(datafit, support, weights, threshold, reference):
+def _debias(datafit, support, weights, threshold, reference, w_start):
     """Unpenalised refit of the support, thresholding the refit until it is stable.
 
     The L1 stages shrink coefficients, so a term that the penalty kept alive only
     to stand in for a shrunk one can look large before the refit and negligible
     after it; it is removed and the rest refitted (at most ``len(support)`` times).
     """
-    device = datafit.rhs.device
+    device = datafit.zeros().device
     while True:
         idx = torch.as_tensor(support, device=device)
-        w_ls = datafit.restrict(support).least_squares()
+        w_ls = datafit.restrict(support).least_squares(w0=w_start[idx])
         mags = w_ls.abs()
         peak = max(float(mags.max()), reference) if mags.numel() else 0.0
         drop = (mags < threshold * peak) & (weights[idx] > 0)
         if not bool(drop.any()) or bool(drop.all()):
             break
         support = support[~drop.cpu().numpy()]
-    w_full = torch.zeros_like(datafit.rhs)
+    w_full = datafit.zeros()
     w_full[idx] = w_ls
     return w_full, support
 
@@ -433,7 +578,7 @@ def fista_path(datafit, lams, *, penalty_weights=None, max_iter=10_000, tol=1e-8
     coefs : ndarray of shape (len(lams), p)
     n_iters : list of int
     """
-    w = torch.zeros_like(datafit.rhs)
+    w = datafit.zeros()
     coefs, n_iters = [], []
     for lam in lams:
         res = fista(datafit, L1(lam, penalty_weights), w, max_iter=max_iter, tol=tol)

@@ -167,3 +167,14 @@ def test_custom_library_and_user_alpha(single_active):
     )
     est = LagrangianSINDy(lib, alpha=0.01).fit(single_active.X, single_active.tau)
     assert set(_learned(est)) == {"theta_dot**2", "cos(theta)"}
+
+
+def test_degenerate_case_III_model_is_flagged():
+    """Fixing theta1_dot**2 on a triple pendulum yields a theta1-only Lagrangian."""
+    from lagsindy.systems import triple_pendulum
+
+    s = triple_pendulum()
+    data = make_dataset(s, n_trajectories=20, excitation=None, random_state=0)
+    with pytest.warns(UserWarning, match=r"singular or indefinite.*theta2"):
+        LagrangianSINDy(s.paper_library(), fixed_term="theta1_dot**2",
+                        unpenalized=["cos(theta1)"]).fit(data.X)

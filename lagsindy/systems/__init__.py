@@ -4,8 +4,11 @@ from .base import COULOMB_EPS, System
 from .cart_pendulum import cart_pendulum
 from .dataset import PROTOCOLS, Dataset, make_dataset
 from .double_pendulum import double_pendulum
+from .elastic_pendulum import elastic_pendulum
 from .single_pendulum import single_pendulum
 from .spherical_pendulum import spherical_pendulum
+from .spring_chain import spring_chain
+from .triple_pendulum import n_link_lagrangian, triple_pendulum
 
 PAPER_SYSTEMS = {
     "single_pendulum": single_pendulum,
@@ -13,7 +16,12 @@ PAPER_SYSTEMS = {
     "double_pendulum": double_pendulum,
     "spherical_pendulum": spherical_pendulum,
 }
-SYSTEMS = dict(PAPER_SYSTEMS)
+SYSTEMS = {
+    **PAPER_SYSTEMS,
+    "triple_pendulum": triple_pendulum,
+    "spring_chain": spring_chain,
+    "elastic_pendulum": elastic_pendulum,
+}
 
 
 def get_system(name: str) -> System:
@@ -34,8 +42,12 @@ __all__ = [
     "System",
     "cart_pendulum",
     "double_pendulum",
+    "elastic_pendulum",
     "get_system",
     "make_dataset",
+    "n_link_lagrangian",
     "single_pendulum",
     "spherical_pendulum",
+    "spring_chain",
+    "triple_pendulum",
 ]
