@@ -25,8 +25,11 @@ from ._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
 from .dynamics import MechanicalModel
 from .euler_lagrange import (
     EulerLagrangeOperator,
+    estimate_noise_covariance,
+    estimate_sampling_interval,
     forward_accelerations,
     lagrangian_components,
+    trajectory_segments,
 )
 from .library import CandidateLibrary
 from .solvers import AccelerationDatafit, BalancedGram, staged_fista, warn_not_converged
@@ -113,6 +116,23 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Terms known to be present: they are not shrunk and never thresholded.
     case : {"auto", "forces", "fixed", "acceleration"}, default="auto"
         ``"auto"``: case I when ``tau`` is given, else case III.
+    formulation : {"strong", "weak"}, default="strong"
+        ``"strong"``: the paper's pointwise Euler-Lagrange residual (needs
+        accelerations). ``"weak"``: the equations integrated against smooth test
+        functions over windows of ``window`` samples (integration by parts removes the
+        accelerations and averages noise); rows must then be time-ordered trajectories
+        sampled every ``dt`` (pass ``groups`` to ``fit``). Cases I and III.
+    window : int, default=81
+        Samples per test function in the weak formulation (windows start every
+        ``window // 4`` samples).
+    dt : float, default=None
+        Sampling interval for the weak formulation; ``None`` estimates it from
+        ``q[s+1] - q[s] = dt (qd[s] + qd[s+1]) / 2`` (``dt_``).
+    noise_cov : "auto", array-like of shape (2 * n_dof, 2 * n_dof) or None, default="auto"
+        Weak formulation only: covariance of white noise on ``[q, qd]`` whose effect on
+        the Gram matrix is subtracted (errors-in-variables correction of the
+        attenuation bias). ``"auto"`` estimates it from fourth-order differences of the
+        data (``noise_cov_``); ``None`` applies no correction.
     normalize : bool, default=True
         Balance row (per coordinate) and column scales; see
         :class:`lagsindy.solvers.BalancedGram`.
@@ -150,6 +170,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         The sparsification path.
     residual_ : float
         Relative residual of the final fit.
+    dt_ : float or None
+        Sampling interval used by the weak formulation.
+    noise_cov_ : ndarray or None
+        Noise covariance used by the weak formulation's correction.
     n_features_in_ : int
     feature_names_in_ : ndarray of str
         Only when X was a DataFrame.
@@ -190,6 +214,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         "fixed_term": [str, sp.Basic, None],
         "unpenalized": ["array-like", None],
         "case": [StrOptions(_CASES)],
+        "formulation": [StrOptions({"strong", "weak"})],
+        "window": [Interval(Integral, 5, None, closed="left")],
+        "dt": [Interval(Real, 0, None, closed="neither"), None],
+        "noise_cov": [StrOptions({"auto"}), "array-like", None],
         "normalize": ["boolean"],
         "debias": ["boolean"],
         "device": [str, torch.device],
@@ -214,6 +242,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         fixed_term=None,
         unpenalized=None,
         case="auto",
+        formulation="strong",
+        window=81,
+        dt=None,
+        noise_cov="auto",
         normalize=True,
         debias=True,
         device="cpu",
@@ -234,6 +266,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         self.fixed_term = fixed_term
         self.unpenalized = unpenalized
         self.case = case
+        self.formulation = formulation
+        self.window = window
+        self.dt = dt
+        self.noise_cov = noise_cov
         self.normalize = normalize
         self.debias = debias
         self.device = device
@@ -314,7 +350,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
     # ------------------------------------------------------------------ fit
     @_fit_context(prefer_skip_nested_validation=True)
-    def fit(self, X, y=None):
+    def fit(self, X, y=None, groups=None):
         """Fit the Lagrangian to trajectories.
 
         Parameters
@@ -324,6 +360,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             name (``theta``, ``theta_dot``, ``theta_ddot``).
         y : array-like of shape (n_samples, n_dof) or (n_samples,), default=None
             Generalized forces tau (case I). ``None`` for passive data.
+        groups : array-like of shape (n_samples,), default=None
+            Trajectory label of each row; used by the weak formulation only (the
+            strong form treats rows independently). Without it, trajectories are split
+            where the positions jump. In a grid search, route it with scikit-learn's
+            metadata routing (``est.set_fit_request(groups=True)``).
 
         Returns
         -------
@@ -361,8 +402,20 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         )
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
-        gram = operator.gram(Xt, tau_t)
-        balanced = BalancedGram(gram, Xa.shape[0], n_terms, normalize=self.normalize)
+        self.dt_, self.noise_cov_ = None, None
+        if self.formulation == "weak":
+            if case == "acceleration":
+                raise ValueError(
+                    "formulation='weak' is for cases I and III; case='acceleration' "
+                    "needs the strong form"
+                )
+            gram, n_rows = self._weak_gram(operator, Xt, tau_t, groups)
+            correct = self.noise_cov_ is not None
+        else:
+            gram, n_rows, correct = operator.gram(Xt, tau_t), Xa.shape[0], False
+        balanced = BalancedGram(
+            gram, n_rows, n_terms, normalize=self.normalize, project_psd=correct
+        )
         identifiable = balanced.identifiable().cpu().numpy()
         if not identifiable.any():
             raise ValueError(
@@ -441,6 +494,57 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                 UserWarning,
                 stacklevel=3,
             )
+
+    def _weak_gram(self, operator, Xt, tau_t, groups):
+        d = self.n_dof_
+        if groups is not None and len(groups) != Xt.shape[0]:
+            raise ValueError(
+                f"groups must have one label per row of X ({Xt.shape[0]}), got {len(groups)}"
+            )
+        dt = self.dt
+        if dt is None:
+            rough = trajectory_segments(Xt, d, groups, dt=0.0) if groups is not None else [
+                torch.arange(Xt.shape[0], device=Xt.device)
+            ]
+            dt = estimate_sampling_interval(Xt, d, rough)
+            if not dt > 0:
+                raise ValueError(
+                    f"could not estimate a positive sampling interval (got {dt:.3g}); "
+                    "are the rows time-ordered? Pass dt="
+                )
+        segments = trajectory_segments(Xt, d, groups, dt=dt)
+        window = int(self.window)
+        usable = [s for s in segments if len(s) >= window]
+        if not usable:
+            longest = max(len(s) for s in segments)
+            raise ValueError(
+                f"no trajectory is as long as window={window} samples (the longest has "
+                f"{longest}); lower window or record longer trajectories"
+            )
+        if isinstance(self.noise_cov, str):
+            cov = estimate_noise_covariance(Xt, usable, d)
+        elif self.noise_cov is None:
+            cov = None
+        else:
+            cov = to_tensor(self.noise_cov, dtype=Xt.dtype, device=Xt.device)
+            if cov.shape != (2 * d, 2 * d):
+                raise ValueError(
+                    f"noise_cov must have shape ({2 * d}, {2 * d}) for [q, q_dot], got "
+                    f"{tuple(cov.shape)}"
+                )
+        self.dt_ = float(dt)
+        self.noise_cov_ = None if cov is None else to_numpy(cov)
+        gram, n_windows = operator.weak_gram(
+            Xt, tau_t, usable, window=window, stride=max(1, window // 4), dt=float(dt),
+            noise_cov=cov,
+        )
+        if n_windows * d < len(self.library_.terms_):
+            raise ValueError(
+                f"too few windows: {n_windows} window(s) x {d} coordinate(s) for "
+                f"{len(self.library_.terms_)} candidate terms; lower window or record "
+                "more data"
+            )
+        return gram, n_windows
 
     def _resolve_case(self, tau):
         if self.case == "auto":

@@ -26,6 +26,8 @@ import contextlib
 import warnings
 from collections.abc import Callable, Sequence
 
+import numpy as np
+
 import sympy as sp
 import torch
 from torch.func import jacfwd, jvp, vmap
@@ -33,6 +35,8 @@ from torch.func import jacfwd, jvp, vmap
 from ._expr import compile_torch, symbols_for
 
 DEFAULT_CHUNK_SIZE = 32_768
+# Samples used to evaluate the weak form's noise correction (a sum over samples).
+NOISE_ROWS = 10_000
 
 TermFunction = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -241,6 +245,154 @@ class EulerLagrangeOperator:
             out += torch.einsum("sip,siq->ipq", theta, theta)
         return out
 
+    def weak_gram(
+        self,
+        X: torch.Tensor,
+        y: torch.Tensor | None,
+        segments,
+        *,
+        window: int,
+        stride: int,
+        dt: float,
+        noise_cov: torch.Tensor | None = None,
+        noise_rows: int = NOISE_ROWS,
+    ):
+        r"""Per-dof Gram statistics of the weak (integral) Euler-Lagrange equations.
+
+        Multiplying the Euler-Lagrange equations by a test function :math:`\psi_w`
+        supported on a window of ``window`` samples and integrating by parts gives,
+        for each window and coordinate,
+
+        .. math::
+
+            \sum_k c_k \int \big(-\dot\psi_w \partial_{\dot q}\phi_k
+            - \psi_w \partial_q \phi_k\big) dt - \sum_j d_j \int \psi_w Q_j dt
+            = \int \psi_w \tau\, dt,
+
+        which needs no accelerations and averages measurement noise over the window.
+        With ``noise_cov`` (the covariance :math:`\Lambda` of white noise on
+        :math:`[q, \dot q]`), the noise-induced part of the Gram matrix,
+        :math:`\sum_w \sum_s J_{ws}^\top \Lambda J_{ws}` to first order in the noise
+        (:math:`J_{ws}` the sensitivity of window :math:`w`'s columns to sample
+        :math:`s`), is subtracted: an errors-in-variables correction of the
+        attenuation that noisy regressors cause. The correction is a sum over samples;
+        it is evaluated on at most ``noise_rows`` samples drawn with a fixed seed and
+        scaled up (an unbiased estimate).
+
+        Parameters
+        ----------
+        X : Tensor of shape (n_samples, >= 2 * n_dof)
+            Rows ``[q, qd, ...]``; accelerations are not used.
+        y : Tensor of shape (n_samples, n_dof) or None
+            Generalized forces (assumed noise-free or independent of the noise on X).
+        segments : list of LongTensor
+            Rows of each trajectory, in time order, uniformly sampled; each at least
+            ``window`` long.
+        window, stride : int
+            Samples per test function, and between window starts.
+        dt : float
+            Sampling interval.
+        noise_cov : Tensor of shape (2 * n_dof, 2 * n_dof), optional
+        noise_rows : int, default=10000
+
+        Returns
+        -------
+        gram : Tensor of shape (n_dof, P, P)
+            With ``P = n_columns (+ 1 for y)``.
+        n_windows : int
+        """
+        d = self.n_dof
+        psi, dpsi = (k.to(X) for k in bump_function(window, dt))
+        order = torch.cat(list(segments))
+        q, qd = X[order, :d], X[order, d : 2 * d]
+        # Integrands per sample: a-weighted (with dpsi) and b-weighted (with psi) parts.
+        a_parts, b_parts = [], []
+        if self._fn is not None:
+            g = lagrangian_gradients(self._fn, q, qd, chunk_size=self.chunk_size)
+            a_parts.append(g[:, :, d:].transpose(1, 2))  # dphi/dqd: (n, d, p)
+            b_parts.append(g[:, :, :d].transpose(1, 2))  # dphi/dq
+        if self._force_fn is not None:
+            forces = self.force_values(q, qd)  # (n, d, f)
+            a_parts.append(torch.zeros_like(forces))
+            b_parts.append(forces)
+        if y is not None:
+            tau = y[order].unsqueeze(2)
+            a_parts.append(torch.zeros_like(tau))
+            b_parts.append(-tau)  # so that the column below is +int psi tau
+        a_int = torch.cat(a_parts, dim=2)
+        b_int = torch.cat(b_parts, dim=2)
+        width = a_int.shape[2]
+        gram = X.new_zeros((d, width, width))
+        n_windows = 0
+        start = 0
+        weights = []
+        for seg in segments:
+            n = len(seg)
+            sl = slice(start, start + n)
+            start += n
+            cols = -dt * (_correlate(a_int[sl], dpsi, stride) + _correlate(b_int[sl], psi, stride))
+            n_windows += cols.shape[0]
+            gram += torch.einsum("wip,wiq->ipq", cols, cols)
+            if noise_cov is not None:
+                weights.append(_window_weights(n, -dt * dpsi, -dt * psi, stride))
+        if noise_cov is not None:
+            a2, ab, b2 = (torch.cat(w) for w in zip(*weights))
+            gram -= self._weak_noise_gram(q, qd, (a2, ab, b2), noise_cov, width, noise_rows)
+        return gram, n_windows
+
+    def _weak_noise_gram(self, q, qd, weights, noise_cov, width, noise_rows):
+        """First-order noise contribution to the weak Gram (see :meth:`weak_gram`)."""
+        d = self.n_dof
+        n = q.shape[0]
+        a2, ab, b2 = weights
+        if n > noise_rows:
+            pick = np.sort(np.random.default_rng(0).choice(n, noise_rows, replace=False))
+            idx = torch.as_tensor(pick, device=q.device)
+            q, qd, a2, ab, b2 = q[idx], qd[idx], a2[idx], ab[idx], b2[idx]
+            factor = n / noise_rows
+        else:
+            factor = 1.0
+        # h1[s, k, i, x] = d(a-integrand_k,i)/dx_s, h2 likewise for the b-integrand.
+        h1_parts, h2_parts = [], []
+        if self._fn is not None:
+            fn = self._fn
+
+            def grads(q1, qd1):
+                return torch.cat([jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1)
+
+            with _quiet_forward_ad():
+                jq, jqd = vmap(jacfwd(grads, argnums=(0, 1)))(q, qd)
+            hess = torch.cat([jq, jqd], dim=3)  # (n, p, 2d, 2d)
+            h1_parts.append(hess[:, :, d:, :])
+            h2_parts.append(hess[:, :, :d, :])
+        if self._force_fn is not None:
+            n_f = len(self.forces)
+
+            def forces_one(q1, qd1):
+                return self._force_fn(q1, qd1).reshape(n_f, d)
+
+            with _quiet_forward_ad():
+                fq, fqd = vmap(jacfwd(forces_one, argnums=(0, 1)))(q, qd)
+            jac = torch.cat([fq, fqd], dim=3)  # (n, f, d, 2d)
+            h1_parts.append(torch.zeros_like(jac))
+            h2_parts.append(jac)
+        h1 = torch.cat(h1_parts, dim=1)
+        h2 = torch.cat(h2_parts, dim=1)
+        p0 = h1.shape[1]
+        # sum_s [h1 h2]^T (W_s kron Lambda) [h1 h2], W_s = [[a2, ab], [ab, b2]]
+        out = q.new_zeros((d, width, width))
+        for i in range(d):
+            m1, m2 = h1[:, :, i, :], h2[:, :, i, :]  # (n, P0, 2d)
+            l1, l2 = m1 @ noise_cov, m2 @ noise_cov
+            block = (
+                torch.einsum("skx,slx->kl", l1 * a2[:, None, None], m1)
+                + torch.einsum("skx,slx->kl", l1 * ab[:, None, None], m2)
+                + torch.einsum("skx,slx->kl", l2 * ab[:, None, None], m1)
+                + torch.einsum("skx,slx->kl", l2 * b2[:, None, None], m2)
+            )
+            out[i, :p0, :p0] = factor * block
+        return out
+
 
 def forward_accelerations(
     operator: EulerLagrangeOperator,
@@ -268,3 +420,145 @@ def forward_accelerations(
     bias = theta @ coef - torch.einsum("sij,sj->si", mc, qdd)
     rhs = -bias if tau is None else tau - bias
     return (torch.linalg.pinv(mc, hermitian=True) @ rhs.unsqueeze(-1)).squeeze(-1)
+
+
+# ----------------------------------------------------------------------------- weak form
+def lagrangian_gradients(
+    fn: TermFunction, q: torch.Tensor, qd: torch.Tensor, *, chunk_size: int = DEFAULT_CHUNK_SIZE
+) -> torch.Tensor:
+    """``[d phi_k / dq, d phi_k / dqd]`` per sample, shape (n_samples, n_terms, 2 * n_dof)."""
+
+    def one(q1, qd1):
+        return torch.cat([jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1)
+
+    batched = vmap(one)
+    with _quiet_forward_ad():
+        parts = [batched(q[sl], qd[sl]) for sl in _chunks(q.shape[0], chunk_size)]
+    return torch.cat(parts, dim=0)
+
+
+def bump_function(window: int, dt: float, power: int = 4):
+    r"""Bump test function on ``window`` samples and its time derivative.
+
+    :math:`\psi(s) = (1 - s^2)^{m}` for :math:`s \in [-1, 1]` across the window, with
+    ``m = power``; :math:`\psi` and its first ``m - 1`` derivatives vanish at both
+    ends, so integration by parts has no boundary terms and the rectangle rule is
+    accurate.
+
+    Returns
+    -------
+    psi, dpsi : Tensor of shape (window,)
+        Values and time derivatives (per second) at the samples.
+    """
+    s = torch.linspace(-1.0, 1.0, window, dtype=torch.float64)
+    half = (window - 1) / 2 * dt
+    psi = (1 - s**2) ** power
+    dpsi = -2 * power * s * (1 - s**2) ** (power - 1) / half
+    return psi, dpsi
+
+
+def estimate_noise_covariance(X: torch.Tensor, segments, n_dof: int) -> torch.Tensor:
+    r"""Covariance of white measurement noise on ``[q, qd]`` from the data itself.
+
+    Fourth-order differences along each trajectory remove a smooth signal almost
+    entirely (the signal contributes :math:`h^4 x^{(4)}`) and multiply white noise
+    variance by 70, so :math:`\hat\Lambda = \sum \Delta^4 x \, \Delta^4 x^\top /
+    (70\, N)`. Cross-channel covariances are kept, so noise shared between channels
+    (the ``shared`` protocol) is captured too. Noise that is not white (derivatives
+    from a smoothing filter) is underestimated.
+
+    Returns
+    -------
+    Tensor of shape (2 * n_dof, 2 * n_dof)
+    """
+    parts = []
+    for seg in segments:
+        x = X[seg, : 2 * n_dof]
+        if x.shape[0] > 4:
+            parts.append(torch.diff(x, n=4, dim=0))
+    if not parts:
+        return X.new_zeros((2 * n_dof, 2 * n_dof))
+    z = torch.cat(parts)
+    return z.T @ z / (70.0 * z.shape[0])
+
+
+def _correlate(signal: torch.Tensor, kernel: torch.Tensor, stride: int) -> torch.Tensor:
+    """Sliding sums ``sum_j kernel[j] signal[start + j]`` along dim 0, every ``stride``."""
+    n = signal.shape[0]
+    flat = signal.reshape(n, -1).T.unsqueeze(1)  # (channels, 1, n)
+    out = torch.nn.functional.conv1d(flat, kernel.view(1, 1, -1).to(signal), stride=stride)
+    return out.squeeze(1).T.reshape(-1, *signal.shape[1:])
+
+
+def _window_weights(n: int, kernel_a, kernel_b, stride: int):
+    """Per-sample sums over windows of a^2, a b and b^2 (for the noise correction)."""
+    k = kernel_a.shape[0]
+    n_win = (n - k) // stride + 1
+    starts = kernel_a.new_zeros((1, 1, n_win))
+    starts[..., :] = 1.0
+    out = []
+    for kern in (kernel_a * kernel_a, kernel_a * kernel_b, kernel_b * kernel_b):
+        # scatter each window's kernel onto its samples: a transposed correlation
+        full = torch.nn.functional.conv_transpose1d(starts, kern.view(1, 1, -1), stride=stride)
+        res = kernel_a.new_zeros(n)
+        res[: full.shape[-1]] = full.flatten()[:n]
+        out.append(res)
+    return tuple(out)
+
+
+def trajectory_segments(X: torch.Tensor, n_dof: int, groups=None, dt=None):
+    """Rows of each trajectory, for the weak form.
+
+    With ``groups``, each label's rows (in their order in X) form one trajectory.
+    Without, consecutive rows are split where the positions jump: where
+    ``q[s+1] - q[s]`` differs from ``dt * (qd[s] + qd[s+1]) / 2`` by more than 8
+    times its robust spread and by at least 0.1 (in the coordinate's units).
+
+    Returns
+    -------
+    list of LongTensor
+    """
+    n = X.shape[0]
+    if groups is not None:
+        groups = np.asarray(groups)
+        if groups.shape != (n,):
+            raise ValueError(
+                f"groups must have one label per row of X ({n}), got shape {groups.shape}"
+            )
+        _, first = np.unique(groups, return_index=True)
+        return [
+            torch.as_tensor(np.flatnonzero(groups == groups[i]), device=X.device)
+            for i in np.sort(first)
+        ]
+    q, qd = X[:, :n_dof], X[:, n_dof : 2 * n_dof]
+    step = q[1:] - q[:-1]
+    mismatch = (step - dt * (qd[1:] + qd[:-1]) / 2).abs()
+    spread = 1.4826 * (mismatch - mismatch.median(dim=0).values).abs().median(dim=0).values
+    jump = (mismatch > torch.clamp(8 * spread, min=0.1)).any(dim=1)
+    cuts = [0] + (torch.nonzero(jump).flatten() + 1).tolist() + [n]
+    return [torch.arange(a, b, device=X.device) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+
+
+def estimate_sampling_interval(X: torch.Tensor, n_dof: int, segments) -> float:
+    """Sampling interval from ``q[s+1] - q[s] = dt * (qd[s] + qd[s+1]) / 2``.
+
+    The weighted median of the per-step ratios (weights ``((qd[s] + qd[s+1]) / 2)^2``,
+    so fast, well-determined steps count most) is insensitive to the few jumps where
+    one trajectory ends and the next begins, and to noise.
+    """
+    ratios, weights = [], []
+    for seg in segments:
+        q, qd = X[seg, :n_dof], X[seg, n_dof : 2 * n_dof]
+        if q.shape[0] < 2:
+            continue
+        mid = (qd[1:] + qd[:-1]) / 2
+        ok = mid.abs() > 0
+        ratios.append(((q[1:] - q[:-1])[ok] / mid[ok]).flatten())
+        weights.append((mid[ok] ** 2).flatten())
+    if not ratios or sum(int(w.numel()) for w in weights) == 0:
+        raise ValueError("cannot estimate dt: the velocities are all zero; pass dt=")
+    r, w = torch.cat(ratios), torch.cat(weights)
+    order = torch.argsort(r)
+    cum = torch.cumsum(w[order], 0)
+    k = int(torch.searchsorted(cum, cum[-1] / 2))
+    return float(r[order][min(k, r.numel() - 1)])

@@ -623,12 +623,23 @@ class BalancedGram:
     n_features : int
         Number of candidate columns (the rest are targets).
     normalize : bool, default=True
+    project_psd : bool, default=False
+        Replace the combined Gram matrix by its nearest positive semi-definite
+        matrix (after a noise correction has been subtracted).
     """
 
-    def __init__(self, gram: torch.Tensor, n_samples: int, n_features: int, normalize: bool = True):
+    def __init__(
+        self,
+        gram: torch.Tensor,
+        n_samples: int,
+        n_features: int,
+        normalize: bool = True,
+        project_psd: bool = False,
+    ):
         self.n_features = int(n_features)
         n_dof = gram.shape[0]
         mean_sq = torch.diagonal(gram, dim1=1, dim2=2)[:, : self.n_features] / n_samples
+        mean_sq = torch.clamp(mean_sq, min=0)
         rows = torch.ones(n_dof, dtype=gram.dtype, device=gram.device)
         if normalize and self.n_features:
             for _ in range(100):
@@ -647,6 +658,11 @@ class BalancedGram:
         self.row_scale = rows
         weights = 1.0 / rows**2
         self.gram = (gram * weights[:, None, None]).sum(dim=0) / (n_samples * n_dof)
+        if project_psd:
+            # A corrected Gram (noise contribution subtracted) can have slightly
+            # negative eigenvalues; use the nearest positive semi-definite matrix.
+            evals, evecs = torch.linalg.eigh((self.gram + self.gram.T) / 2)
+            self.gram = (evecs * torch.clamp(evals, min=0)) @ evecs.T
         col = torch.sqrt(torch.clamp(torch.diagonal(self.gram)[: self.n_features], min=0))
         if normalize:
             self.col_scale = col
