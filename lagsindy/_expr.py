@@ -9,6 +9,7 @@ acceleration symbol ``theta_ddot``. All symbols are real.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable, Iterable, Sequence
 
@@ -38,6 +39,9 @@ _RESERVED = set(_SYMPY_FUNCTIONS) | set(_CONSTANTS)
 _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
 MAX_EXPRESSION_LENGTH = 10_000
 MAX_EXPONENT = 64
+# Largest magnitude (in bits, |log2|) of a power of two numbers: sympy evaluates
+# numeric powers exactly, so "((10**64)**64)**64" would otherwise take minutes.
+MAX_NUMERIC_POWER_BITS = 4096
 
 
 class ExpressionError(ValueError):
@@ -229,6 +233,11 @@ class _Parser:
                     f"exponent {exponent} exceeds the limit of {MAX_EXPONENT} in "
                     f"{self.text!r}"
                 )
+            if base.is_number and exponent.is_number and _power_too_large(base, exponent):
+                raise ExpressionError(
+                    f"a numeric power in {self.text!r} exceeds "
+                    f"2**{MAX_NUMERIC_POWER_BITS}"
+                )
             return base**exponent
         return base
 
@@ -261,6 +270,13 @@ class _Parser:
         raise ExpressionError(f"unexpected {found} in {self.text!r}")
 
 
+def _power_too_large(base, exponent) -> bool:
+    b, e = abs(complex(base)), abs(complex(exponent))
+    if not (math.isfinite(b) and math.isfinite(e)):
+        return True
+    return b != 0 and e * abs(math.log2(b)) > MAX_NUMERIC_POWER_BITS
+
+
 def parse_expression(text: str, allowed_names: Sequence[str]) -> sp.Expr:
     """Parse ``text`` into a sympy expression without evaluating any Python.
 
@@ -288,7 +304,12 @@ def parse_expression(text: str, allowed_names: Sequence[str]) -> sp.Expr:
             f"{MAX_EXPRESSION_LENGTH}"
         )
     symbols = {n: sp.Symbol(n, real=True) for n in allowed_names}
-    return sp.sympify(_Parser(text, symbols).parse())
+    try:
+        return sp.sympify(_Parser(text, symbols).parse())
+    except RecursionError:
+        raise ExpressionError(
+            f"expression nested too deeply: {text[:60]!r}..."
+        ) from None
 
 
 # ----------------------------------------------------------------------------- torch
