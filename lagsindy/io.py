@@ -105,11 +105,18 @@ def expression_to_string(expr) -> str:
     Floats are written with Python's ``repr`` (17 significant digits at most), so a
     float64 coefficient inside a term survives the round trip bit for bit.
     """
+    if not isinstance(expr, (sp.Basic, int, float)):
+        raise TypeError(f"expected a sympy expression, got {type(expr).__name__}")
     return _ExactPrinter().doprint(sp.sympify(expr))
 
 
 def _to_text(expr, allowed, what):
     """Serialise ``expr`` and check that the safe parser reads it back unchanged."""
+    if isinstance(expr, str):  # parsed safely, never sympified
+        try:
+            expr = parse_expression(expr, allowed)
+        except ExpressionError as exc:
+            raise ValueError(f"{what} {expr[:80]!r} is not valid: {exc}") from None
     text = expression_to_string(expr)
     try:
         back = parse_expression(text, allowed)
