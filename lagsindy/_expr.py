@@ -233,7 +233,9 @@ class _Parser:
                     f"exponent {exponent} exceeds the limit of {MAX_EXPONENT} in "
                     f"{self.text!r}"
                 )
-            if base.is_number and exponent.is_number and _power_too_large(base, exponent):
+            if base.is_number and exponent.is_number and _power_too_large(
+                base, exponent
+            ):
                 raise ExpressionError(
                     f"a numeric power in {self.text!r} exceeds "
                     f"2**{MAX_NUMERIC_POWER_BITS}"

@@ -64,7 +64,8 @@ def _numeric(df, columns, source):
     missing = [c for c in columns if c not in df.columns]
     if missing:
         raise CLIError(
-            f"{source} has no column {missing[0]!r} (its columns: {', '.join(map(str, df.columns[:20]))}"
+            f"{source} has no column {missing[0]!r} (its columns: "
+            f"{', '.join(map(str, df.columns[:20]))}"
             f"{' ...' if len(df.columns) > 20 else ''})"
         )
     out = np.empty((len(df), len(columns)))
@@ -75,7 +76,8 @@ def _numeric(df, columns, source):
         except (TypeError, ValueError):
             bad = next((i for i, v in enumerate(values) if not _is_float(v)), 0)
             raise CLIError(
-                f"column {c!r} of {source} is not numeric: row {bad} holds {values.iloc[bad]!r}"
+                f"column {c!r} of {source} is not numeric: row {bad} holds "
+                f"{values.iloc[bad]!r}"
             ) from None
         finite = np.isfinite(out[:, j])
         if not finite.all():
@@ -96,7 +98,7 @@ def _is_float(v):
 
 
 def _state_frame(df, coords, args, source):
-    """X as a DataFrame ``[q..., q_dot..., q_ddot...]``; derivatives estimated if absent."""
+    """X as a DataFrame ``[q, q_dot, q_ddot]``; derivatives estimated if absent."""
     import pandas as pd
 
     from ._expr import state_names
@@ -133,12 +135,17 @@ def _state_frame(df, coords, args, source):
     kwargs = {"groups": groups}
     if method is not None:
         kwargs["method"] = method
-    _say(args, f"estimating velocities and accelerations of {coords} "
-               f"({method or 'default method'}) ...")
+    _say(
+        args,
+        f"estimating velocities and accelerations of {coords} "
+        f"({method or 'default method'}) ...",
+    )
     X = np.asarray(derivatives(q, t, **kwargs), dtype=float)
     if X.shape != (len(df), 3 * len(coords)):
-        raise CLIError(f"derivative estimation returned shape {X.shape}, expected "
-                       f"{(len(df), 3 * len(coords))}")
+        raise CLIError(
+            f"derivative estimation returned shape {X.shape}, expected "
+            f"{(len(df), 3 * len(coords))}"
+        )
     return pd.DataFrame(X, columns=names, index=df.index)
 
 
@@ -158,7 +165,8 @@ def _input_columns(df, coords, args):
         if len(cols) != len(coords):
             raise CLIError(
                 f"--input names {len(cols)} column(s) but there are {len(coords)} "
-                f"coordinate(s) {coords}: give one generalized-force column per coordinate"
+                f"coordinate(s) {coords}: give one generalized-force column per "
+                "coordinate"
             )
         return cols
     named = [f"tau_{c}" for c in coords]
@@ -196,7 +204,8 @@ def _demo(args) -> int:
     )
     _say(
         args,
-        f"{system.name}: {args.trajectories} trajectories x {args.duration:g} s at 100 Hz, "
+        f"{system.name}: {args.trajectories} trajectories x {args.duration:g} s "
+        "at 100 Hz, "
         f"{'forced' if active else 'passive'}, noise sigma={args.noise} "
         f"({args.protocol} protocol); library of {len(library)} terms",
     )
@@ -213,7 +222,9 @@ def _demo(args) -> int:
     print(f"\n{'term':<{width}}  {'true':>10}  {'learned':>10}  {'error':>8}")
     for k in rows:
         err = (
-            f"{abs(learned[k] - truth[k]) / abs(truth[k]):8.2%}" if truth[k] != 0 else "   extra"
+            f"{abs(learned[k] - truth[k]) / abs(truth[k]):8.2%}"
+            if truth[k] != 0
+            else "   extra"
         )
         if truth[k] != 0 and learned[k] == 0:
             err = " missing"
@@ -222,9 +233,14 @@ def _demo(args) -> int:
     print(f"\ntrue:      {system.equation(4)}")
     print(f"recovered: {est.equation(4)}")
     if not active:
-        print(f"(passive data fix the scale: {est.fixed_term_} has coefficient 1, and the "
-              "'true' column above is scaled to match)")
-    print(f"structure {'correct' if correct else 'NOT correct'}; fit took {elapsed:.2f} s")
+        print(
+            f"(passive data fix the scale: {est.fixed_term_} has coefficient 1, "
+            "and the "
+            "'true' column above is scaled to match)"
+        )
+    print(
+        f"structure {'correct' if correct else 'NOT correct'}; fit took {elapsed:.2f} s"
+    )
 
     # Trajectory check: both models, unforced, from a fresh initial state.
     x0 = system.sample_initial_states(1, np.random.RandomState(args.seed + 1))[0]
@@ -232,10 +248,15 @@ def _demo(args) -> int:
     try:
         check = rollout_error(system, est.model_, x0, t)
     except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
-        print(f"trajectory check skipped: the true system could not be integrated ({exc})")
+        print(
+            f"trajectory check skipped: the true system could not be integrated ({exc})"
+        )
         return 0
     if "error" in check:
-        print(f"trajectory check: the learned model could not be integrated: {check['error']}")
+        print(
+            "trajectory check: the learned model could not be integrated: "
+            f"{check['error']}"
+        )
     else:
         print(
             f"trajectory check (unforced, {t[-1]:g} s from a new initial state): "
@@ -246,8 +267,12 @@ def _demo(args) -> int:
             from .plotting import plot_trajectories
 
             plot_trajectories(
-                t, check["states_a"], check["states_b"], system.coordinates,
-                velocities=True, title=f"{system.name}: true vs learned (unforced)",
+                t,
+                check["states_a"],
+                check["states_b"],
+                system.coordinates,
+                velocities=True,
+                title=f"{system.name}: true vs learned (unforced)",
                 path=args.plot,
             )
         except ImportError as exc:
@@ -266,7 +291,9 @@ def _simulate(args) -> int:
             raise CLIError("simulating a saved model needs --x0 (the initial state)")
         return _simulate_model(args)
     if args.system is None:
-        raise CLIError("give --system NAME (a built-in system) or --model FILE (a saved model)")
+        raise CLIError(
+            "give --system NAME (a built-in system) or --model FILE (a saved model)"
+        )
     from .systems import get_system, make_dataset
 
     system = get_system(args.system)
@@ -295,7 +322,8 @@ def _simulate(args) -> int:
         f"wrote {args.out}: {system.name}, {args.trajectories} trajectories x "
         f"{args.duration:g} s at {args.rate:g} Hz ({len(df)} rows), "
         f"{'passive' if excitation is None else f'input {excitation!r}'}, noise "
-        f"sigma={args.noise} ({args.protocol} protocol); columns: {', '.join(df.columns)}",
+        f"sigma={args.noise} ({args.protocol} protocol); "
+        f"columns: {', '.join(df.columns)}",
     )
     return 0
 
@@ -335,7 +363,9 @@ def _simulate_model(args) -> int:
         try:
             values = [float(v) for v in _split(text)]
         except ValueError:
-            raise CLIError(f"--x0 {text!r} is not a comma-separated list of numbers") from None
+            raise CLIError(
+                f"--x0 {text!r} is not a comma-separated list of numbers"
+            ) from None
         if len(values) != 2 * n:
             raise CLIError(
                 f"--x0 {text!r} has {len(values)} value(s); the model's state "
@@ -357,8 +387,11 @@ def _simulate_model(args) -> int:
         frames.append(frame)
     df = pd.concat(frames, ignore_index=True)
     _write_csv(df, args.out)
-    _say(args, f"wrote {args.out}: {len(x0)} trajectory(ies) x {t[-1]:g} s of "
-               f"{est.equation(4)} (unforced)")
+    _say(
+        args,
+        f"wrote {args.out}: {len(x0)} trajectory(ies) x {t[-1]:g} s of "
+        f"{est.equation(4)} (unforced)",
+    )
     return 0
 
 
@@ -385,9 +418,18 @@ def _library(args, coords, angles):
     degree = int(m.group(2))
     if not 1 <= degree <= 6:
         raise CLIError(f"--library degree must be between 1 and 6, got {degree}")
-    builder = CandidateLibrary.polynomial if m.group(1).startswith("poly") else CandidateLibrary.separated
-    return builder(coords, angles=angles or None, degree=degree,
-                   raw_angles=args.raw_angles, terms=extra or None)
+    builder = (
+        CandidateLibrary.polynomial
+        if m.group(1).startswith("poly")
+        else CandidateLibrary.separated
+    )
+    return builder(
+        coords,
+        angles=angles or None,
+        degree=degree,
+        raw_angles=args.raw_angles,
+        terms=extra or None,
+    )
 
 
 def _fit(args) -> int:
@@ -408,7 +450,8 @@ def _fit(args) -> int:
     inputs = _input_columns(df, coords, args)
     if inputs is not None and args.fixed_term is not None:
         raise CLIError(
-            f"--fixed-term is for passive data (case III), but the input columns {inputs} "
+            "--fixed-term is for passive data (case III), but the input columns "
+            f"{inputs} "
             "were found; pass --passive to ignore them, or drop --fixed-term"
         )
     tau = None if inputs is None else _numeric(df, inputs, args.data)
@@ -439,8 +482,11 @@ def _fit(args) -> int:
         quality = f"R^2 of forces {est.score(X, tau):.4f}"
     else:
         quality = f"R^2 of accelerations {est.score(X):.4f}"
-    _say(args, f"{kept} of {len(est.coef_)} terms kept, {quality}; fit took "
-               f"{elapsed:.1f} s; saved the model to {args.out}")
+    _say(
+        args,
+        f"{kept} of {len(est.coef_)} terms kept, {quality}; fit took "
+        f"{elapsed:.1f} s; saved the model to {args.out}",
+    )
     return 0
 
 
@@ -459,12 +505,16 @@ def _predict(args) -> int:
     forces = forces.to_frame() if forces.ndim == 1 else forces
     out = out.join(forces).join(acc)
     _write_csv(out, args.out)
-    lines = [f"wrote {args.out}: predicted forces {list(forces.columns)} (inverse "
-             f"dynamics) and accelerations {list(acc.columns)} (forward dynamics"
-             f"{', with the input columns ' + str(inputs) if inputs else ', unforced'})"]
+    lines = [
+        f"wrote {args.out}: predicted forces {list(forces.columns)} (inverse "
+        f"dynamics) and accelerations {list(acc.columns)} (forward dynamics"
+        f"{', with the input columns ' + str(inputs) if inputs else ', unforced'})"
+    ]
     if est.case_ != "forces":
-        lines.append("note: a model fit on passive data is known up to scale, so its "
-                     "forces are too (accelerations are not)")
+        lines.append(
+            "note: a model fit on passive data is known up to scale, so its "
+            "forces are too (accelerations are not)"
+        )
     if tau is not None and est.case_ == "forces":
         lines.append(f"R^2 of forces: {est.score(X, tau):.4f}")
     if tau is None:
@@ -475,13 +525,21 @@ def _predict(args) -> int:
 
 # ----------------------------------------------------------------------------- parser
 def _add_derivative_options(p):
-    p.add_argument("--derivatives", metavar="METHOD", default=None,
-                   help="estimate q_dot and q_ddot from q with this method of "
-                        "lagsindy.differentiation (e.g. savgol, finite_difference) even "
-                        "when derivative columns exist; by default they are estimated "
-                        "only when the CSV lacks <q>_dot/<q>_ddot columns")
-    p.add_argument("--dt", type=float, default=None,
-                   help="sampling interval in seconds when the CSV has no 't' column")
+    p.add_argument(
+        "--derivatives",
+        metavar="METHOD",
+        default=None,
+        help="estimate q_dot and q_ddot from q with this method of "
+        "lagsindy.differentiation (e.g. savgol, finite_difference) even "
+        "when derivative columns exist; by default they are estimated "
+        "only when the CSV lacks <q>_dot/<q>_ddot columns",
+    )
+    p.add_argument(
+        "--dt",
+        type=float,
+        default=None,
+        help="sampling interval in seconds when the CSV has no 't' column",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -495,39 +553,63 @@ def build_parser() -> argparse.ArgumentParser:
         description="Discover the Lagrangian of a mechanical system from trajectories "
         "(xL-SINDy). Run 'lagsindy COMMAND --help' for a command's options.",
     )
-    parser.add_argument("--version", action="version", version=f"lagsindy {__version__}")
-    parser.add_argument("--debug", action="store_true",
-                        help="show the Python traceback of errors")
+    parser.add_argument(
+        "--version", action="version", version=f"lagsindy {__version__}"
+    )
+    parser.add_argument(
+        "--debug", action="store_true", help="show the Python traceback of errors"
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     demo = sub.add_parser(
         "demo",
         help="simulate a built-in system with noise, fit it, print true vs learned",
-        description="Simulate a built-in system, add noise, fit a Lagrangian, print the "
+        description="Simulate a built-in system, add noise, fit a Lagrangian, print "
+        "the "
         "true and recovered terms side by side with their errors, and save a plot of "
         "true vs learned trajectories.",
     )
     demo.add_argument("--system", default="cart_pendulum", help=f"one of: {systems}")
-    demo.add_argument("--noise", type=float, default=0.01, help="noise sigma (default 0.01)")
-    demo.add_argument("--protocol", default="paper", choices=["shared", "paper", "sensor"],
-                      help="noise protocol (default: paper, independent noise)")
+    demo.add_argument(
+        "--noise", type=float, default=0.01, help="noise sigma (default 0.01)"
+    )
+    demo.add_argument(
+        "--protocol",
+        default="paper",
+        choices=["shared", "paper", "sensor"],
+        help="noise protocol (default: paper, independent noise)",
+    )
     demo.add_argument("--passive", action="store_true", help="no input (case III)")
-    demo.add_argument("--trajectories", type=int, default=100,
-                      help="number of trajectories (default 100, as in the paper)")
-    demo.add_argument("--duration", type=float, default=5.0,
-                      help="seconds per trajectory (default 5)")
+    demo.add_argument(
+        "--trajectories",
+        type=int,
+        default=100,
+        help="number of trajectories (default 100, as in the paper)",
+    )
+    demo.add_argument(
+        "--duration", type=float, default=5.0, help="seconds per trajectory (default 5)"
+    )
     demo.add_argument("--seed", type=int, default=0)
-    demo.add_argument("--plot", metavar="PNG", default="demo.png",
-                      help="where to save the trajectory comparison (default demo.png; "
-                           "needs matplotlib)")
-    demo.add_argument("--no-plot", dest="plot", action="store_const", const=None,
-                      help="do not save a plot")
+    demo.add_argument(
+        "--plot",
+        metavar="PNG",
+        default="demo.png",
+        help="where to save the trajectory comparison (default demo.png; "
+        "needs matplotlib)",
+    )
+    demo.add_argument(
+        "--no-plot",
+        dest="plot",
+        action="store_const",
+        const=None,
+        help="do not save a plot",
+    )
     demo.add_argument("--quiet", action="store_true", help="no progress output")
     demo.set_defaults(func=_demo)
 
     sim = sub.add_parser(
         "simulate",
-        help="write a simulated data set (CSV) of a built-in system, or of a saved model",
+        help="write a simulated data set (CSV) of a built-in system or a saved model",
         description="Simulate a built-in system from random initial states with the "
         "documented input and noise protocol and write one CSV (columns trajectory, t, "
         "q..., q_dot..., q_ddot..., tau_<q>...). With --model, integrate a saved model "
@@ -537,20 +619,37 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--model", default=None, help="a saved model (JSON) to integrate")
     sim.add_argument("--out", required=True, help="output CSV")
     sim.add_argument("--trajectories", type=int, default=100)
-    sim.add_argument("--duration", type=float, default=5.0, help="seconds per trajectory")
+    sim.add_argument(
+        "--duration", type=float, default=5.0, help="seconds per trajectory"
+    )
     sim.add_argument("--rate", type=float, default=100.0, help="samples per second")
     sim.add_argument("--noise", type=float, default=0.0, help="noise sigma (default 0)")
-    sim.add_argument("--protocol", default="paper", choices=["shared", "paper", "sensor"],
-                     help="shared: one sample per time step on every channel (the "
-                          "authors' code); paper: independent noise on q, q_dot, q_ddot; "
-                          "sensor: noise on q, derivatives estimated (default paper)")
-    sim.add_argument("--excitation", default="sincos", choices=["sincos", "paper"],
-                     help="input: a sin(wt) + b cos(wt) (sincos) or the paper's form")
+    sim.add_argument(
+        "--protocol",
+        default="paper",
+        choices=["shared", "paper", "sensor"],
+        help="shared: one sample per time step on every channel (the "
+        "authors' code); paper: independent noise on q, q_dot, q_ddot; "
+        "sensor: noise on q, derivatives estimated (default paper)",
+    )
+    sim.add_argument(
+        "--excitation",
+        default="sincos",
+        choices=["sincos", "paper"],
+        help="input: a sin(wt) + b cos(wt) (sincos) or the paper's form",
+    )
     sim.add_argument("--passive", action="store_true", help="no input")
-    sim.add_argument("--positions-only", action="store_true",
-                     help="write only trajectory, t, the positions (and tau columns)")
-    sim.add_argument("--x0", action="append", default=None,
-                     help="with --model: initial state q...,q_dot... (repeat for more)")
+    sim.add_argument(
+        "--positions-only",
+        action="store_true",
+        help="write only trajectory, t, the positions (and tau columns)",
+    )
+    sim.add_argument(
+        "--x0",
+        action="append",
+        default=None,
+        help="with --model: initial state q...,q_dot... (repeat for more)",
+    )
     sim.add_argument("--seed", type=int, default=0)
     sim.add_argument("--quiet", action="store_true")
     sim.set_defaults(func=_simulate)
@@ -562,10 +661,16 @@ def build_parser() -> argparse.ArgumentParser:
         "write trajectory, t, q..., q_dot..., q_ddot... as CSV.",
     )
     simm.add_argument("model", help="saved model (JSON)")
-    simm.add_argument("--x0", action="append", required=True,
-                      help="initial state q...,q_dot..., e.g. 0,1,0,0 (repeat for more)")
+    simm.add_argument(
+        "--x0",
+        action="append",
+        required=True,
+        help="initial state q...,q_dot..., e.g. 0,1,0,0 (repeat for more)",
+    )
     simm.add_argument("--duration", type=float, default=5.0)
-    simm.add_argument("--rate", type=float, default=100.0, help="output samples per second")
+    simm.add_argument(
+        "--rate", type=float, default=100.0, help="output samples per second"
+    )
     simm.add_argument("--out", required=True, help="output CSV")
     simm.add_argument("--quiet", action="store_true")
     simm.set_defaults(func=_simulate_model, system=None)
@@ -573,34 +678,63 @@ def build_parser() -> argparse.ArgumentParser:
     fit = sub.add_parser(
         "fit",
         help="fit a Lagrangian to a CSV of trajectories and save the model (JSON)",
-        description="Fit a Lagrangian to trajectories in a CSV file. Needed columns: one "
+        description="Fit a Lagrangian to trajectories in a CSV file. Needed columns: "
+        "one "
         "per coordinate (positions). Velocities <q>_dot and accelerations <q>_ddot are "
-        "used when present, else estimated per trajectory (columns 't' and, for several "
+        "used when present, else estimated per trajectory (columns 't' and, for "
+        "several "
         "trajectories, 'trajectory'). Input forces: --input, or columns tau_<q> when "
         "present; without them the data are treated as passive (case III).",
     )
     fit.add_argument("data", help="CSV file")
-    fit.add_argument("--coordinates", required=True, help="position columns, e.g. x,theta")
-    fit.add_argument("--angles", default="", help="coordinates that are angles (get sin/cos), "
-                     "e.g. theta, or 'all'")
-    fit.add_argument("--input", default=None,
-                     help="generalized-force columns, one per coordinate, e.g. tau_x,tau_theta")
-    fit.add_argument("--passive", action="store_true", help="ignore input columns (case III)")
-    fit.add_argument("--library", default="poly2",
-                     help="polyN, separatedN or terms (default poly2)")
-    fit.add_argument("--raw-angles", action="store_true",
-                     help="also use the angles themselves as polynomial variables")
-    fit.add_argument("--terms", default="", help="extra candidate terms, comma-separated")
-    fit.add_argument("--fixed-term", default=None,
-                     help="passive data: the term whose coefficient is fixed to 1, e.g. "
-                          "theta_dot**2 (default: try every term)")
+    fit.add_argument(
+        "--coordinates", required=True, help="position columns, e.g. x,theta"
+    )
+    fit.add_argument(
+        "--angles",
+        default="",
+        help="coordinates that are angles (get sin/cos), " "e.g. theta, or 'all'",
+    )
+    fit.add_argument(
+        "--input",
+        default=None,
+        help="generalized-force columns, one per coordinate, e.g. tau_x,tau_theta",
+    )
+    fit.add_argument(
+        "--passive", action="store_true", help="ignore input columns (case III)"
+    )
+    fit.add_argument(
+        "--library", default="poly2", help="polyN, separatedN or terms (default poly2)"
+    )
+    fit.add_argument(
+        "--raw-angles",
+        action="store_true",
+        help="also use the angles themselves as polynomial variables",
+    )
+    fit.add_argument(
+        "--terms", default="", help="extra candidate terms, comma-separated"
+    )
+    fit.add_argument(
+        "--fixed-term",
+        default=None,
+        help="passive data: the term whose coefficient is fixed to 1, e.g. "
+        "theta_dot**2 (default: try every term)",
+    )
     fit.add_argument("--unpenalized", default="", help="terms known to be present")
-    fit.add_argument("--case", default="auto", choices=["auto", "forces", "fixed", "acceleration"])
+    fit.add_argument(
+        "--case", default="auto", choices=["auto", "forces", "fixed", "acceleration"]
+    )
     fit.add_argument("--lam", type=float, default=1e-3, help="L1 weight (default 1e-3)")
-    fit.add_argument("--threshold", type=float, default=0.05,
-                     help="relative hard threshold between stages (default 0.05)")
+    fit.add_argument(
+        "--threshold",
+        type=float,
+        default=0.05,
+        help="relative hard threshold between stages (default 0.05)",
+    )
     fit.add_argument("--seed", type=int, default=0)
-    fit.add_argument("--precision", type=int, default=4, help="digits in the printed Lagrangian")
+    fit.add_argument(
+        "--precision", type=int, default=4, help="digits in the printed Lagrangian"
+    )
     fit.add_argument("--out", required=True, help="where to save the model (JSON)")
     _add_derivative_options(fit)
     fit.add_argument("--quiet", action="store_true", help="print only the Lagrangian")
@@ -610,12 +744,15 @@ def build_parser() -> argparse.ArgumentParser:
         "predict",
         help="predict forces and accelerations of a CSV with a saved model",
         description="Write the generalized forces the model implies (tau_<q>, inverse "
-        "dynamics) and the accelerations it predicts (<q>_ddot, forward dynamics with the "
+        "dynamics) and the accelerations it predicts (<q>_ddot, forward dynamics with "
+        "the "
         "input columns when present) for each row of a CSV.",
     )
     pred.add_argument("model", help="saved model (JSON)")
     pred.add_argument("data", help="CSV file with the model's coordinates")
-    pred.add_argument("--input", default=None, help="generalized-force columns (default tau_<q>)")
+    pred.add_argument(
+        "--input", default=None, help="generalized-force columns (default tau_<q>)"
+    )
     pred.add_argument("--passive", action="store_true", help="ignore input columns")
     pred.add_argument("--out", required=True, help="output CSV")
     _add_derivative_options(pred)

@@ -16,18 +16,18 @@ Document layout (``schema_version`` 1)::
       "schema_version": 1,
       "lagsindy_version": "0.1.0",
       "coordinates": ["x", "theta"],
-      "terms": ["x_dot**2", "cos(theta)", ...],          # the fitted library's terms
-      "coefficients": [0.75, 4.905, ...],                 # one per term, 0.0 = pruned
-      "case": "forces",                                   # "forces", "fixed", "acceleration"
-      "fixed_term": null,                                 # a term string in case III
-      "unpenalized": [],                                  # term strings
-      "hyperparameters": {"lam": 0.001, ...},             # get_params() without library
+      "terms": ["x_dot**2", "cos(theta)", ...], # the fitted library's terms
+      "coefficients": [0.75, 4.905, ...],    # one per term, 0.0 = pruned
+      "case": "forces",                      # or "fixed", "acceleration"
+      "fixed_term": null,                    # a term string in case III
+      "unpenalized": [],                     # term strings
+      "hyperparameters": {"lam": 0.001, ...}, # get_params() without library
       "n_features_in": 6,
-      "feature_names_in": null,                           # or the 3*n_dof column names
-      "tau_1d": false,                                    # the model was fit with a 1-D tau
+      "feature_names_in": null,              # or the 3*n_dof column names
+      "tau_1d": false,                       # true: fit with a 1-D tau
       "n_iter": 812,
       "residual": 2.1e-05,
-      "dissipation": []                                   # see below
+      "dissipation": []                      # see below
     }
 
 ``dissipation`` is a list of ``{"name": str, "forces": [expression per coordinate],
@@ -105,7 +105,7 @@ def expression_to_string(expr) -> str:
     Floats are written with Python's ``repr`` (17 significant digits at most), so a
     float64 coefficient inside a term survives the round trip bit for bit.
     """
-    if not isinstance(expr, (sp.Basic, int, float)):
+    if not isinstance(expr, sp.Basic | int | float):
         raise TypeError(f"expected a sympy expression, got {type(expr).__name__}")
     return _ExactPrinter().doprint(sp.sympify(expr))
 
@@ -134,9 +134,9 @@ def _to_text(expr, allowed, what):
 
 def _plain(value):
     """A hyperparameter as a JSON value (numbers, strings, lists, null)."""
-    if value is None or isinstance(value, (bool, str)):
+    if value is None or isinstance(value, bool | str):
         return value
-    if isinstance(value, (np.bool_,)):
+    if isinstance(value, np.bool_):
         return bool(value)
     if isinstance(value, Integral):
         return int(value)
@@ -144,7 +144,7 @@ def _plain(value):
         return float(value)
     if isinstance(value, sp.Basic):
         return expression_to_string(value)
-    if isinstance(value, (list, tuple, np.ndarray)):
+    if isinstance(value, list | tuple | np.ndarray):
         return [_plain(v) for v in value]
     # torch.device and the like: their text is what the constructor accepts
     text = str(value)
@@ -167,11 +167,13 @@ def model_to_dict(est) -> dict:
         raise ValueError("the model has non-finite coefficients; it cannot be saved")
     params = est.get_params(deep=False)
     params.pop("library", None)
-    if not isinstance(params.get("random_state"), (Integral, type(None))):
+    if not isinstance(params.get("random_state"), Integral | type(None)):
         params["random_state"] = None  # a RandomState instance has no JSON form
     hyper = {k: _plain(v) for k, v in sorted(params.items())}
     unpenalized = [
-        _to_text(est.library_.terms_[est.library_.index(t)], allowed, "unpenalized term")
+        _to_text(
+            est.library_.terms_[est.library_.index(t)], allowed, "unpenalized term"
+        )
         for t in (est.unpenalized or [])
     ]
     fixed = est.fixed_term_
@@ -179,7 +181,9 @@ def model_to_dict(est) -> dict:
         fixed = terms[est.library_.index(fixed)]
     names = getattr(est, "feature_names_in_", None)
     residual = getattr(est, "residual_", None)
-    residual = None if residual is None or not math.isfinite(residual) else float(residual)
+    residual = (
+        None if residual is None or not math.isfinite(residual) else float(residual)
+    )
     dissipation = []
     for entry in getattr(est, "dissipation_", None) or []:
         forces = [_to_text(f, allowed, "dissipation force") for f in entry["forces"]]
@@ -233,14 +237,18 @@ def save_model(est, path) -> Path:
     doc = model_to_dict(est)
     path = Path(path)
     # One field per line, values compact: readable and diff-friendly.
-    lines = [f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in doc.items()]
+    lines = [
+        f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in doc.items()
+    ]
     path.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
     return path
 
 
 # ----------------------------------------------------------------------------- load
 def _reject_constant(name):
-    raise ValueError(f"the model file contains {name}, which is not allowed (use numbers)")
+    raise ValueError(
+        f"the model file contains {name}, which is not allowed (use numbers)"
+    )
 
 
 def _unique_keys(pairs):
@@ -253,7 +261,7 @@ def _unique_keys(pairs):
 
 
 def _is_number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, int | float) and not isinstance(value, bool)
 
 
 def _check_field(doc, name):
@@ -266,7 +274,8 @@ def _check_field(doc, name):
     )
     if not ok:
         raise ValueError(
-            f"field {name!r} of the model file must be {desc}, got {type(value).__name__}"
+            f"field {name!r} of the model file must be {desc}, "
+            f"got {type(value).__name__}"
         )
     return value
 
@@ -275,7 +284,8 @@ def _check_strings(values, name, *, limit=MAX_EXPRESSION_LENGTH):
     for i, v in enumerate(values):
         if not isinstance(v, str):
             raise ValueError(
-                f"{name}[{i}] in the model file must be a string, got {type(v).__name__}"
+                f"{name}[{i}] in the model file must be a string, "
+                f"got {type(v).__name__}"
             )
         if len(v) > limit:
             raise ValueError(
@@ -289,7 +299,8 @@ def _check_numbers(values, name):
     for i, v in enumerate(values):
         if not _is_number(v):
             raise ValueError(
-                f"{name}[{i}] in the model file must be a number, got {type(v).__name__}"
+                f"{name}[{i}] in the model file must be a number, "
+                f"got {type(v).__name__}"
             )
         v = float(v)
         if not math.isfinite(v):
@@ -302,10 +313,14 @@ def _parse(text, allowed, what):
     try:
         expr = parse_expression(text, allowed)
     except ExpressionError as exc:
-        raise ValueError(f"{what} {text[:80]!r} in the model file is not valid: {exc}") from None
+        raise ValueError(
+            f"{what} {text[:80]!r} in the model file is not valid: {exc}"
+        ) from None
     for number in expr.atoms(sp.Number):
         if not math.isfinite(abs(complex(number))):
-            raise ValueError(f"{what} {text[:80]!r} contains a number beyond float range")
+            raise ValueError(
+                f"{what} {text[:80]!r} contains a number beyond float range"
+            )
     return expr
 
 
@@ -316,23 +331,29 @@ def _hyperparameters(hyper: dict) -> dict:
     unknown = sorted(set(hyper) - known)
     if unknown:
         raise ValueError(
-            f"the model file has unknown hyperparameters {unknown[:5]}; it may come from "
+            f"the model file has unknown hyperparameters {unknown[:5]}; it may come "
+            "from "
             "a newer lagsindy version"
         )
     for key, value in hyper.items():
-        if isinstance(value, (dict,)) or (
+        if isinstance(value, dict) or (
             isinstance(value, str) and len(value) > MAX_EXPRESSION_LENGTH
         ):
-            raise ValueError(f"hyperparameter {key!r} in the model file has an invalid value")
+            raise ValueError(
+                f"hyperparameter {key!r} in the model file has an invalid value"
+            )
         if isinstance(value, list):
             _check_strings(value, f"hyperparameters[{key!r}]")
         if _is_number(value) and not math.isfinite(float(value)):
             raise ValueError(f"hyperparameter {key!r} in the model file is not finite")
     hyper = dict(hyper)
     device = hyper.get("device", "cpu")
-    if not isinstance(device, str) or not re.fullmatch(r"(cpu|cuda|mps)(:\d{1,3})?", device):
+    if not isinstance(device, str) or not re.fullmatch(
+        r"(cpu|cuda|mps)(:\d{1,3})?", device
+    ):
         raise ValueError(
-            f"hyperparameter 'device' in the model file must be 'cpu', 'cuda' or 'mps', "
+            "hyperparameter 'device' in the model file must be 'cpu', 'cuda' or "
+            "'mps', "
             f"got {str(device)[:40]!r}"
         )
     if device.startswith("cuda") and not torch.cuda.is_available():
@@ -365,13 +386,15 @@ def model_from_dict(doc: dict):
         )
     if doc.get("format") != FORMAT:
         raise ValueError(
-            f"not a lagsindy model file (field 'format' is {str(doc.get('format'))[:40]!r}, "
+            "not a lagsindy model file (field 'format' is "
+            f"{str(doc.get('format'))[:40]!r}, "
             f"expected {FORMAT!r})"
         )
     version = _check_field(doc, "schema_version")
     if version not in SCHEMA_VERSIONS:
         raise ValueError(
-            f"model file schema version {version} is not supported (this lagsindy reads "
+            f"model file schema version {version} is not supported (this lagsindy "
+            "reads "
             f"{list(SCHEMA_VERSIONS)}); upgrade lagsindy"
         )
     values = {name: _check_field(doc, name) for name in _FIELDS}
@@ -381,7 +404,9 @@ def model_from_dict(doc: dict):
     if len(values["lagsindy_version"]) > _MAX_NAME_LENGTH:
         raise ValueError("field 'lagsindy_version' of the model file is too long")
 
-    coords = _check_strings(values["coordinates"], "coordinates", limit=_MAX_NAME_LENGTH)
+    coords = _check_strings(
+        values["coordinates"], "coordinates", limit=_MAX_NAME_LENGTH
+    )
     try:
         coords = check_coordinate_names(coords)
     except ValueError as exc:
@@ -412,7 +437,9 @@ def model_from_dict(doc: dict):
 
     case = values["case"]
     if case not in _CASES:
-        raise ValueError(f"field 'case' of the model file must be one of {_CASES}, got {case[:40]!r}")
+        raise ValueError(
+            f"field 'case' of the model file must be one of {_CASES}, got {case[:40]!r}"
+        )
     fixed = values["fixed_term"]
     if case == "fixed" and fixed is None:
         raise ValueError("the model file has case 'fixed' but no fixed_term")
@@ -439,7 +466,9 @@ def model_from_dict(doc: dict):
                 f"coordinates: expected {state_names(coords)}"
             )
     if values["tau_1d"] and n_dof != 1:
-        raise ValueError("the model file says tau was 1-D, but it has several coordinates")
+        raise ValueError(
+            "the model file says tau was 1-D, but it has several coordinates"
+        )
     if values["n_iter"] < 0:
         raise ValueError("field 'n_iter' of the model file is negative")
     residual = values["residual"]
@@ -461,7 +490,9 @@ def model_from_dict(doc: dict):
             )
         name = entry["name"]
         if not isinstance(name, str) or len(name) > _MAX_NAME_LENGTH:
-            raise ValueError(f"{where}['name'] in the model file must be a short string")
+            raise ValueError(
+                f"{where}['name'] in the model file must be a short string"
+            )
         forces = entry["forces"]
         if not isinstance(forces, list) or len(forces) != n_dof:
             raise ValueError(
@@ -469,7 +500,9 @@ def model_from_dict(doc: dict):
                 "expressions (one generalized force per coordinate)"
             )
         _check_strings(forces, f"{where}['forces']")
-        (coefficient,) = _check_numbers([entry["coefficient"]], f"{where}['coefficient']")
+        (coefficient,) = _check_numbers(
+            [entry["coefficient"]], f"{where}['coefficient']"
+        )
         dissipation.append(
             {
                 "name": name,
@@ -485,7 +518,9 @@ def model_from_dict(doc: dict):
         est = LagrangianSINDy(library, **hyper)
         est._validate_params()
     except (InvalidParameterError, TypeError) as exc:
-        raise ValueError(f"the model file's hyperparameters are not valid: {exc}") from None
+        raise ValueError(
+            f"the model file's hyperparameters are not valid: {exc}"
+        ) from None
     fitted = clone(library).build()
     if len(fitted.terms_) != len(terms):
         raise ValueError("the model file's terms do not form a valid library")
@@ -496,7 +531,9 @@ def model_from_dict(doc: dict):
     est.coef_ = np.asarray(coefs, dtype=float)
     est.support_ = est.coef_ != 0
     est.case_ = case
-    est.fixed_term_ = None if fixed is None else str(fitted.terms_[_index(fitted, fixed)])
+    est.fixed_term_ = (
+        None if fixed is None else str(fitted.terms_[_index(fitted, fixed)])
+    )
     for text in unpenalized:
         _index(fitted, text)
     est.stages_ = []
@@ -515,7 +552,9 @@ def _index(library, text):
     try:
         return library.index(text)
     except ValueError as exc:
-        raise ValueError(f"the model file names a term that is not among its terms: {exc}") from None
+        raise ValueError(
+            f"the model file names a term that is not among its terms: {exc}"
+        ) from None
 
 
 def load_model(path):
@@ -544,12 +583,15 @@ def load_model(path):
     size = path.stat().st_size
     if size > MAX_FILE_BYTES:
         raise ValueError(
-            f"{path} has {size} bytes, more than a model file may have ({MAX_FILE_BYTES})"
+            f"{path} has {size} bytes, more than a model file may have "
+            f"({MAX_FILE_BYTES})"
         )
     raw = path.read_bytes()
     try:
         text = raw.decode("utf-8")
-        doc = json.loads(text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys)
+        doc = json.loads(
+            text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys
+        )
     except UnicodeDecodeError:
         raise ValueError(f"{path} is not a text (UTF-8) model file") from None
     except json.JSONDecodeError as exc:
@@ -573,9 +615,10 @@ _MULTIARM_FILES = {
 
 
 def find_multiarm_pendulum(start=None) -> Path:
-    """Locate the MultiArm-Pendulum recordings (folder ``shared/data/multiarm_pendulum``).
+    """Locate the MultiArm-Pendulum recordings (``shared/data/multiarm_pendulum``).
 
-    Looks at ``$LAGSINDY_MULTIARM_DIR`` first, then for ``shared/data/multiarm_pendulum``
+    Looks at ``$LAGSINDY_MULTIARM_DIR`` first, then for
+    ``shared/data/multiarm_pendulum``
     in ``start`` (default: the current directory and this package's repository) and
     each of its parents.
 
@@ -589,8 +632,14 @@ def find_multiarm_pendulum(start=None) -> Path:
         p = Path(env)
         if p.is_dir():
             return p
-        raise FileNotFoundError(f"${MULTIARM_ENV} is set to {env}, which is not a folder")
-    starts = [Path(start)] if start is not None else [Path.cwd(), Path(__file__).resolve().parent]
+        raise FileNotFoundError(
+            f"${MULTIARM_ENV} is set to {env}, which is not a folder"
+        )
+    starts = (
+        [Path(start)]
+        if start is not None
+        else [Path.cwd(), Path(__file__).resolve().parent]
+    )
     tried = []
     for s in starts:
         for folder in [s.resolve(), *s.resolve().parents]:
@@ -606,7 +655,9 @@ def find_multiarm_pendulum(start=None) -> Path:
     )
 
 
-def load_multiarm_pendulum(path=None, which: str = "single", split: str = "id") -> pd.DataFrame:
+def load_multiarm_pendulum(
+    path=None, which: str = "single", split: str = "id"
+) -> pd.DataFrame:
     """Load the MultiArm-Pendulum free-swing recordings (Kaheman et al., 2022).
 
     Encoder recordings of a real single or double pendulum (cart locked, no input),
@@ -641,7 +692,9 @@ def load_multiarm_pendulum(path=None, which: str = "single", split: str = "id") 
     if which not in _MULTIARM_FILES:
         raise ValueError(f"which must be 'single' or 'double', got {which!r}")
     if split not in ("id", "vad"):
-        raise ValueError(f"split must be 'id' (identification) or 'vad' (validation), got {split!r}")
+        raise ValueError(
+            f"split must be 'id' (identification) or 'vad' (validation), got {split!r}"
+        )
     p = find_multiarm_pendulum() if path is None else Path(path)
     if p.is_dir():
         p = p / _MULTIARM_FILES[which]
@@ -650,7 +703,9 @@ def load_multiarm_pendulum(path=None, which: str = "single", split: str = "id") 
     mat = loadmat(p)
     key_y, key_t = f"Y_{split}", f"Time_{split}"
     if key_y not in mat or key_t not in mat:
-        raise ValueError(f"{p} lacks {key_y!r}/{key_t!r}: not a MultiArm-Pendulum data file")
+        raise ValueError(
+            f"{p} lacks {key_y!r}/{key_t!r}: not a MultiArm-Pendulum data file"
+        )
     segments = mat[key_y].ravel()
     times = mat[key_t].ravel()
     angles = ["theta"] if which == "single" else ["theta1", "theta2"]

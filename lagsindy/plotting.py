@@ -15,7 +15,7 @@ import numpy as np
 
 _INSTALL_HINT = (
     "lagsindy.plotting needs matplotlib, which is not installed; install the plot "
-    "extra: pip install \"lagsindy[plot]\" (or pip install matplotlib)"
+    'extra: pip install "lagsindy[plot]" (or pip install matplotlib)'
 )
 
 
@@ -86,7 +86,9 @@ def plot_trajectories(
         )
     n = a.shape[1] // 2
     b = None if learned_states is None else np.asarray(learned_states, dtype=float)
-    if b is not None and (b.ndim != 2 or b.shape[1] != a.shape[1] or b.shape[0] > t.size):
+    if b is not None and (
+        b.ndim != 2 or b.shape[1] != a.shape[1] or b.shape[0] > t.size
+    ):
         raise ValueError(
             f"learned_states must have shape (<= {t.size}, {a.shape[1]}), got {b.shape}"
         )
@@ -100,14 +102,23 @@ def plot_trajectories(
             k = i + j * n
             ax.plot(t, a[:, k], color="k", lw=1.6, label=labels[0])
             if b is not None:
-                ax.plot(t[: b.shape[0]], b[:, k], color="C1", lw=1.3, ls="--", label=labels[1])
+                ax.plot(
+                    t[: b.shape[0]],
+                    b[:, k],
+                    color="C1",
+                    lw=1.3,
+                    ls="--",
+                    label=labels[1],
+                )
             ax.set_ylabel(names[i] + ("_dot" if j else ""))
             ax.grid(alpha=0.3)
     for j in range(cols):
         axes[-1, j].set_xlabel("t")
     axes[0, 0].legend(loc="best", fontsize="small")
     if b is None:
-        axes[0, 0].set_title(f"{labels[1]} model could not be integrated", fontsize="small")
+        axes[0, 0].set_title(
+            f"{labels[1]} model could not be integrated", fontsize="small"
+        )
     if title:
         fig.suptitle(title)
     return _finish(fig, path)
@@ -141,10 +152,13 @@ def plot_coefficient_path(
     -------
     matplotlib.figure.Figure
     """
-    if isinstance(est, (list, tuple)):
+    if isinstance(est, list | tuple):
         stages, final = list(est), None
     else:
-        stages, final = list(getattr(est, "stages_", [])), np.asarray(est.coef_, dtype=float)
+        stages, final = (
+            list(getattr(est, "stages_", [])),
+            np.asarray(est.coef_, dtype=float),
+        )
         if terms is None:
             terms = [str(t) for t in est.term_names_]
     if not stages:
@@ -180,14 +194,17 @@ def plot_coefficient_path(
     ax.set_ylabel("coefficient")
     ax.set_yscale("symlog", linthresh=max(1e-3, 1e-3 * float(np.abs(path_coef).max())))
     ax.set_title(
-        "sparsification path" + (f" ({hidden} smaller terms not shown)" if hidden > 0 else "")
+        "sparsification path"
+        + (f" ({hidden} smaller terms not shown)" if hidden > 0 else "")
     )
     ax.grid(alpha=0.3)
     ax.legend(fontsize="x-small", loc="center left", bbox_to_anchor=(1.01, 0.5))
     return _finish(fig, path)
 
 
-def plot_residuals(est, X, tau=None, *, kind: str = "auto", t=None, bins: int = 50, path=None):
+def plot_residuals(
+    est, X, tau=None, *, kind: str = "auto", t=None, bins: int = 50, path=None
+):
     """Residuals of a fitted model per coordinate: over time and as a histogram.
 
     ``kind="forces"``: ``tau - est.predict(X)`` (needs ``tau``);
@@ -215,14 +232,18 @@ def plot_residuals(est, X, tau=None, *, kind: str = "auto", t=None, bins: int = 
     matplotlib.figure.Figure
     """
     if kind not in ("auto", "forces", "acceleration"):
-        raise ValueError(f"kind must be 'auto', 'forces' or 'acceleration', got {kind!r}")
+        raise ValueError(
+            f"kind must be 'auto', 'forces' or 'acceleration', got {kind!r}"
+        )
     coords = list(est.coordinates_)
     n = len(coords)
     if kind == "auto":
         kind = "forces" if tau is not None and est.case_ == "forces" else "acceleration"
     if kind == "forces":
         if tau is None:
-            raise ValueError("kind='forces' needs tau (the measured generalized forces)")
+            raise ValueError(
+                "kind='forces' needs tau (the measured generalized forces)"
+            )
         pred = np.asarray(est.predict(X), dtype=float).reshape(-1, n)
         measured = np.asarray(tau, dtype=float).reshape(-1, n)
         what = "force residual"
@@ -235,7 +256,9 @@ def plot_residuals(est, X, tau=None, *, kind: str = "auto", t=None, bins: int = 
     if x.size != resid.shape[0]:
         raise ValueError(f"t has {x.size} entries for {resid.shape[0]} samples")
     fig = _figure(figsize=(10, 2.4 * n + 0.6))
-    axes = np.asarray(fig.subplots(n, 2, squeeze=False, gridspec_kw={"width_ratios": [3, 1]}))
+    axes = np.asarray(
+        fig.subplots(n, 2, squeeze=False, gridspec_kw={"width_ratios": [3, 1]})
+    )
     for i, name in enumerate(coords):
         r = resid[:, i]
         ax = axes[i, 0]

@@ -8,7 +8,6 @@ import numpy as np
 import pandas as pd
 import pytest
 import sympy as sp
-
 from sklearn.base import clone
 
 from lagsindy import CandidateLibrary, LagrangianSINDy
@@ -18,26 +17,40 @@ from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
 @pytest.fixture(scope="module")
 def cart_data():
-    return make_dataset(cart_pendulum(), n_trajectories=8, excitation="sincos", noise=0.01,
-                        protocol="paper", random_state=3)
+    return make_dataset(
+        cart_pendulum(),
+        n_trajectories=8,
+        excitation="sincos",
+        noise=0.01,
+        protocol="paper",
+        random_state=3,
+    )
 
 
 @pytest.fixture(scope="module")
 def cart_model(cart_data):
-    return LagrangianSINDy(cart_pendulum().paper_library()).fit(cart_data.X, cart_data.tau)
+    return LagrangianSINDy(cart_pendulum().paper_library()).fit(
+        cart_data.X, cart_data.tau
+    )
 
 
 @pytest.fixture(scope="module")
 def passive_data():
-    return make_dataset(single_pendulum(), n_trajectories=8, excitation=None, noise=0.001,
-                        protocol="paper", random_state=4)
+    return make_dataset(
+        single_pendulum(),
+        n_trajectories=8,
+        excitation=None,
+        noise=0.001,
+        protocol="paper",
+        random_state=4,
+    )
 
 
 @pytest.fixture(scope="module")
 def passive_model(passive_data):
-    return LagrangianSINDy(single_pendulum().paper_library(), fixed_term="theta_dot**2").fit(
-        passive_data.X
-    )
+    return LagrangianSINDy(
+        single_pendulum().paper_library(), fixed_term="theta_dot**2"
+    ).fit(passive_data.X)
 
 
 @pytest.fixture(scope="module")
@@ -57,14 +70,18 @@ def _write(tmp_path, doc, name="m.json"):
     return p
 
 
-# ----------------------------------------------------------------------------- round trips
+# ---------------------------------------- round trips
 def test_active_round_trip_predicts_to_1e12(cart_model, cart_data, saved):
     loaded = LagrangianSINDy.load(saved)
     X, tau = cart_data.X, cart_data.tau
-    np.testing.assert_allclose(loaded.predict(X), cart_model.predict(X), rtol=0, atol=1e-12)
     np.testing.assert_allclose(
-        loaded.predict_acceleration(X, tau), cart_model.predict_acceleration(X, tau),
-        rtol=0, atol=1e-12,
+        loaded.predict(X), cart_model.predict(X), rtol=0, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        loaded.predict_acceleration(X, tau),
+        cart_model.predict_acceleration(X, tau),
+        rtol=0,
+        atol=1e-12,
     )
     assert loaded.score(X, tau) == pytest.approx(cart_model.score(X, tau), abs=1e-12)
     np.testing.assert_array_equal(loaded.coef_, cart_model.coef_)
@@ -78,17 +95,24 @@ def test_loaded_model_simulates_like_the_original(cart_model, saved):
     loaded = lio.load_model(saved)
     t = np.linspace(0, 2, 201)
     x0 = [0.1, 0.8, 0.0, 0.0]
-    np.testing.assert_allclose(loaded.simulate(x0, t), cart_model.simulate(x0, t), atol=1e-10)
+    np.testing.assert_allclose(
+        loaded.simulate(x0, t), cart_model.simulate(x0, t), atol=1e-10
+    )
 
 
-def test_passive_round_trip_keeps_case_and_fixed_term(passive_model, passive_data, tmp_path):
+def test_passive_round_trip_keeps_case_and_fixed_term(
+    passive_model, passive_data, tmp_path
+):
     path = lio.save_model(passive_model, tmp_path / "passive.json")
     loaded = lio.load_model(path)
     assert loaded.case_ == "fixed"
     assert loaded.fixed_term_ == passive_model.fixed_term_ == "theta_dot**2"
     X = passive_data.X
     np.testing.assert_allclose(
-        loaded.predict_acceleration(X), passive_model.predict_acceleration(X), rtol=0, atol=1e-12
+        loaded.predict_acceleration(X),
+        passive_model.predict_acceleration(X),
+        rtol=0,
+        atol=1e-12,
     )
     assert loaded.score(X) == pytest.approx(passive_model.score(X), abs=1e-12)
     assert loaded.get_params()["fixed_term"] == "theta_dot**2"
@@ -107,7 +131,9 @@ def test_dataframe_fitted_round_trip(cart_data, tmp_path):
 
 
 def test_one_dimensional_tau_round_trip(tmp_path):
-    data = make_dataset(single_pendulum(), n_trajectories=5, excitation="paper", random_state=5)
+    data = make_dataset(
+        single_pendulum(), n_trajectories=5, excitation="paper", random_state=5
+    )
     est = LagrangianSINDy(single_pendulum().paper_library()).fit(data.X, data.tau[:, 0])
     loaded = LagrangianSINDy.load(est.save(tmp_path / "m.json"))
     assert loaded.predict(data.X).shape == (len(data.X),)
@@ -144,8 +170,11 @@ def test_dissipation_field_round_trips(cart_model, tmp_path):
     est = pickle.loads(pickle.dumps(cart_model))
     est.dissipation_ = [
         {"name": "viscous x", "forces": ["-x_dot", "0"], "coefficient": 0.3},
-        {"name": "coulomb theta", "forces": [sp.Integer(0), "-tanh(theta_dot/0.01)"],
-         "coefficient": 0.05},
+        {
+            "name": "coulomb theta",
+            "forces": [sp.Integer(0), "-tanh(theta_dot/0.01)"],
+            "coefficient": 0.05,
+        },
     ]
     path = est.save(tmp_path / "d.json")
     assert _doc(path)["dissipation"][1]["forces"] == ["0", "-tanh(100.0*theta_dot)"]
@@ -162,7 +191,9 @@ def test_dissipation_field_round_trips(cart_model, tmp_path):
 def test_loaded_model_pickles_and_refits(saved, cart_data):
     loaded = LagrangianSINDy.load(saved)
     again = pickle.loads(pickle.dumps(loaded))
-    np.testing.assert_array_equal(again.predict(cart_data.X[:50]), loaded.predict(cart_data.X[:50]))
+    np.testing.assert_array_equal(
+        again.predict(cart_data.X[:50]), loaded.predict(cart_data.X[:50])
+    )
     refit = clone(loaded).fit(cart_data.X, cart_data.tau)
     np.testing.assert_allclose(refit.coef_, loaded.coef_, rtol=1e-6, atol=1e-9)
 
@@ -190,7 +221,7 @@ def test_loading_evaluates_no_code(saved, monkeypatch):
     assert est.coef_.shape == (len(_doc(saved)["terms"]),)
 
 
-# ----------------------------------------------------------------------------- tampering
+# ---------------------------------------- tampering
 MARKER = "lagsindy_pwned"
 
 
@@ -266,7 +297,10 @@ def test_wrong_json_type_is_named(saved, tmp_path, field):
         (lambda d: d.update(coordinates=["x", "a b"]), "not valid"),
         (lambda d: d.update(coordinates=["x", 1]), r"coordinates\[1\]"),
         (lambda d: d.update(n_features_in=5), "n_features_in"),
-        (lambda d: d.update(feature_names_in=["a", "b", "c", "d", "e", "f"]), "feature_names_in"),
+        (
+            lambda d: d.update(feature_names_in=["a", "b", "c", "d", "e", "f"]),
+            "feature_names_in",
+        ),
         (lambda d: d.update(case="exec"), "case"),
         (lambda d: d.update(case="fixed"), "fixed_term"),
         (lambda d: d.update(fixed_term="x**7"), "not among its terms"),
@@ -277,15 +311,42 @@ def test_wrong_json_type_is_named(saved, tmp_path, field):
         (lambda d: d["hyperparameters"].update(lam=-1.0), "lam"),
         (lambda d: d["hyperparameters"].update(nonsense=1), "unknown hyperparameters"),
         (lambda d: d["hyperparameters"].update(device="__import__('os')"), "device"),
-        (lambda d: d["hyperparameters"].update(fixed_term="open('/etc/passwd')"), "not valid"),
-        (lambda d: d["hyperparameters"].update(unpenalized=[["nested"]]), "unpenalized"),
+        (
+            lambda d: d["hyperparameters"].update(fixed_term="open('/etc/passwd')"),
+            "not valid",
+        ),
+        (
+            lambda d: d["hyperparameters"].update(unpenalized=[["nested"]]),
+            "unpenalized",
+        ),
         (lambda d: d.update(dissipation=["x_dot"]), r"dissipation\[0\]"),
-        (lambda d: d.update(dissipation=[{"name": "a", "forces": ["x_dot"], "coefficient": 1}]),
-         "2 expressions"),
-        (lambda d: d.update(dissipation=[{"name": "a", "forces": ["x_dot", "exec('1')"],
-                                          "coefficient": 1}]), "not valid"),
-        (lambda d: d.update(dissipation=[{"name": "a", "forces": ["x_dot", "0"],
-                                          "coefficient": 1, "code": "x"}]), "exactly the fields"),
+        (
+            lambda d: d.update(
+                dissipation=[{"name": "a", "forces": ["x_dot"], "coefficient": 1}]
+            ),
+            "2 expressions",
+        ),
+        (
+            lambda d: d.update(
+                dissipation=[
+                    {"name": "a", "forces": ["x_dot", "exec('1')"], "coefficient": 1}
+                ]
+            ),
+            "not valid",
+        ),
+        (
+            lambda d: d.update(
+                dissipation=[
+                    {
+                        "name": "a",
+                        "forces": ["x_dot", "0"],
+                        "coefficient": 1,
+                        "code": "x",
+                    }
+                ]
+            ),
+            "exactly the fields",
+        ),
     ],
 )
 def test_tampered_document_gives_clear_error(saved, tmp_path, change, message):
@@ -316,7 +377,10 @@ def test_non_finite_coefficient_is_refused(saved, tmp_path, literal):
         (b"\xff\xfe\x00garbage", "UTF-8"),
         (b'{"format": "lagsindy-model", "format": "x"}', "repeats the key"),
         (b"[" * 100_000 + b"]" * 100_000, "nested too deeply|not valid JSON"),
-        (b'{"format": "lagsindy-model", "schema_version": ' + b"9" * 5000 + b"}", "digits|JSON"),
+        (
+            b'{"format": "lagsindy-model", "schema_version": ' + b"9" * 5000 + b"}",
+            "digits|JSON",
+        ),
         (b"\x80\x04\x95pickle", "UTF-8|JSON"),
     ],
 )
@@ -350,13 +414,16 @@ def test_cuda_model_loads_on_cpu_with_a_warning(saved, tmp_path):
     assert est.device == "cpu"
 
 
-# ----------------------------------------------------------------------------- pandas
+# ---------------------------------------- pandas
 def test_coef_table(cart_model):
     table = cart_model.coef_table()
     assert list(table.columns) == ["term", "coefficient", "kept"]
     assert len(table) == len(cart_model.coef_)
     assert set(table.loc[table.kept, "term"]) == {
-        "x_dot**2", "theta_dot**2", "theta_dot*x_dot*cos(theta)", "cos(theta)"
+        "x_dot**2",
+        "theta_dot**2",
+        "theta_dot*x_dot*cos(theta)",
+        "cos(theta)",
     }
     assert (table.coefficient[~table.kept] == 0).all()
 
@@ -366,12 +433,16 @@ def test_dataframe_in_gives_named_frames_out(cart_model, cart_data):
     df = cart_data.to_frame().iloc[100:160]
     forces = cart_model.predict(df)
     acc = cart_model.predict_acceleration(df, df)  # tau_<q> columns matched by name
-    assert list(forces.columns) == ["tau_x", "tau_theta"] and forces.index.equals(df.index)
+    assert list(forces.columns) == ["tau_x", "tau_theta"] and forces.index.equals(
+        df.index
+    )
     assert list(acc.columns) == ["x_ddot", "theta_ddot"] and acc.index.equals(df.index)
     X = df[cart_data.feature_names].to_numpy()
     np.testing.assert_allclose(forces.to_numpy(), cart_model.predict(X), atol=1e-12)
     tau = df[["tau_x", "tau_theta"]].to_numpy()
-    np.testing.assert_allclose(acc.to_numpy(), cart_model.predict_acceleration(X, tau), atol=1e-12)
+    np.testing.assert_allclose(
+        acc.to_numpy(), cart_model.predict_acceleration(X, tau), atol=1e-12
+    )
     assert isinstance(cart_model.predict(X), np.ndarray)
 
 
@@ -395,5 +466,10 @@ def test_multiarm_loader_reads_the_recordings():
     assert 1.0 < single.theta.min() and single.theta.max() < 5.0  # pi = hanging down
     double = lio.load_multiarm_pendulum(folder, which="double", split="vad")
     assert list(double.columns) == [
-        "trajectory", "t", "theta1", "theta2", "theta1_dot_filtered", "theta2_dot_filtered"
+        "trajectory",
+        "t",
+        "theta1",
+        "theta2",
+        "theta1_dot_filtered",
+        "theta2_dot_filtered",
     ]

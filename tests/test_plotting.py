@@ -25,8 +25,14 @@ PNG = b"\x89PNG\r\n\x1a\n"
 @pytest.fixture(scope="module")
 def fitted():
     system = single_pendulum()
-    data = make_dataset(system, n_trajectories=6, excitation="paper", noise=0.01,
-                        protocol="paper", random_state=0)
+    data = make_dataset(
+        system,
+        n_trajectories=6,
+        excitation="paper",
+        noise=0.01,
+        protocol="paper",
+        random_state=0,
+    )
     return system, data, LagrangianSINDy(system.paper_library()).fit(data.X, data.tau)
 
 
@@ -35,8 +41,15 @@ def test_trajectories_figure_and_png(fitted, tmp_path):
     t = np.linspace(0, 3, 301)
     true = system.simulate([1.0, 0.0], t)
     learned = est.simulate([1.0, 0.0], t)
-    fig = plot_trajectories(t, true, learned, system.coordinates, velocities=True,
-                            title="pendulum", path=tmp_path / "traj.png")
+    fig = plot_trajectories(
+        t,
+        true,
+        learned,
+        system.coordinates,
+        velocities=True,
+        title="pendulum",
+        path=tmp_path / "traj.png",
+    )
     assert isinstance(fig, Figure)
     assert len(fig.axes) == 2  # one coordinate x (position, velocity)
     lines = fig.axes[0].get_lines()
@@ -72,7 +85,11 @@ def test_coefficient_path_has_one_line_per_surviving_term(fitted, tmp_path):
     _, _, est = fitted
     fig = plot_coefficient_path(est, path=tmp_path / "path.png")
     ax = fig.axes[0]
-    labels = [line.get_label() for line in ax.get_lines() if not line.get_label().startswith("_")]
+    labels = [
+        line.get_label()
+        for line in ax.get_lines()
+        if not line.get_label().startswith("_")
+    ]
     ever = np.any(np.vstack([s.coef for s in est.stages_] + [est.coef_]) != 0, axis=0)
     assert len(labels) == min(int(ever.sum()), 12)
     assert set(labels) >= {"theta_dot**2", "cos(theta)"}
