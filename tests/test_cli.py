@@ -519,3 +519,41 @@ def test_bad_input_gives_one_line_and_status_2(capsys, workdir, args, message):
     assert "error" in lines[0] and "Traceback" not in err
     assert re.search(message, lines[0]), lines[0]
     assert not (workdir / "pwned").exists() and not Path("pwned").exists()
+
+
+def test_warnings_are_printed_on_one_line(capsys, monkeypatch, workdir):
+    import warnings
+
+    import lagsindy.cli as cli
+
+    def noisy(args):
+        warnings.warn("first line\nsecond line", UserWarning)
+        return 0
+
+    monkeypatch.setattr(cli, "_fit", noisy)
+    code, _, err = run(
+        capsys,
+        "fit",
+        workdir / "data.csv",
+        "--coordinates",
+        "x",
+        "--out",
+        workdir / "unused.json",
+    )
+    assert code == 0
+    assert err.splitlines() == ["lagsindy fit: warning: first line second line"]
+
+
+def test_debug_shows_the_traceback(workdir):
+    with pytest.raises(Exception, match="not found"):
+        main(
+            [
+                "--debug",
+                "fit",
+                str(workdir / "none.csv"),
+                "--coordinates",
+                "x",
+                "--out",
+                str(workdir / "o.json"),
+            ]
+        )
