@@ -316,6 +316,8 @@ def _parse(text, allowed, what):
         raise ValueError(
             f"{what} {text[:80]!r} in the model file is not valid: {exc}"
         ) from None
+    if expr.has(sp.I):
+        raise ValueError(f"{what} {text[:80]!r} in the model file is complex")
     for number in expr.atoms(sp.Number):
         if not math.isfinite(abs(complex(number))):
             raise ValueError(
