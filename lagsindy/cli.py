@@ -499,8 +499,18 @@ def _predict(args) -> int:
     X = _state_frame(df, coords, args, args.data)
     inputs = _input_columns(df, coords, args)
     tau = None if inputs is None else _numeric(df, inputs, args.data)
-    forces = est.predict(X)
-    acc = est.predict_acceleration(X, tau)
+    with warnings.catch_warnings():
+        # Columns are matched by name even for a model fit on arrays, so sklearn's
+        # "fitted without feature names" warning says nothing useful here.
+        warnings.filterwarnings("ignore", message="X has feature names")
+        forces = est.predict(X)
+        acc = est.predict_acceleration(X, tau)
+        if tau is not None and est.case_ == "forces":
+            quality = f"R^2 of forces: {est.score(X, tau):.4f}"
+        elif tau is None:
+            quality = f"R^2 of accelerations: {est.score(X):.4f}"
+        else:
+            quality = None
     out = df[[c for c in ("trajectory", "t") if c in df.columns]].copy()
     forces = forces.to_frame() if forces.ndim == 1 else forces
     out = out.join(forces).join(acc)
@@ -515,10 +525,8 @@ def _predict(args) -> int:
             "note: a model fit on passive data is known up to scale, so its "
             "forces are too (accelerations are not)"
         )
-    if tau is not None and est.case_ == "forces":
-        lines.append(f"R^2 of forces: {est.score(X, tau):.4f}")
-    if tau is None:
-        lines.append(f"R^2 of accelerations: {est.score(X):.4f}")
+    if quality:
+        lines.append(quality)
     _say(args, "\n".join(lines))
     return 0
 
