@@ -2,6 +2,7 @@
 
 from .dynamics import MechanicalModel, SingularMassMatrixError, rollout_error
 from .estimator import LagrangianSINDy
+from .io import load_model, save_model
 from .library import CandidateLibrary
 
 __version__ = "0.1.0.dev0"
@@ -11,6 +12,8 @@ __all__ = [
     "LagrangianSINDy",
     "MechanicalModel",
     "SingularMassMatrixError",
+    "load_model",
     "rollout_error",
+    "save_model",
     "__version__",
 ]

@@ -9,6 +9,7 @@ acceleration symbol ``theta_ddot``. All symbols are real.
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Callable, Iterable, Sequence
 
@@ -38,6 +39,13 @@ _RESERVED = set(_SYMPY_FUNCTIONS) | set(_CONSTANTS)
 _NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
 MAX_EXPRESSION_LENGTH = 10_000
 MAX_EXPONENT = 64
+# Largest magnitude (in bits, |log2|) of a power of two numbers: sympy evaluates
+# numeric powers exactly, so "((10**64)**64)**64" would otherwise take minutes.
+MAX_NUMERIC_POWER_BITS = 4096
+# Longest numeric literal and largest decimal exponent of one ("1e99999999999" made
+# sympy exhaust memory).
+MAX_NUMBER_LENGTH = 400
+MAX_DECIMAL_EXPONENT = 1000
 
 
 class ExpressionError(ValueError):
@@ -224,10 +232,17 @@ class _Parser:
         if self._peek()[1] in ("**", "^"):
             self._next()
             exponent = self._unary()
-            if exponent.is_number and abs(float(exponent)) > MAX_EXPONENT:
+            if exponent.is_number and _magnitude(exponent) > MAX_EXPONENT:
                 raise ExpressionError(
                     f"exponent {exponent} exceeds the limit of {MAX_EXPONENT} in "
                     f"{self.text!r}"
+                )
+            if base.is_number and exponent.is_number and _power_too_large(
+                base, exponent
+            ):
+                raise ExpressionError(
+                    f"a numeric power in {self.text!r} exceeds "
+                    f"2**{MAX_NUMERIC_POWER_BITS}"
                 )
             return base**exponent
         return base
@@ -235,6 +250,13 @@ class _Parser:
     def _atom(self):
         kind, tok = self._next()
         if kind == "num":
+            mantissa, _, power = tok.lower().partition("e")
+            if len(tok) > MAX_NUMBER_LENGTH or (
+                power and abs(int(power)) > MAX_DECIMAL_EXPONENT
+            ):
+                raise ExpressionError(
+                    f"number {tok[:40]!r} is too large in {self.text!r}"
+                )
             if re.fullmatch(r"\d+", tok):
                 return sp.Integer(int(tok))
             return sp.Float(tok)
@@ -259,6 +281,21 @@ class _Parser:
             return out
         found = "end of text" if tok is None else repr(tok)
         raise ExpressionError(f"unexpected {found} in {self.text!r}")
+
+
+def _magnitude(number) -> float:
+    """``abs`` of a sympy number; inf when it has none (zoo, nan)."""
+    try:
+        return abs(complex(number))
+    except (TypeError, ValueError, OverflowError):
+        return math.inf
+
+
+def _power_too_large(base, exponent) -> bool:
+    b, e = _magnitude(base), _magnitude(exponent)
+    if not (math.isfinite(b) and math.isfinite(e)):
+        return True
+    return b != 0 and e * abs(math.log2(b)) > MAX_NUMERIC_POWER_BITS
 
 
 def parse_expression(text: str, allowed_names: Sequence[str]) -> sp.Expr:
@@ -288,7 +325,15 @@ def parse_expression(text: str, allowed_names: Sequence[str]) -> sp.Expr:
             f"{MAX_EXPRESSION_LENGTH}"
         )
     symbols = {n: sp.Symbol(n, real=True) for n in allowed_names}
-    return sp.sympify(_Parser(text, symbols).parse())
+    try:
+        expr = sp.sympify(_Parser(text, symbols).parse())
+    except RecursionError:
+        raise ExpressionError(
+            f"expression nested too deeply: {text[:60]!r}..."
+        ) from None
+    if expr.has(sp.zoo, sp.nan, sp.oo, -sp.oo):
+        raise ExpressionError(f"expression {text!r} is not finite (division by zero?)")
+    return expr
 
 
 # ----------------------------------------------------------------------------- torch

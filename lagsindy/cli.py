@@ -1,10 +1,19 @@
-"""The ``lagsindy`` command (also ``python -m lagsindy``)."""
+"""The ``lagsindy`` command (also ``python -m lagsindy``).
+
+Subcommands: ``demo``, ``simulate``, ``simulate-model``, ``fit`` and ``predict``; each
+has ``--help``. Bad input (a missing file, an unknown column, a wrong shape, NaN, an
+invalid model file) ends with ONE line on stderr and exit status 2, never a traceback
+(``--debug`` shows it).
+"""
 
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
+import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -13,15 +22,173 @@ class CLIError(Exception):
     """A user error: printed as one line, exit status 2."""
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with usage errors on one line (exit status 2)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _say(args, *parts):
+    if not getattr(args, "quiet", False):
+        print(*parts, flush=True)
+
+
+# ----------------------------------------------------------------------------- data in
+def _read_csv(path):
+    import pandas as pd
+
+    p = Path(path)
+    if not p.exists():
+        raise CLIError(f"file not found: {path}")
+    if p.is_dir():
+        raise CLIError(f"{path} is a folder, not a CSV file")
+    try:
+        df = pd.read_csv(p)
+    except pd.errors.EmptyDataError:
+        raise CLIError(f"{path} is empty") from None
+    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise CLIError(f"{path} is not a readable CSV file: {exc}") from None
+    if df.shape[0] == 0:
+        raise CLIError(f"{path} has a header but no rows")
+    df.columns = [str(c).strip() for c in df.columns]
+    return df
+
+
+def _split(text):
+    return [s.strip() for s in text.split(",") if s.strip()] if text else []
+
+
+def _numeric(df, columns, source):
+    """The named columns as a float array; names the column/row of bad values."""
+    missing = [c for c in columns if c not in df.columns]
+    if missing:
+        raise CLIError(
+            f"{source} has no column {missing[0]!r} (its columns: "
+            f"{', '.join(map(str, df.columns[:20]))}"
+            f"{' ...' if len(df.columns) > 20 else ''})"
+        )
+    out = np.empty((len(df), len(columns)))
+    for j, c in enumerate(columns):
+        values = df[c]
+        try:
+            out[:, j] = values.to_numpy(dtype=float)
+        except (TypeError, ValueError):
+            bad = next((i for i, v in enumerate(values) if not _is_float(v)), 0)
+            raise CLIError(
+                f"column {c!r} of {source} is not numeric: row {bad} holds "
+                f"{values.iloc[bad]!r}"
+            ) from None
+        finite = np.isfinite(out[:, j])
+        if not finite.all():
+            row = int(np.flatnonzero(~finite)[0])
+            raise CLIError(
+                f"column {c!r} of {source} has {int((~finite).sum())} NaN or infinite "
+                f"value(s), the first at row {row}; drop or fill those rows"
+            )
+    return out
+
+
+def _is_float(v):
+    try:
+        float(v)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _state_frame(df, coords, args, source):
+    """X as a DataFrame ``[q, q_dot, q_ddot]``; derivatives estimated if absent."""
+    import pandas as pd
+
+    from ._expr import state_names
+
+    names = state_names(coords)
+    q = _numeric(df, coords, source)
+    have_derivatives = all(n in df.columns for n in names)
+    method = getattr(args, "derivatives", None)
+    if have_derivatives and method is None:
+        return pd.DataFrame(_numeric(df, names, source), columns=names, index=df.index)
+    from .differentiation import derivatives
+
+    if "t" in df.columns:
+        t = _numeric(df, ["t"], source)[:, 0]
+    elif getattr(args, "dt", None):
+        t = np.arange(len(df)) * float(args.dt)
+    else:
+        raise CLIError(
+            f"{source} has positions only and no 't' column: add a time column 't' or "
+            "pass --dt SECONDS (the sampling interval)"
+        )
+    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
+    for idx in _group_rows(groups, len(df)):
+        if idx.size < 5:
+            raise CLIError(
+                f"a trajectory in {source} has {idx.size} rows; derivative estimation "
+                "needs at least 5 samples per trajectory"
+            )
+        if np.any(np.diff(t[idx]) <= 0):
+            raise CLIError(
+                f"'t' must increase within each trajectory in {source} (sort the rows, "
+                "and give separate trajectories a 'trajectory' column)"
+            )
+    kwargs = {"groups": groups}
+    if method is not None:
+        kwargs["method"] = method
+    _say(
+        args,
+        f"estimating velocities and accelerations of {coords} "
+        f"({method or 'default method'}) ...",
+    )
+    X = np.asarray(derivatives(q, t, **kwargs), dtype=float)
+    if X.shape != (len(df), 3 * len(coords)):
+        raise CLIError(
+            f"derivative estimation returned shape {X.shape}, expected "
+            f"{(len(df), 3 * len(coords))}"
+        )
+    return pd.DataFrame(X, columns=names, index=df.index)
+
+
+def _group_rows(groups, n):
+    if groups is None:
+        return [np.arange(n)]
+    _, first = np.unique(groups, return_index=True)
+    return [np.flatnonzero(groups == groups[s]) for s in np.sort(first)]
+
+
+def _input_columns(df, coords, args):
+    """Names of the generalized-force columns, or None for passive data."""
+    if getattr(args, "passive", False):
+        return None
+    if args.input:
+        cols = _split(args.input)
+        if len(cols) != len(coords):
+            raise CLIError(
+                f"--input names {len(cols)} column(s) but there are {len(coords)} "
+                f"coordinate(s) {coords}: give one generalized-force column per "
+                "coordinate"
+            )
+        return cols
+    named = [f"tau_{c}" for c in coords]
+    if all(c in df.columns for c in named):
+        return named
+    return None
+
+
+# ----------------------------------------------------------------------------- demo
 def _demo(args) -> int:
+    from .dynamics import rollout_error
     from .estimator import LagrangianSINDy
     from .systems import get_system, make_dataset
 
     system = get_system(args.system)
+    if args.trajectories < 1:
+        raise CLIError("--trajectories must be at least 1")
     active = not args.passive
     data = make_dataset(
         system,
         n_trajectories=args.trajectories,
+        duration=args.duration,
         excitation="sincos" if active else None,
         noise=args.noise,
         protocol=args.protocol,
@@ -35,12 +202,13 @@ def _demo(args) -> int:
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
     )
-    if not args.quiet:
-        print(
-            f"{system.name}: {args.trajectories} trajectories x 5 s at 100 Hz, "
-            f"{'forced' if active else 'passive'}, noise sigma={args.noise} "
-            f"({args.protocol} protocol); library of {len(library)} terms"
-        )
+    _say(
+        args,
+        f"{system.name}: {args.trajectories} trajectories x {args.duration:g} s "
+        "at 100 Hz, "
+        f"{'forced' if active else 'passive'}, noise sigma={args.noise} "
+        f"({args.protocol} protocol); library of {len(library)} terms",
+    )
     start = time.perf_counter()
     est.fit(data.X, data.tau)
     elapsed = time.perf_counter() - start
@@ -54,50 +222,591 @@ def _demo(args) -> int:
     print(f"\n{'term':<{width}}  {'true':>10}  {'learned':>10}  {'error':>8}")
     for k in rows:
         err = (
-            f"{abs(learned[k] - truth[k]) / abs(truth[k]):8.2%}" if truth[k] != 0 else "   extra"
+            f"{abs(learned[k] - truth[k]) / abs(truth[k]):8.2%}"
+            if truth[k] != 0
+            else "   extra"
         )
         if truth[k] != 0 and learned[k] == 0:
             err = " missing"
         print(f"{names[k]:<{width}}  {truth[k]:10.4f}  {learned[k]:10.4f}  {err}")
     correct = np.array_equal(truth != 0, learned != 0)
-    print(f"\nrecovered: {est.equation(4)}")
-    print(f"structure {'correct' if correct else 'NOT correct'}; fit took {elapsed:.2f} s")
+    print(f"\ntrue:      {system.equation(4)}")
+    print(f"recovered: {est.equation(4)}")
+    if not active:
+        print(
+            f"(passive data fix the scale: {est.fixed_term_} has coefficient 1, "
+            "and the "
+            "'true' column above is scaled to match)"
+        )
+    print(
+        f"structure {'correct' if correct else 'NOT correct'}; fit took {elapsed:.2f} s"
+    )
+
+    # Trajectory check: both models, unforced, from a fresh initial state.
+    x0 = system.sample_initial_states(1, np.random.RandomState(args.seed + 1))[0]
+    t = np.arange(int(round(args.duration * 100)) + 1) / 100.0
+    try:
+        check = rollout_error(system, est.model_, x0, t)
+    except (ValueError, RuntimeError, np.linalg.LinAlgError) as exc:
+        print(
+            f"trajectory check skipped: the true system could not be integrated ({exc})"
+        )
+        return 0
+    if "error" in check:
+        print(
+            "trajectory check: the learned model could not be integrated: "
+            f"{check['error']}"
+        )
+    else:
+        print(
+            f"trajectory check (unforced, {t[-1]:g} s from a new initial state): "
+            f"max |q_true - q_learned| = {check['max_abs_q']:.3g}"
+        )
+    if args.plot is not None:
+        try:
+            from .plotting import plot_trajectories
+
+            plot_trajectories(
+                t,
+                check["states_a"],
+                check["states_b"],
+                system.coordinates,
+                velocities=True,
+                title=f"{system.name}: true vs learned (unforced)",
+                path=args.plot,
+            )
+        except ImportError as exc:
+            print(f"no plot: {exc}")
+        else:
+            print(f"saved the trajectory comparison to {args.plot}")
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="lagsindy",
-        description="Discover the Lagrangian of a mechanical system from trajectories.",
+# ----------------------------------------------------------------------------- simulate
+def _simulate(args) -> int:
+    if args.model is not None:
+        if args.system is not None:
+            raise CLIError("give either --system or --model, not both")
+        if not args.x0:
+            raise CLIError("simulating a saved model needs --x0 (the initial state)")
+        return _simulate_model(args)
+    if args.system is None:
+        raise CLIError(
+            "give --system NAME (a built-in system) or --model FILE (a saved model)"
+        )
+    from .systems import get_system, make_dataset
+
+    system = get_system(args.system)
+    if args.trajectories < 1:
+        raise CLIError("--trajectories must be at least 1")
+    _check_out(args.out)
+    excitation = None if args.passive else args.excitation
+    data = make_dataset(
+        system,
+        n_trajectories=args.trajectories,
+        duration=args.duration,
+        rate=args.rate,
+        excitation=excitation,
+        noise=args.noise,
+        protocol=args.protocol,
+        random_state=args.seed,
     )
-    sub = parser.add_subparsers(dest="command", required=True)
+    df = data.to_frame()
+    if args.positions_only:
+        keep = ["trajectory", "t", *system.coordinates]
+        keep += [c for c in df.columns if c.startswith("tau_")]
+        df = df[keep]
+    _write_csv(df, args.out)
+    _say(
+        args,
+        f"wrote {args.out}: {system.name}, {args.trajectories} trajectories x "
+        f"{args.duration:g} s at {args.rate:g} Hz ({len(df)} rows), "
+        f"{'passive' if excitation is None else f'input {excitation!r}'}, noise "
+        f"sigma={args.noise} ({args.protocol} protocol); "
+        f"columns: {', '.join(df.columns)}",
+    )
+    return 0
+
+
+def _check_out(out):
+    """Fail early (before a long fit) when the output cannot be written."""
+    out = Path(out)
+    if out.is_dir():
+        raise CLIError(f"--out {out} is a folder; give a file name")
+    if not out.parent.is_dir():
+        raise CLIError(f"cannot write {out}: the folder {out.parent} does not exist")
+    return out
+
+
+def _write_csv(df, out):
+    df.to_csv(_check_out(out), index=False, float_format="%.12g")
+
+
+def _load(path):
+    from .io import load_model
+
+    if not Path(path).is_file():
+        raise CLIError(f"model file not found: {path}")
+    return load_model(path)
+
+
+def _simulate_model(args) -> int:
+    import pandas as pd
+
+    from ._expr import state_names
+
+    _check_out(args.out)
+    est = _load(args.model)
+    n = est.n_dof_
+    x0 = []
+    for text in args.x0:
+        try:
+            values = [float(v) for v in _split(text)]
+        except ValueError:
+            raise CLIError(
+                f"--x0 {text!r} is not a comma-separated list of numbers"
+            ) from None
+        if len(values) != 2 * n:
+            raise CLIError(
+                f"--x0 {text!r} has {len(values)} value(s); the model's state "
+                f"{state_names(est.coordinates_, accelerations=False)} has {2 * n}"
+            )
+        if not np.all(np.isfinite(values)):
+            raise CLIError(f"--x0 {text!r} contains NaN or infinite values")
+        x0.append(values)
+    if args.duration <= 0 or args.rate <= 0:
+        raise CLIError("--duration and --rate must be positive")
+    t = np.arange(int(round(args.duration * args.rate)) + 1) / args.rate
+    frames = []
+    for k, start in enumerate(x0):
+        states = est.simulate(np.asarray(start), t)
+        X = est.model_.trajectory_to_X(states)
+        frame = pd.DataFrame(X, columns=state_names(est.coordinates_))
+        frame.insert(0, "t", t)
+        frame.insert(0, "trajectory", k)
+        frames.append(frame)
+    df = pd.concat(frames, ignore_index=True)
+    _write_csv(df, args.out)
+    _say(
+        args,
+        f"wrote {args.out}: {len(x0)} trajectory(ies) x {t[-1]:g} s of "
+        f"{est.equation(4)} (unforced)",
+    )
+    return 0
+
+
+# ----------------------------------------------------------------------------- fit
+_LIBRARY_RE = re.compile(r"(poly|polynomial|sep|separated)(\d+)\Z")
+
+
+def _library(args, coords, angles):
+    from .library import CandidateLibrary
+
+    spec = args.library.strip().lower()
+    extra = _split(args.terms)
+    if spec == "terms":
+        if not extra:
+            raise CLIError("--library terms needs --terms 'a,b,...'")
+        return CandidateLibrary.from_terms(coords, extra)
+    m = _LIBRARY_RE.match(spec)
+    if not m:
+        raise CLIError(
+            f"--library {args.library!r} is not known: use polyN (all monomials of "
+            "degree 1..N over q, q_dot, sin/cos of angles), separatedN (the paper's "
+            "trigonometric x non-trigonometric construction) or terms (only --terms)"
+        )
+    degree = int(m.group(2))
+    if not 1 <= degree <= 6:
+        raise CLIError(f"--library degree must be between 1 and 6, got {degree}")
+    builder = (
+        CandidateLibrary.polynomial
+        if m.group(1).startswith("poly")
+        else CandidateLibrary.separated
+    )
+    return builder(
+        coords,
+        angles=angles or None,
+        degree=degree,
+        raw_angles=args.raw_angles,
+        terms=extra or None,
+    )
+
+
+def _fit(args) -> int:
+    from ._expr import check_coordinate_names
+    from .estimator import LagrangianSINDy
+
+    coords = _split(args.coordinates)
+    if not coords:
+        raise CLIError("--coordinates needs at least one column name, e.g. x,theta")
+    check_coordinate_names(coords)
+    angles = coords if args.angles == "all" else _split(args.angles)
+    unknown = [a for a in angles if a not in coords]
+    if unknown:
+        raise CLIError(f"--angles {unknown} are not among --coordinates {coords}")
+    _check_out(args.out)
+    df = _read_csv(args.data)
+    X = _state_frame(df, coords, args, args.data)
+    inputs = _input_columns(df, coords, args)
+    if inputs is not None and args.fixed_term is not None:
+        raise CLIError(
+            "--fixed-term is for passive data (case III), but the input columns "
+            f"{inputs} "
+            "were found; pass --passive to ignore them, or drop --fixed-term"
+        )
+    tau = None if inputs is None else _numeric(df, inputs, args.data)
+    library = _library(args, coords, angles)
+    est = LagrangianSINDy(
+        library,
+        lam=args.lam,
+        threshold=args.threshold,
+        fixed_term=args.fixed_term,
+        unpenalized=_split(args.unpenalized) or None,
+        case=args.case,
+        random_state=args.seed,
+        verbose=0 if args.quiet else 1,
+    )
+    _say(
+        args,
+        f"fitting {len(X)} samples of {coords}: "
+        + (f"forces from {inputs}" if inputs else "passive (no input columns)")
+        + f", library {args.library} ({len(library)} terms after reduction)",
+    )
+    start = time.perf_counter()
+    est.fit(X, tau)
+    elapsed = time.perf_counter() - start
+    est.save(args.out)
+    print(est.equation(args.precision))
+    kept = int(est.support_.sum())
+    if tau is not None:
+        quality = f"R^2 of forces {est.score(X, tau):.4f}"
+    else:
+        quality = f"R^2 of accelerations {est.score(X):.4f}"
+    _say(
+        args,
+        f"{kept} of {len(est.coef_)} terms kept, {quality}; fit took "
+        f"{elapsed:.1f} s; saved the model to {args.out}",
+    )
+    return 0
+
+
+# ----------------------------------------------------------------------------- predict
+def _predict(args) -> int:
+    _check_out(args.out)
+    est = _load(args.model)
+    df = _read_csv(args.data)
+    coords = list(est.coordinates_)
+    X = _state_frame(df, coords, args, args.data)
+    inputs = _input_columns(df, coords, args)
+    tau = None if inputs is None else _numeric(df, inputs, args.data)
+    with warnings.catch_warnings():
+        # Columns are matched by name even for a model fit on arrays, so sklearn's
+        # "fitted without feature names" warning says nothing useful here.
+        warnings.filterwarnings("ignore", message="X has feature names")
+        forces = est.predict(X)
+        acc = est.predict_acceleration(X, tau)
+        if tau is not None and est.case_ == "forces":
+            quality = f"R^2 of forces: {est.score(X, tau):.4f}"
+        elif tau is None:
+            quality = f"R^2 of accelerations: {est.score(X):.4f}"
+        else:
+            quality = None
+    out = df[[c for c in ("trajectory", "t") if c in df.columns]].copy()
+    forces = forces.to_frame() if forces.ndim == 1 else forces
+    out = out.join(forces).join(acc)
+    _write_csv(out, args.out)
+    lines = [
+        f"wrote {args.out}: predicted forces {list(forces.columns)} (inverse "
+        f"dynamics) and accelerations {list(acc.columns)} (forward dynamics"
+        f"{', with the input columns ' + str(inputs) if inputs else ', unforced'})"
+    ]
+    if est.case_ != "forces":
+        lines.append(
+            "note: a model fit on passive data is known up to scale, so its "
+            "forces are too (accelerations are not)"
+        )
+    if quality:
+        lines.append(quality)
+    _say(args, "\n".join(lines))
+    return 0
+
+
+# ----------------------------------------------------------------------------- parser
+def _add_derivative_options(p):
+    p.add_argument(
+        "--derivatives",
+        metavar="METHOD",
+        default=None,
+        help="estimate q_dot and q_ddot from q with this method of "
+        "lagsindy.differentiation (e.g. savgol, finite_difference) even "
+        "when derivative columns exist; by default they are estimated "
+        "only when the CSV lacks <q>_dot/<q>_ddot columns",
+    )
+    p.add_argument(
+        "--dt",
+        type=float,
+        default=None,
+        help="sampling interval in seconds when the CSV has no 't' column",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of the ``lagsindy`` command."""
+    from . import __version__
+    from .systems import SYSTEMS
+
+    systems = ", ".join(sorted(SYSTEMS))
+    parser = _Parser(
+        prog="lagsindy",
+        description="Discover the Lagrangian of a mechanical system from trajectories "
+        "(xL-SINDy). Run 'lagsindy COMMAND --help' for a command's options.",
+    )
+    parser.add_argument(
+        "--version", action="version", version=f"lagsindy {__version__}"
+    )
+    parser.add_argument(
+        "--debug", action="store_true", help="show the Python traceback of errors"
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
     demo = sub.add_parser(
         "demo",
         help="simulate a built-in system with noise, fit it, print true vs learned",
-        description="Simulate a built-in system, add noise, fit a Lagrangian and print "
-        "the true and recovered terms side by side.",
+        description="Simulate a built-in system, add noise, fit a Lagrangian, print "
+        "the "
+        "true and recovered terms side by side with their errors, and save a plot of "
+        "true vs learned trajectories.",
     )
-    demo.add_argument("--system", default="cart_pendulum",
-                      help="single_pendulum, cart_pendulum, double_pendulum, spherical_pendulum")
-    demo.add_argument("--noise", type=float, default=0.01, help="noise sigma (default 0.01)")
-    demo.add_argument("--protocol", default="paper", choices=["shared", "paper", "sensor"],
-                      help="noise protocol (default: paper, independent noise)")
+    demo.add_argument("--system", default="cart_pendulum", help=f"one of: {systems}")
+    demo.add_argument(
+        "--noise", type=float, default=0.01, help="noise sigma (default 0.01)"
+    )
+    demo.add_argument(
+        "--protocol",
+        default="paper",
+        choices=["shared", "paper", "sensor"],
+        help="noise protocol (default: paper, independent noise)",
+    )
     demo.add_argument("--passive", action="store_true", help="no input (case III)")
-    demo.add_argument("--trajectories", type=int, default=100)
+    demo.add_argument(
+        "--trajectories",
+        type=int,
+        default=100,
+        help="number of trajectories (default 100, as in the paper)",
+    )
+    demo.add_argument(
+        "--duration", type=float, default=5.0, help="seconds per trajectory (default 5)"
+    )
     demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument(
+        "--plot",
+        metavar="PNG",
+        default="demo.png",
+        help="where to save the trajectory comparison (default demo.png; "
+        "needs matplotlib)",
+    )
+    demo.add_argument(
+        "--no-plot",
+        dest="plot",
+        action="store_const",
+        const=None,
+        help="do not save a plot",
+    )
     demo.add_argument("--quiet", action="store_true", help="no progress output")
     demo.set_defaults(func=_demo)
+
+    sim = sub.add_parser(
+        "simulate",
+        help="write a simulated data set (CSV) of a built-in system or a saved model",
+        description="Simulate a built-in system from random initial states with the "
+        "documented input and noise protocol and write one CSV (columns trajectory, t, "
+        "q..., q_dot..., q_ddot..., tau_<q>...). With --model, integrate a saved model "
+        "instead (same as simulate-model).",
+    )
+    sim.add_argument("--system", default=None, help=f"one of: {systems}")
+    sim.add_argument("--model", default=None, help="a saved model (JSON) to integrate")
+    sim.add_argument("--out", required=True, help="output CSV")
+    sim.add_argument("--trajectories", type=int, default=100)
+    sim.add_argument(
+        "--duration", type=float, default=5.0, help="seconds per trajectory"
+    )
+    sim.add_argument("--rate", type=float, default=100.0, help="samples per second")
+    sim.add_argument("--noise", type=float, default=0.0, help="noise sigma (default 0)")
+    sim.add_argument(
+        "--protocol",
+        default="paper",
+        choices=["shared", "paper", "sensor"],
+        help="shared: one sample per time step on every channel (the "
+        "authors' code); paper: independent noise on q, q_dot, q_ddot; "
+        "sensor: noise on q, derivatives estimated (default paper)",
+    )
+    sim.add_argument(
+        "--excitation",
+        default="sincos",
+        choices=["sincos", "paper"],
+        help="input: a sin(wt) + b cos(wt) (sincos) or the paper's form",
+    )
+    sim.add_argument("--passive", action="store_true", help="no input")
+    sim.add_argument(
+        "--positions-only",
+        action="store_true",
+        help="write only trajectory, t, the positions (and tau columns)",
+    )
+    sim.add_argument(
+        "--x0",
+        action="append",
+        default=None,
+        help="with --model: initial state q...,q_dot... (repeat for more)",
+    )
+    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--quiet", action="store_true")
+    sim.set_defaults(func=_simulate)
+
+    simm = sub.add_parser(
+        "simulate-model",
+        help="integrate a saved model from given initial states (unforced), write CSV",
+        description="Integrate the equations of motion of a saved model (no input) and "
+        "write trajectory, t, q..., q_dot..., q_ddot... as CSV.",
+    )
+    simm.add_argument("model", help="saved model (JSON)")
+    simm.add_argument(
+        "--x0",
+        action="append",
+        required=True,
+        help="initial state q...,q_dot..., e.g. 0,1,0,0 (repeat for more)",
+    )
+    simm.add_argument("--duration", type=float, default=5.0)
+    simm.add_argument(
+        "--rate", type=float, default=100.0, help="output samples per second"
+    )
+    simm.add_argument("--out", required=True, help="output CSV")
+    simm.add_argument("--quiet", action="store_true")
+    simm.set_defaults(func=_simulate_model, system=None)
+
+    fit = sub.add_parser(
+        "fit",
+        help="fit a Lagrangian to a CSV of trajectories and save the model (JSON)",
+        description="Fit a Lagrangian to trajectories in a CSV file. Needed columns: "
+        "one "
+        "per coordinate (positions). Velocities <q>_dot and accelerations <q>_ddot are "
+        "used when present, else estimated per trajectory (columns 't' and, for "
+        "several "
+        "trajectories, 'trajectory'). Input forces: --input, or columns tau_<q> when "
+        "present; without them the data are treated as passive (case III).",
+    )
+    fit.add_argument("data", help="CSV file")
+    fit.add_argument(
+        "--coordinates", required=True, help="position columns, e.g. x,theta"
+    )
+    fit.add_argument(
+        "--angles",
+        default="",
+        help="coordinates that are angles (get sin/cos), " "e.g. theta, or 'all'",
+    )
+    fit.add_argument(
+        "--input",
+        default=None,
+        help="generalized-force columns, one per coordinate, e.g. tau_x,tau_theta",
+    )
+    fit.add_argument(
+        "--passive", action="store_true", help="ignore input columns (case III)"
+    )
+    fit.add_argument(
+        "--library", default="poly2", help="polyN, separatedN or terms (default poly2)"
+    )
+    fit.add_argument(
+        "--raw-angles",
+        action="store_true",
+        help="also use the angles themselves as polynomial variables",
+    )
+    fit.add_argument(
+        "--terms", default="", help="extra candidate terms, comma-separated"
+    )
+    fit.add_argument(
+        "--fixed-term",
+        default=None,
+        help="passive data: the term whose coefficient is fixed to 1, e.g. "
+        "theta_dot**2 (default: try every term)",
+    )
+    fit.add_argument("--unpenalized", default="", help="terms known to be present")
+    fit.add_argument(
+        "--case", default="auto", choices=["auto", "forces", "fixed", "acceleration"]
+    )
+    fit.add_argument("--lam", type=float, default=1e-3, help="L1 weight (default 1e-3)")
+    fit.add_argument(
+        "--threshold",
+        type=float,
+        default=0.05,
+        help="relative hard threshold between stages (default 0.05)",
+    )
+    fit.add_argument("--seed", type=int, default=0)
+    fit.add_argument(
+        "--precision", type=int, default=4, help="digits in the printed Lagrangian"
+    )
+    fit.add_argument("--out", required=True, help="where to save the model (JSON)")
+    _add_derivative_options(fit)
+    fit.add_argument("--quiet", action="store_true", help="print only the Lagrangian")
+    fit.set_defaults(func=_fit)
+
+    pred = sub.add_parser(
+        "predict",
+        help="predict forces and accelerations of a CSV with a saved model",
+        description="Write the generalized forces the model implies (tau_<q>, inverse "
+        "dynamics) and the accelerations it predicts (<q>_ddot, forward dynamics with "
+        "the "
+        "input columns when present) for each row of a CSV.",
+    )
+    pred.add_argument("model", help="saved model (JSON)")
+    pred.add_argument("data", help="CSV file with the model's coordinates")
+    pred.add_argument(
+        "--input", default=None, help="generalized-force columns (default tau_<q>)"
+    )
+    pred.add_argument("--passive", action="store_true", help="ignore input columns")
+    pred.add_argument("--out", required=True, help="output CSV")
+    _add_derivative_options(pred)
+    pred.add_argument("--quiet", action="store_true")
+    pred.set_defaults(func=_predict)
     return parser
 
 
+def _one_line(exc) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 600 else text[:597] + "..."
+
+
 def main(argv=None) -> int:
+    """Run the ``lagsindy`` command; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
     try:
-        return args.func(args)
-    except (CLIError, ValueError, FileNotFoundError) as exc:
-        print(f"lagsindy: error: {exc}", file=sys.stderr)
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, usage errors
+        return int(exc.code or 0)
+    prog = f"lagsindy {args.command}"
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"{prog}: warning: {_one_line(message)}", file=sys.stderr)
+
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = show
+            return args.func(args)
+    except (CLIError, ValueError, OSError) as exc:
+        if args.debug:
+            raise
+        if isinstance(exc, FileNotFoundError) and exc.filename:
+            message = f"file not found: {exc.filename}"
+        else:
+            message = _one_line(exc)
+        print(f"{prog}: error: {message}", file=sys.stderr)
         return 2
+    except RuntimeError as exc:  # an integration that failed
+        if args.debug:
+            raise
+        print(f"{prog}: error: {_one_line(exc)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -745,7 +745,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Returns
         -------
         ndarray of shape (n_samples, n_dof), or (n_samples,) when the model was fit
-        with a 1-D tau.
+        with a 1-D tau. When ``X`` is a DataFrame: a DataFrame with X's index and
+        columns ``tau_<coordinate>`` (a Series for a 1-D tau).
         """
         Xa, Xt = self._prepare_predict(X)
         op, coef = self._support_operator(Xt.device, Xt.dtype)
@@ -753,7 +754,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             out = np.zeros((Xa.shape[0], self.n_dof_))
         else:
             out = to_numpy(op.columns(Xt) @ coef)
-        return out[:, 0] if self._y_1d else out
+        out = out[:, 0] if self._y_1d else out
+        return self._as_frame(out, X, [f"tau_{c}" for c in self.coordinates_])
 
     def predict_acceleration(self, X, tau=None):
         """Accelerations predicted by the learned model's forward dynamics.
@@ -765,15 +767,22 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         ----------
         X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
         tau : array-like of shape (n_samples, n_dof), default=None
-            Generalized forces; ``None`` for passive data.
+            Generalized forces; ``None`` for passive data. A DataFrame with columns
+            ``tau_<coordinate>`` is matched by name.
 
         Returns
         -------
-        ndarray of shape (n_samples, n_dof)
+        ndarray of shape (n_samples, n_dof). When ``X`` is a DataFrame: a DataFrame
+        with X's index and columns ``<coordinate>_ddot``.
         """
         Xa, Xt = self._prepare_predict(X)
+        if val.is_frame(tau):
+            named = [f"tau_{c}" for c in self.coordinates_]
+            if all(c in tau.columns for c in named):
+                tau = tau[named]
         tau = None if tau is None else self._check_tau(tau, Xa.shape[0], self.n_dof_)
-        return self._accelerations(Xt, tau)
+        out = self._accelerations(Xt, tau)
+        return self._as_frame(out, X, [f"{c}_ddot" for c in self.coordinates_])
 
     def score(self, X, y=None, sample_weight=None):
         """R^2 of the model: of forces when ``y`` (tau) is given, else of accelerations.
@@ -822,6 +831,74 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         state = super().__getstate__()
         state.pop("_operator_cache", None)
         return state
+
+    # ------------------------------------------------------------------ tables, files
+    @staticmethod
+    def _as_frame(out, X, columns):
+        """``out`` as a DataFrame (a Series when 1-D) indexed like ``X`` if X is one."""
+        if not val.is_frame(X):
+            return out
+        import pandas as pd
+
+        if out.ndim == 1:
+            return pd.Series(out, index=X.index, name=columns[0])
+        return pd.DataFrame(out, index=X.index, columns=columns)
+
+    def coef_table(self):
+        """The coefficients as a table, one row per library term.
+
+        Returns
+        -------
+        pandas.DataFrame
+            Columns ``term`` (str), ``coefficient`` (float, 0 where pruned) and
+            ``kept`` (bool: the term is in the learned Lagrangian).
+        """
+        import pandas as pd
+
+        check_is_fitted(self)
+        return pd.DataFrame(
+            {
+                "term": [str(t) for t in self.term_names_],
+                "coefficient": np.asarray(self.coef_, dtype=float),
+                "kept": np.asarray(self.support_, dtype=bool),
+            }
+        )
+
+    def save(self, path):
+        """Write the fitted model as a JSON file that is safe to share.
+
+        See :func:`lagsindy.io.save_model`; read it back with :meth:`load`.
+
+        Parameters
+        ----------
+        path : str or path-like
+
+        Returns
+        -------
+        pathlib.Path
+        """
+        from .io import save_model
+
+        return save_model(self, path)
+
+    @classmethod
+    def load(cls, path):
+        """Load a model written by :meth:`save` (no pickle; nothing is evaluated).
+
+        See :func:`lagsindy.io.load_model`.
+
+        Parameters
+        ----------
+        path : str or path-like
+
+        Returns
+        -------
+        LagrangianSINDy
+            A fitted estimator that predicts like the saved one.
+        """
+        from .io import load_model
+
+        return load_model(path)
 
 
 def _warn_if_not_identifiable(balanced, free, names, *, allowed):

@@ -1,0 +1,742 @@
+"""Saved models (JSON, safe to share) and loaders for measured data.
+
+A fitted :class:`~lagsindy.LagrangianSINDy` is written as a small JSON document:
+the coordinates, the fitted library's terms as text, one coefficient per term, the
+case and fixed term, the hyperparameters, and a ``dissipation`` list. Loading never
+uses pickle, ``eval``, ``sympify`` or ``parse_expr`` on the file's text: every term
+goes through :func:`lagsindy._expr.parse_expression`, a recursive-descent parser over
+an allow-list (the declared coordinate and velocity names, numbers, ``+ - * / **``,
+parentheses and a fixed set of functions), and every field is type-checked first. A
+tampered file raises ``ValueError`` and runs nothing.
+
+Document layout (``schema_version`` 1)::
+
+    {
+      "format": "lagsindy-model",
+      "schema_version": 1,
+      "lagsindy_version": "0.1.0",
+      "coordinates": ["x", "theta"],
+      "terms": ["x_dot**2", "cos(theta)", ...], # the fitted library's terms
+      "coefficients": [0.75, 4.905, ...],    # one per term, 0.0 = pruned
+      "case": "forces",                      # or "fixed", "acceleration"
+      "fixed_term": null,                    # a term string in case III
+      "unpenalized": [],                     # term strings
+      "hyperparameters": {"lam": 0.001, ...}, # get_params() without library
+      "n_features_in": 6,
+      "feature_names_in": null,              # or the 3*n_dof column names
+      "tau_1d": false,                       # true: fit with a 1-D tau
+      "n_iter": 812,
+      "residual": 2.1e-05,
+      "dissipation": []                      # see below
+    }
+
+``dissipation`` is a list of ``{"name": str, "forces": [expression per coordinate],
+"coefficient": float}``: generalized forces (over positions and velocities) each
+scaled by its coefficient. It is read back into the estimator's ``dissipation_``
+attribute as ``{"name", "forces" (sympy expressions), "coefficient"}`` dictionaries.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import warnings
+from numbers import Integral, Real
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import sympy as sp
+import torch
+from sympy.printing.str import StrPrinter
+
+from ._expr import (
+    MAX_EXPRESSION_LENGTH,
+    ExpressionError,
+    check_coordinate_names,
+    parse_expression,
+    state_names,
+)
+
+FORMAT = "lagsindy-model"
+SCHEMA_VERSION = 1
+SCHEMA_VERSIONS = (1,)
+#: Largest model file :func:`load_model` reads, in bytes.
+MAX_FILE_BYTES = 20_000_000
+#: Largest number of library terms (or dissipation entries) in a model file.
+MAX_TERMS = 20_000
+_MAX_NAME_LENGTH = 200
+
+_FIELDS = {
+    # name: (JSON types accepted, description used in messages)
+    "format": ((str,), "a string"),
+    "schema_version": ((int,), "an integer"),
+    "lagsindy_version": ((str,), "a string"),
+    "coordinates": ((list,), "a list of strings"),
+    "terms": ((list,), "a list of strings"),
+    "coefficients": ((list,), "a list of numbers"),
+    "case": ((str,), "a string"),
+    "fixed_term": ((str, type(None)), "a string or null"),
+    "unpenalized": ((list,), "a list of strings"),
+    "hyperparameters": ((dict,), "an object"),
+    "n_features_in": ((int,), "an integer"),
+    "feature_names_in": ((list, type(None)), "a list of strings or null"),
+    "tau_1d": ((bool,), "true or false"),
+    "n_iter": ((int,), "an integer"),
+    "residual": ((int, float, type(None)), "a number or null"),
+    "dissipation": ((list,), "a list of objects"),
+}
+_CASES = ("forces", "fixed", "acceleration")
+
+
+# ----------------------------------------------------------------------------- text
+class _ExactPrinter(StrPrinter):
+    """sympy's ``str`` but with floats written as Python's shortest exact repr."""
+
+    def _print_Float(self, expr):
+        return repr(float(expr))
+
+
+def expression_to_string(expr) -> str:
+    """Text of a sympy expression that :func:`parse_expression` reads back exactly.
+
+    Floats are written with Python's ``repr`` (17 significant digits at most), so a
+    float64 coefficient inside a term survives the round trip bit for bit.
+    """
+    if not isinstance(expr, sp.Basic | int | float):
+        raise TypeError(f"expected a sympy expression, got {type(expr).__name__}")
+    return _ExactPrinter().doprint(sp.sympify(expr))
+
+
+def _to_text(expr, allowed, what):
+    """Serialise ``expr`` and check that the safe parser reads it back unchanged."""
+    if isinstance(expr, str):  # parsed safely, never sympified
+        try:
+            expr = parse_expression(expr, allowed)
+        except ExpressionError as exc:
+            raise ValueError(f"{what} {expr[:80]!r} is not valid: {exc}") from None
+    text = expression_to_string(expr)
+    try:
+        back = parse_expression(text, allowed)
+    except ExpressionError as exc:
+        raise ValueError(
+            f"{what} {text!r} cannot be saved in the safe model format: {exc}"
+        ) from None
+    if expression_to_string(back) != text:
+        raise ValueError(
+            f"{what} {text!r} does not survive the text round trip (it reads back as "
+            f"{expression_to_string(back)!r}); it cannot be saved in the safe format"
+        )
+    return text
+
+
+def _plain(value):
+    """A hyperparameter as a JSON value (numbers, strings, lists, null)."""
+    if value is None or isinstance(value, bool | str):
+        return value
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, Integral):
+        return int(value)
+    if isinstance(value, Real):
+        return float(value)
+    if isinstance(value, sp.Basic):
+        return expression_to_string(value)
+    if isinstance(value, list | tuple | np.ndarray):
+        return [_plain(v) for v in value]
+    # torch.device and the like: their text is what the constructor accepts
+    text = str(value)
+    return text
+
+
+# ----------------------------------------------------------------------------- save
+def model_to_dict(est) -> dict:
+    """The JSON document of a fitted estimator (see the module docstring)."""
+    from sklearn.utils.validation import check_is_fitted
+
+    from . import __version__
+
+    check_is_fitted(est)
+    coords = list(est.coordinates_)
+    allowed = state_names(coords, accelerations=False)
+    terms = [_to_text(t, allowed, "term") for t in est.library_.terms_]
+    coef = np.asarray(est.coef_, dtype=float)
+    if not np.all(np.isfinite(coef)):
+        raise ValueError("the model has non-finite coefficients; it cannot be saved")
+    params = est.get_params(deep=False)
+    params.pop("library", None)
+    if not isinstance(params.get("random_state"), Integral | type(None)):
+        params["random_state"] = None  # a RandomState instance has no JSON form
+    hyper = {k: _plain(v) for k, v in sorted(params.items())}
+    unpenalized = [
+        _to_text(
+            est.library_.terms_[est.library_.index(t)], allowed, "unpenalized term"
+        )
+        for t in (est.unpenalized or [])
+    ]
+    fixed = est.fixed_term_
+    if fixed is not None:
+        fixed = terms[est.library_.index(fixed)]
+    names = getattr(est, "feature_names_in_", None)
+    residual = getattr(est, "residual_", None)
+    residual = (
+        None if residual is None or not math.isfinite(residual) else float(residual)
+    )
+    dissipation = []
+    for entry in getattr(est, "dissipation_", None) or []:
+        forces = [_to_text(f, allowed, "dissipation force") for f in entry["forces"]]
+        dissipation.append(
+            {
+                "name": str(entry["name"]),
+                "forces": forces,
+                "coefficient": float(entry["coefficient"]),
+            }
+        )
+    return {
+        "format": FORMAT,
+        "schema_version": SCHEMA_VERSION,
+        "lagsindy_version": __version__,
+        "coordinates": coords,
+        "terms": terms,
+        "coefficients": [float(c) for c in coef],
+        "case": est.case_,
+        "fixed_term": fixed,
+        "unpenalized": unpenalized,
+        "hyperparameters": hyper,
+        "n_features_in": int(est.n_features_in_),
+        "feature_names_in": None if names is None else [str(n) for n in names],
+        "tau_1d": bool(getattr(est, "_y_1d", False)),
+        "n_iter": int(getattr(est, "n_iter_", 0)),
+        "residual": residual,
+        "dissipation": dissipation,
+    }
+
+
+def save_model(est, path) -> Path:
+    """Write a fitted :class:`~lagsindy.LagrangianSINDy` as a JSON model file.
+
+    The file holds text and numbers only (no pickle), so it is safe to share; load
+    it with :func:`load_model` or :meth:`LagrangianSINDy.load`. Coefficients are
+    written with Python's exact float repr, so predictions of the loaded model agree
+    with the original's to rounding.
+
+    Parameters
+    ----------
+    est : LagrangianSINDy
+        A fitted estimator.
+    path : str or path-like
+        Destination (conventionally ``*.json``).
+
+    Returns
+    -------
+    pathlib.Path
+        The path written.
+    """
+    doc = model_to_dict(est)
+    path = Path(path)
+    # One field per line, values compact: readable and diff-friendly.
+    lines = [
+        f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in doc.items()
+    ]
+    path.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
+    return path
+
+
+# ----------------------------------------------------------------------------- load
+def _reject_constant(name):
+    raise ValueError(
+        f"the model file contains {name}, which is not allowed (use numbers)"
+    )
+
+
+def _unique_keys(pairs):
+    out = {}
+    for key, value in pairs:
+        if key in out:
+            raise ValueError(f"the model file repeats the key {key!r}")
+        out[key] = value
+    return out
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _check_field(doc, name):
+    if name not in doc:
+        raise ValueError(f"the model file lacks the field {name!r}")
+    types, desc = _FIELDS[name]
+    value = doc[name]
+    ok = isinstance(value, types) and not (
+        isinstance(value, bool) and bool not in types
+    )
+    if not ok:
+        raise ValueError(
+            f"field {name!r} of the model file must be {desc}, "
+            f"got {type(value).__name__}"
+        )
+    return value
+
+
+def _check_strings(values, name, *, limit=MAX_EXPRESSION_LENGTH):
+    for i, v in enumerate(values):
+        if not isinstance(v, str):
+            raise ValueError(
+                f"{name}[{i}] in the model file must be a string, "
+                f"got {type(v).__name__}"
+            )
+        if len(v) > limit:
+            raise ValueError(
+                f"{name}[{i}] in the model file has {len(v)} characters (limit {limit})"
+            )
+    return values
+
+
+def _check_numbers(values, name):
+    out = []
+    for i, v in enumerate(values):
+        if not _is_number(v):
+            raise ValueError(
+                f"{name}[{i}] in the model file must be a number, "
+                f"got {type(v).__name__}"
+            )
+        v = float(v)
+        if not math.isfinite(v):
+            raise ValueError(f"{name}[{i}] in the model file is not finite ({v})")
+        out.append(v)
+    return out
+
+
+def _parse(text, allowed, what):
+    try:
+        expr = parse_expression(text, allowed)
+    except ExpressionError as exc:
+        raise ValueError(
+            f"{what} {text[:80]!r} in the model file is not valid: {exc}"
+        ) from None
+    if expr.has(sp.I):
+        raise ValueError(f"{what} {text[:80]!r} in the model file is complex")
+    for number in expr.atoms(sp.Number):
+        if not math.isfinite(abs(complex(number))):
+            raise ValueError(
+                f"{what} {text[:80]!r} contains a number beyond float range"
+            )
+    return expr
+
+
+def _hyperparameters(hyper: dict) -> dict:
+    from .estimator import LagrangianSINDy
+
+    known = set(LagrangianSINDy().get_params(deep=False)) - {"library"}
+    unknown = sorted(set(hyper) - known)
+    if unknown:
+        raise ValueError(
+            f"the model file has unknown hyperparameters {unknown[:5]}; it may come "
+            "from "
+            "a newer lagsindy version"
+        )
+    for key, value in hyper.items():
+        if isinstance(value, dict) or (
+            isinstance(value, str) and len(value) > MAX_EXPRESSION_LENGTH
+        ):
+            raise ValueError(
+                f"hyperparameter {key!r} in the model file has an invalid value"
+            )
+        if isinstance(value, list):
+            _check_strings(value, f"hyperparameters[{key!r}]")
+        if _is_number(value) and not math.isfinite(float(value)):
+            raise ValueError(f"hyperparameter {key!r} in the model file is not finite")
+    hyper = dict(hyper)
+    device = hyper.get("device", "cpu")
+    if not isinstance(device, str) or not re.fullmatch(
+        r"(cpu|cuda|mps)(:\d{1,3})?", device
+    ):
+        raise ValueError(
+            "hyperparameter 'device' in the model file must be 'cpu', 'cuda' or "
+            "'mps', "
+            f"got {str(device)[:40]!r}"
+        )
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        warnings.warn(
+            f"the model was saved with device={device!r}, but no CUDA device is "
+            "available here; it will compute on the CPU",
+            UserWarning,
+            stacklevel=4,
+        )
+        hyper["device"] = "cpu"
+    return hyper
+
+
+def model_from_dict(doc: dict):
+    """A fitted :class:`~lagsindy.LagrangianSINDy` from a validated model document.
+
+    Raises ``ValueError`` naming the first problem (unknown schema, missing field,
+    wrong JSON type, invalid coordinate name or term, inconsistent lengths, non-finite
+    number). Nothing in the document is evaluated as code.
+    """
+    from sklearn.base import clone
+    from sklearn.utils._param_validation import InvalidParameterError
+
+    from .estimator import LagrangianSINDy
+    from .library import CandidateLibrary
+
+    if not isinstance(doc, dict):
+        raise ValueError(
+            f"a model file must hold a JSON object, got {type(doc).__name__}"
+        )
+    if doc.get("format") != FORMAT:
+        raise ValueError(
+            "not a lagsindy model file (field 'format' is "
+            f"{str(doc.get('format'))[:40]!r}, "
+            f"expected {FORMAT!r})"
+        )
+    version = _check_field(doc, "schema_version")
+    if version not in SCHEMA_VERSIONS:
+        raise ValueError(
+            f"model file schema version {version} is not supported (this lagsindy "
+            "reads "
+            f"{list(SCHEMA_VERSIONS)}); upgrade lagsindy"
+        )
+    values = {name: _check_field(doc, name) for name in _FIELDS}
+    extra = sorted(set(doc) - set(_FIELDS))
+    if extra:
+        raise ValueError(f"the model file has unknown fields {extra[:5]}")
+    if len(values["lagsindy_version"]) > _MAX_NAME_LENGTH:
+        raise ValueError("field 'lagsindy_version' of the model file is too long")
+
+    coords = _check_strings(
+        values["coordinates"], "coordinates", limit=_MAX_NAME_LENGTH
+    )
+    try:
+        coords = check_coordinate_names(coords)
+    except ValueError as exc:
+        raise ValueError(f"the model file's coordinates are not valid: {exc}") from None
+    n_dof = len(coords)
+    allowed = state_names(coords, accelerations=False)
+
+    terms = _check_strings(values["terms"], "terms")
+    coefs = _check_numbers(values["coefficients"], "coefficients")
+    if not terms:
+        raise ValueError("the model file has no terms")
+    if len(terms) > MAX_TERMS:
+        raise ValueError(f"the model file has {len(terms)} terms (limit {MAX_TERMS})")
+    if len(coefs) != len(terms):
+        raise ValueError(
+            f"the model file has {len(terms)} terms but {len(coefs)} coefficients"
+        )
+    exprs = [_parse(t, allowed, "term") for t in terms]
+    seen = {}
+    for text, expr in zip(terms, exprs):
+        if expr.is_number:
+            raise ValueError(f"term {text!r} in the model file is a constant")
+        if expr in seen:
+            raise ValueError(
+                f"terms {seen[expr]!r} and {text!r} in the model file are the same term"
+            )
+        seen[expr] = text
+
+    case = values["case"]
+    if case not in _CASES:
+        raise ValueError(
+            f"field 'case' of the model file must be one of {_CASES}, got {case[:40]!r}"
+        )
+    fixed = values["fixed_term"]
+    if case == "fixed" and fixed is None:
+        raise ValueError("the model file has case 'fixed' but no fixed_term")
+    unpenalized = _check_strings(values["unpenalized"], "unpenalized")
+    for text in ([fixed] if fixed is not None else []) + list(unpenalized):
+        _parse(text, allowed, "term")
+    hyper = _hyperparameters(values["hyperparameters"])
+    for text in [hyper.get("fixed_term")] + list(hyper.get("unpenalized") or []):
+        if isinstance(text, str):
+            _parse(text, allowed, "hyperparameter term")
+
+    n_features = values["n_features_in"]
+    if n_features != 3 * n_dof:
+        raise ValueError(
+            f"field 'n_features_in' of the model file is {n_features}, but "
+            f"{n_dof} coordinate(s) need 3 * {n_dof} = {3 * n_dof}"
+        )
+    names = values["feature_names_in"]
+    if names is not None:
+        _check_strings(names, "feature_names_in", limit=_MAX_NAME_LENGTH)
+        if list(names) != state_names(coords):
+            raise ValueError(
+                "field 'feature_names_in' of the model file does not match its "
+                f"coordinates: expected {state_names(coords)}"
+            )
+    if values["tau_1d"] and n_dof != 1:
+        raise ValueError(
+            "the model file says tau was 1-D, but it has several coordinates"
+        )
+    if values["n_iter"] < 0:
+        raise ValueError("field 'n_iter' of the model file is negative")
+    residual = values["residual"]
+    if residual is not None and not math.isfinite(float(residual)):
+        raise ValueError("field 'residual' of the model file is not finite")
+
+    dissipation = []
+    entries = values["dissipation"]
+    if len(entries) > MAX_TERMS:
+        raise ValueError(f"the model file has {len(entries)} dissipation entries")
+    for i, entry in enumerate(entries):
+        where = f"dissipation[{i}]"
+        if not isinstance(entry, dict):
+            raise ValueError(f"{where} in the model file must be an object")
+        if set(entry) != {"name", "forces", "coefficient"}:
+            raise ValueError(
+                f"{where} in the model file must have exactly the fields 'name', "
+                f"'forces' and 'coefficient', got {sorted(entry)[:5]}"
+            )
+        name = entry["name"]
+        if not isinstance(name, str) or len(name) > _MAX_NAME_LENGTH:
+            raise ValueError(
+                f"{where}['name'] in the model file must be a short string"
+            )
+        forces = entry["forces"]
+        if not isinstance(forces, list) or len(forces) != n_dof:
+            raise ValueError(
+                f"{where}['forces'] in the model file must be a list of {n_dof} "
+                "expressions (one generalized force per coordinate)"
+            )
+        _check_strings(forces, f"{where}['forces']")
+        (coefficient,) = _check_numbers(
+            [entry["coefficient"]], f"{where}['coefficient']"
+        )
+        dissipation.append(
+            {
+                "name": name,
+                "forces": [_parse(f, allowed, f"{where} force") for f in forces],
+                "coefficient": coefficient,
+            }
+        )
+
+    library = CandidateLibrary.from_terms(
+        coords, list(terms), remove_trivial=False, remove_dependent=False
+    )
+    try:
+        est = LagrangianSINDy(library, **hyper)
+        est._validate_params()
+    except (InvalidParameterError, TypeError) as exc:
+        raise ValueError(
+            f"the model file's hyperparameters are not valid: {exc}"
+        ) from None
+    fitted = clone(library).build()
+    if len(fitted.terms_) != len(terms):
+        raise ValueError("the model file's terms do not form a valid library")
+    est.library_ = fitted
+    est.coordinates_ = list(fitted.coordinates_)
+    est.n_dof_ = n_dof
+    est.term_names_ = fitted.get_feature_names_out()
+    est.coef_ = np.asarray(coefs, dtype=float)
+    est.support_ = est.coef_ != 0
+    est.case_ = case
+    est.fixed_term_ = (
+        None if fixed is None else str(fitted.terms_[_index(fitted, fixed)])
+    )
+    for text in unpenalized:
+        _index(fitted, text)
+    est.stages_ = []
+    est.n_iter_ = int(values["n_iter"])
+    est.residual_ = None if residual is None else float(residual)
+    est._y_1d = bool(values["tau_1d"])
+    est.n_features_in_ = 3 * n_dof
+    if names is not None:
+        est.feature_names_in_ = np.asarray(names, dtype=object)
+    est.dissipation_ = dissipation
+    est._set_model()
+    return est
+
+
+def _index(library, text):
+    try:
+        return library.index(text)
+    except ValueError as exc:
+        raise ValueError(
+            f"the model file names a term that is not among its terms: {exc}"
+        ) from None
+
+
+def load_model(path):
+    """Load a model saved by :func:`save_model` (no pickle, nothing evaluated).
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    LagrangianSINDy
+        A fitted estimator: ``predict``, ``predict_acceleration``, ``score``,
+        ``simulate``, ``equation`` and ``coef_table`` work as on the original;
+        ``stages_`` is empty (the sparsification path is not saved) and the
+        ``library`` parameter is the fitted library's terms (a refit searches them).
+
+    Raises
+    ------
+    FileNotFoundError
+        When the file does not exist.
+    ValueError
+        When the file is not a valid model file (the message names the problem).
+    """
+    path = Path(path)
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise ValueError(
+            f"{path} has {size} bytes, more than a model file may have "
+            f"({MAX_FILE_BYTES})"
+        )
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+        doc = json.loads(
+            text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys
+        )
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not a text (UTF-8) model file") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ValueError(f"{path} is nested too deeply to be a model file") from None
+    except ValueError as exc:  # NaN/Infinity, repeated keys, oversized integers
+        raise ValueError(f"{path}: {exc}") from None
+    try:
+        return model_from_dict(doc)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+# ----------------------------------------------------------------------------- data
+MULTIARM_ENV = "LAGSINDY_MULTIARM_DIR"
+_MULTIARM_FILES = {
+    "single": "SinglePendulumDataForParameterEstimation.mat",
+    "double": "DoublePendulumDataForParameterEstimation.mat",
+}
+
+
+def find_multiarm_pendulum(start=None) -> Path:
+    """Locate the MultiArm-Pendulum recordings (``shared/data/multiarm_pendulum``).
+
+    Looks at ``$LAGSINDY_MULTIARM_DIR`` first, then for
+    ``shared/data/multiarm_pendulum``
+    in ``start`` (default: the current directory and this package's repository) and
+    each of its parents.
+
+    Raises
+    ------
+    FileNotFoundError
+        With a message saying where the data were looked for and how to get them.
+    """
+    env = os.environ.get(MULTIARM_ENV)
+    if env:
+        p = Path(env)
+        if p.is_dir():
+            return p
+        raise FileNotFoundError(
+            f"${MULTIARM_ENV} is set to {env}, which is not a folder"
+        )
+    starts = (
+        [Path(start)]
+        if start is not None
+        else [Path.cwd(), Path(__file__).resolve().parent]
+    )
+    tried = []
+    for s in starts:
+        for folder in [s.resolve(), *s.resolve().parents]:
+            candidate = folder / "shared" / "data" / "multiarm_pendulum"
+            tried.append(str(candidate))
+            if candidate.is_dir():
+                return candidate
+    raise FileNotFoundError(
+        "the MultiArm-Pendulum recordings were not found (looked for "
+        f"shared/data/multiarm_pendulum above {[str(s) for s in starts]}). Download "
+        "ParameterEstimation/ from github.com/dynamicslab/MultiArm-Pendulum and set "
+        f"${MULTIARM_ENV} to that folder"
+    )
+
+
+def load_multiarm_pendulum(
+    path=None, which: str = "single", split: str = "id"
+) -> pd.DataFrame:
+    """Load the MultiArm-Pendulum free-swing recordings (Kaheman et al., 2022).
+
+    Encoder recordings of a real single or double pendulum (cart locked, no input),
+    sampled at 1 kHz, split by the authors into consecutive identification (``"id"``)
+    and validation (``"vad"``) segments. Angles are absolute joint angles in radians
+    with ``pi`` meaning hanging straight down; the velocities were filtered by the
+    authors. Accelerations are not recorded.
+
+    Parameters
+    ----------
+    path : str or path-like, default=None
+        The ``.mat`` file, or the folder holding it. ``None``:
+        :func:`find_multiarm_pendulum`.
+    which : {"single", "double"}, default="single"
+    split : {"id", "vad"}, default="id"
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``trajectory`` (segment index), ``t`` (seconds, continuous over the
+        record), ``theta`` (single) or ``theta1, theta2`` (double), and the authors'
+        filtered velocities ``theta_dot_filtered`` (``theta1_dot_filtered``, ...).
+
+    References
+    ----------
+    E. Kaheman, U. Fasel, J. J. Bramburger, B. Strom, J. N. Kutz and S. L. Brunton,
+    "The Experimental Multi-Arm Pendulum on a Cart: A Benchmark System for Chaos,
+    Learning, and Control", arXiv:2205.06231, 2022. Data: MIT license.
+    """
+    from scipy.io import loadmat
+
+    if which not in _MULTIARM_FILES:
+        raise ValueError(f"which must be 'single' or 'double', got {which!r}")
+    if split not in ("id", "vad"):
+        raise ValueError(
+            f"split must be 'id' (identification) or 'vad' (validation), got {split!r}"
+        )
+    p = find_multiarm_pendulum() if path is None else Path(path)
+    if p.is_dir():
+        p = p / _MULTIARM_FILES[which]
+    if not p.is_file():
+        raise FileNotFoundError(f"no MultiArm-Pendulum file at {p}")
+    mat = loadmat(p)
+    key_y, key_t = f"Y_{split}", f"Time_{split}"
+    if key_y not in mat or key_t not in mat:
+        raise ValueError(
+            f"{p} lacks {key_y!r}/{key_t!r}: not a MultiArm-Pendulum data file"
+        )
+    segments = mat[key_y].ravel()
+    times = mat[key_t].ravel()
+    angles = ["theta"] if which == "single" else ["theta1", "theta2"]
+    n = len(angles)
+    frames = []
+    for k, (y, t) in enumerate(zip(segments, times)):
+        y = np.asarray(y, dtype=float)
+        t = np.asarray(t, dtype=float).ravel()
+        if y.shape != (2 * n, t.size):
+            raise ValueError(
+                f"segment {k} of {p} has shape {y.shape}, expected ({2 * n}, {t.size})"
+            )
+        cols = {"trajectory": np.full(t.size, k), "t": t}
+        for i, a in enumerate(angles):
+            cols[a] = y[i]
+        for i, a in enumerate(angles):
+            cols[f"{a}_dot_filtered"] = y[n + i]
+        frames.append(pd.DataFrame(cols))
+    return pd.concat(frames, ignore_index=True)
+
+
+__all__ = [
+    "FORMAT",
+    "SCHEMA_VERSION",
+    "expression_to_string",
+    "find_multiarm_pendulum",
+    "load_model",
+    "load_multiarm_pendulum",
+    "model_from_dict",
+    "model_to_dict",
+    "save_model",
+]

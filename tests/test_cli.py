@@ -1,0 +1,559 @@
+"""The lagsindy command: README job, data -> model -> predictions, errors (#7)."""
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lagsindy import LagrangianSINDy
+from lagsindy.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg"}
+
+
+def run(capsys, *args):
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.fixture(scope="module")
+def workdir(tmp_path_factory):
+    """A small forced cart-pendulum data set, a positions-only copy, a model."""
+    d = tmp_path_factory.mktemp("cli")
+    assert (
+        main(
+            [
+                "simulate",
+                "--system",
+                "cart_pendulum",
+                "--trajectories",
+                "6",
+                "--duration",
+                "4",
+                "--noise",
+                "0.001",
+                "--seed",
+                "1",
+                "--out",
+                str(d / "data.csv"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "simulate",
+                "--system",
+                "cart_pendulum",
+                "--trajectories",
+                "6",
+                "--duration",
+                "4",
+                "--positions-only",
+                "--seed",
+                "2",
+                "--out",
+                str(d / "q.csv"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "fit",
+                str(d / "data.csv"),
+                "--coordinates",
+                "x,theta",
+                "--angles",
+                "theta",
+                "--library",
+                "poly3",
+                "--out",
+                str(d / "model.json"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    return d
+
+
+TRUE_TERMS = {"x_dot**2", "theta_dot**2", "theta_dot*x_dot*cos(theta)", "cos(theta)"}
+
+
+def _kept(path):
+    table = LagrangianSINDy.load(path).coef_table()
+    return set(table.term[table.kept])
+
+
+# ---------------------------------------- the README job
+def test_demo_prints_true_and_recovered_lagrangians(capsys, tmp_path):
+    png = tmp_path / "demo.png"
+    code, out, err = run(capsys, "demo", "--trajectories", "8", "--plot", png)
+    assert code == 0, err
+    assert "[lagsindy] stage 1" in out  # progress output
+    assert "true:      L = " in out and "recovered: L = " in out
+    assert "structure correct" in out
+    for term in TRUE_TERMS:
+        assert term in out
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+
+def test_readme_demo_command_as_a_subprocess(tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "lagsindy", "demo", "--trajectories", "20", "--quiet"],
+        cwd=tmp_path,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "recovered: L = " in proc.stdout
+    assert "[lagsindy] stage" not in proc.stdout  # --quiet
+    assert "Traceback" not in proc.stderr
+    assert (tmp_path / "demo.png").exists()
+
+
+@pytest.mark.skipif(
+    shutil.which("lagsindy") is None, reason="console script not installed"
+)
+def test_console_script_bad_input_one_line(tmp_path):
+    proc = subprocess.run(
+        ["lagsindy", "fit", "missing.csv", "--coordinates", "x", "--out", "m.json"],
+        cwd=tmp_path,
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        "lagsindy fit: error: file not found: missing.csv"
+    ]
+
+
+# ---------------------------------------- commands
+def test_simulate_writes_the_documented_columns(workdir):
+    df = pd.read_csv(workdir / "data.csv")
+    assert list(df.columns) == [
+        "trajectory",
+        "t",
+        "x",
+        "theta",
+        "x_dot",
+        "theta_dot",
+        "x_ddot",
+        "theta_ddot",
+        "tau_x",
+        "tau_theta",
+    ]
+    assert df.trajectory.nunique() == 6 and len(df) == 6 * 400
+    assert list(pd.read_csv(workdir / "q.csv").columns) == [
+        "trajectory",
+        "t",
+        "x",
+        "theta",
+        "tau_x",
+        "tau_theta",
+    ]
+
+
+def test_fit_recovers_the_structure_and_saves_a_model(workdir):
+    assert _kept(workdir / "model.json") == TRUE_TERMS
+    doc = json.loads((workdir / "model.json").read_text())
+    assert doc["coordinates"] == ["x", "theta"] and doc["case"] == "forces"
+
+
+def test_fit_from_positions_only_estimates_derivatives(capsys, workdir, tmp_path):
+    code, out, err = run(
+        capsys,
+        "fit",
+        workdir / "q.csv",
+        "--coordinates",
+        "x,theta",
+        "--angles",
+        "theta",
+        "--library",
+        "poly3",
+        "--out",
+        tmp_path / "m.json",
+    )
+    assert code == 0, err
+    assert "estimating velocities and accelerations" in out
+    assert _kept(tmp_path / "m.json") == TRUE_TERMS
+
+
+def test_fit_quiet_prints_only_the_lagrangian(capsys, workdir, tmp_path):
+    code, out, err = run(
+        capsys,
+        "fit",
+        workdir / "data.csv",
+        "--coordinates",
+        "x,theta",
+        "--angles",
+        "theta",
+        "--library",
+        "poly3",
+        "--quiet",
+        "--out",
+        tmp_path / "m.json",
+    )
+    assert code == 0 and err == ""
+    assert out.count("\n") == 1 and out.startswith("L = ")
+
+
+def test_passive_fit_with_a_fixed_term(capsys, tmp_path):
+    data = tmp_path / "passive.csv"
+    assert (
+        run(
+            capsys,
+            "simulate",
+            "--system",
+            "single_pendulum",
+            "--passive",
+            "--trajectories",
+            "5",
+            "--out",
+            data,
+        )[0]
+        == 0
+    )
+    code, out, err = run(
+        capsys,
+        "fit",
+        data,
+        "--coordinates",
+        "theta",
+        "--angles",
+        "theta",
+        "--fixed-term",
+        "theta_dot**2",
+        "--out",
+        tmp_path / "m.json",
+    )
+    assert code == 0, err
+    est = LagrangianSINDy.load(tmp_path / "m.json")
+    assert est.case_ == "fixed" and _kept(tmp_path / "m.json") == {
+        "theta_dot**2",
+        "cos(theta)",
+    }
+    assert est.coef_[list(est.term_names_).index("cos(theta)")] == pytest.approx(
+        19.62, rel=1e-3
+    )
+
+
+def test_predict_writes_forces_and_accelerations(capsys, workdir, tmp_path):
+    out_csv = tmp_path / "pred.csv"
+    code, out, err = run(
+        capsys,
+        "predict",
+        workdir / "model.json",
+        workdir / "data.csv",
+        "--out",
+        out_csv,
+    )
+    assert code == 0, err
+    pred = pd.read_csv(out_csv)
+    data = pd.read_csv(workdir / "data.csv")
+    assert list(pred.columns) == [
+        "trajectory",
+        "t",
+        "tau_x",
+        "tau_theta",
+        "x_ddot",
+        "theta_ddot",
+    ]
+    est = LagrangianSINDy.load(workdir / "model.json")
+    X = data[["x", "theta", "x_dot", "theta_dot", "x_ddot", "theta_ddot"]]
+    np.testing.assert_allclose(
+        pred[["tau_x", "tau_theta"]], est.predict(X), rtol=1e-9, atol=1e-9
+    )
+    r2 = float(out.split("R^2 of forces:")[1].split()[0])
+    assert r2 > 0.999
+
+
+def test_simulate_model_from_initial_states(capsys, workdir, tmp_path):
+    out_csv = tmp_path / "traj.csv"
+    code, _, err = run(
+        capsys,
+        "simulate-model",
+        workdir / "model.json",
+        "--x0",
+        "0,1,0,0",
+        "--x0",
+        "0,0.5,0,0",
+        "--duration",
+        "1",
+        "--out",
+        out_csv,
+    )
+    assert code == 0, err
+    traj = pd.read_csv(out_csv)
+    assert traj.trajectory.nunique() == 2 and len(traj) == 2 * 101
+    est = LagrangianSINDy.load(workdir / "model.json")
+    states = est.simulate([0, 1, 0, 0], np.arange(101) / 100)
+    first = traj[traj.trajectory == 0]
+    np.testing.assert_allclose(
+        first[["x", "theta", "x_dot", "theta_dot"]], states, atol=1e-9
+    )
+    # the same through "simulate --model"
+    code, _, err = run(
+        capsys,
+        "simulate",
+        "--model",
+        workdir / "model.json",
+        "--x0",
+        "0,1,0,0",
+        "--duration",
+        "1",
+        "--out",
+        tmp_path / "t2.csv",
+    )
+    assert code == 0, err
+    np.testing.assert_allclose(
+        pd.read_csv(tmp_path / "t2.csv").to_numpy(), first.to_numpy(), atol=1e-9
+    )
+
+
+@pytest.mark.parametrize(
+    "command", [[], ["demo"], ["simulate"], ["simulate-model"], ["fit"], ["predict"]]
+)
+def test_help_everywhere(capsys, command):
+    code, out, _ = run(capsys, *command, "--help")
+    assert code == 0 and out.startswith("usage: lagsindy")
+
+
+# ---------------------------------------- bad input
+def _bad_files(d):
+    df = pd.read_csv(d / "data.csv")
+    nan = df.copy()
+    nan.loc[17, "theta"] = np.nan
+    nan.to_csv(d / "nan.csv", index=False)
+    text = df.astype({"x": object})
+    text.loc[3, "x"] = "oops"
+    text.to_csv(d / "text.csv", index=False)
+    (d / "empty.csv").write_text("")
+    (d / "header.csv").write_text("t,x\n")
+    df[["x", "theta"]].to_csv(d / "no_t.csv", index=False)
+    (d / "bad.json").write_text('{"format": "lagsindy-model"')
+    doc = json.loads((d / "model.json").read_text())
+    doc["terms"][0] = "__import__('os').system('touch pwned')"
+    (d / "evil.json").write_text(json.dumps(doc))
+
+
+BAD = [
+    (
+        ["fit", "{d}/none.csv", "--coordinates", "x", "--out", "{d}/o.json"],
+        "file not found",
+    ),
+    (
+        ["fit", "{d}/data.csv", "--coordinates", "x,phi", "--out", "{d}/o.json"],
+        "no column 'phi'",
+    ),
+    (["fit", "{d}/nan.csv", "--coordinates", "x,theta", "--out", "{d}/o.json"], "NaN"),
+    (
+        ["fit", "{d}/text.csv", "--coordinates", "x,theta", "--out", "{d}/o.json"],
+        "not numeric",
+    ),
+    (["fit", "{d}/empty.csv", "--coordinates", "x", "--out", "{d}/o.json"], "empty"),
+    (["fit", "{d}/header.csv", "--coordinates", "x", "--out", "{d}/o.json"], "no rows"),
+    (
+        ["fit", "{d}/no_t.csv", "--coordinates", "x,theta", "--out", "{d}/o.json"],
+        "'t' column",
+    ),
+    (
+        [
+            "fit",
+            "{d}/data.csv",
+            "--coordinates",
+            "x,theta",
+            "--input",
+            "tau_x",
+            "--out",
+            "{d}/o.json",
+        ],
+        "one generalized-force column per coordinate",
+    ),
+    (
+        [
+            "fit",
+            "{d}/data.csv",
+            "--coordinates",
+            "x,theta",
+            "--input",
+            "tau_x,nope",
+            "--out",
+            "{d}/o.json",
+        ],
+        "no column 'nope'",
+    ),
+    (
+        [
+            "fit",
+            "{d}/data.csv",
+            "--coordinates",
+            "x,theta",
+            "--library",
+            "cubic",
+            "--out",
+            "{d}/o.json",
+        ],
+        "--library",
+    ),
+    (
+        [
+            "fit",
+            "{d}/data.csv",
+            "--coordinates",
+            "x,theta",
+            "--passive",
+            "--fixed-term",
+            "__import__('os')",
+            "--out",
+            "{d}/o.json",
+        ],
+        "not valid|unexpected",
+    ),
+    (
+        [
+            "fit",
+            "{d}/data.csv",
+            "--coordinates",
+            "x,theta",
+            "--lam",
+            "-1",
+            "--out",
+            "{d}/o.json",
+        ],
+        "lam",
+    ),
+    (
+        [
+            "fit",
+            "{d}/data.csv",
+            "--coordinates",
+            "x,theta",
+            "--out",
+            "{d}/nodir/o.json",
+        ],
+        "does not exist",
+    ),
+    (
+        [
+            "fit",
+            "{d}/data.csv",
+            "--coordinates",
+            "x,theta",
+            "--angles",
+            "phi",
+            "--out",
+            "{d}/o.json",
+        ],
+        "--angles",
+    ),
+    (["fit", "{d}/data.csv", "--out", "{d}/o.json"], "--coordinates"),
+    (
+        [
+            "fit",
+            "{d}/data.csv",
+            "--coordinates",
+            "x,theta",
+            "--lam",
+            "abc",
+            "--out",
+            "{d}/o.json",
+        ],
+        "invalid float",
+    ),
+    (
+        ["predict", "{d}/bad.json", "{d}/data.csv", "--out", "{d}/p.csv"],
+        "not valid JSON",
+    ),
+    (["predict", "{d}/evil.json", "{d}/data.csv", "--out", "{d}/p.csv"], "not valid"),
+    (["predict", "{d}/none.json", "{d}/data.csv", "--out", "{d}/p.csv"], "not found"),
+    (["predict", "{d}/model.json", "{d}/nan.csv", "--out", "{d}/p.csv"], "NaN"),
+    (
+        ["simulate-model", "{d}/model.json", "--x0", "0,1", "--out", "{d}/s.csv"],
+        "has 2 value",
+    ),
+    (
+        ["simulate-model", "{d}/model.json", "--x0", "0,a,0,0", "--out", "{d}/s.csv"],
+        "numbers",
+    ),
+    (
+        ["simulate-model", "{d}/model.json", "--x0", "0,nan,0,0", "--out", "{d}/s.csv"],
+        "NaN",
+    ),
+    (["simulate", "--system", "nosuch", "--out", "{d}/s.csv"], "unknown system"),
+    (["simulate", "--out", "{d}/s.csv"], "--system"),
+    (["simulate", "--system", "cart", "--noise", "-1", "--out", "{d}/s.csv"], "noise"),
+    (["demo", "--system", "nosuch"], "unknown system"),
+    (["nosuch"], "invalid choice"),
+]
+
+
+@pytest.mark.parametrize("args, message", BAD)
+def test_bad_input_gives_one_line_and_status_2(capsys, workdir, args, message):
+    if not (workdir / "evil.json").exists():
+        _bad_files(workdir)
+    args = [a.format(d=workdir) for a in args]
+    code, _, err = run(capsys, *args)
+    assert code == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("lagsindy")
+    assert "error" in lines[0] and "Traceback" not in err
+    assert re.search(message, lines[0]), lines[0]
+    assert not (workdir / "pwned").exists() and not Path("pwned").exists()
+
+
+def test_warnings_are_printed_on_one_line(capsys, monkeypatch, workdir):
+    import warnings
+
+    import lagsindy.cli as cli
+
+    def noisy(args):
+        warnings.warn("first line\nsecond line", UserWarning)
+        return 0
+
+    monkeypatch.setattr(cli, "_fit", noisy)
+    code, _, err = run(
+        capsys,
+        "fit",
+        workdir / "data.csv",
+        "--coordinates",
+        "x",
+        "--out",
+        workdir / "unused.json",
+    )
+    assert code == 0
+    assert err.splitlines() == ["lagsindy fit: warning: first line second line"]
+
+
+def test_debug_shows_the_traceback(workdir):
+    with pytest.raises(Exception, match="not found"):
+        main(
+            [
+                "--debug",
+                "fit",
+                str(workdir / "none.csv"),
+                "--coordinates",
+                "x",
+                "--out",
+                str(workdir / "o.json"),
+            ]
+        )
