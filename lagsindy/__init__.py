@@ -1,6 +1,8 @@
 """lagsindy: sparse identification of Lagrangians from trajectories (xL-SINDy)."""
 
+from .diagnostics import DiagnosisReport, diagnose
 from .differentiation import Derivatives, derivatives
+from .dissipation import DissipationLibrary
 from .dynamics import MechanicalModel, SingularMassMatrixError, rollout_error
 from .estimator import LagrangianSINDy
 from .io import load_model, save_model
@@ -11,10 +13,13 @@ __version__ = "0.1.0.dev0"
 __all__ = [
     "CandidateLibrary",
     "Derivatives",
+    "DiagnosisReport",
+    "DissipationLibrary",
     "LagrangianSINDy",
     "MechanicalModel",
     "SingularMassMatrixError",
     "derivatives",
+    "diagnose",
     "load_model",
     "rollout_error",
     "save_model",

@@ -83,6 +83,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         angles="all", raw_angles=True)`` over the data's coordinates (the paper's
         single pendulum library, generalized). Its coordinates, when ``None``, are
         taken from the DataFrame columns (or named ``q0, q1, ...``).
+    dissipation : DissipationLibrary, default=None
+        Candidate non-conservative forces (Rayleigh dissipation, Coulomb friction,
+        offsets) fitted together with the Lagrangian in one sparse regression; see
+        :mod:`lagsindy.dissipation`. Its coordinates default to the library's.
     lam : float, default=1e-3
         The paper's :math:`\lambda`: L1 weight of the first stage, on the scaled
         problem (columns and target of unit mean square, so ``lam`` is unit-free and
@@ -97,6 +101,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Hard threshold between stages, relative to the largest scaled coefficient
         (a term is dropped when its contribution to the equations is below
         ``threshold`` times that of the dominant term).
+    dissipation_threshold : float, default=1e-3
+        The hard threshold for dissipation terms. Friction and damping forces are
+        usually a few percent of the conservative ones, so they get a lower threshold;
+        with noisy data prefer :func:`lagsindy.diagnose`, which adds an effect only when
+        it improves held-out predictions.
     lam_decay : float, default=10.0
         Division of ``lam`` between stages.
     step_growth : float, default=2.0
@@ -113,7 +122,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Case III: a term known to be in the Lagrangian, whose coefficient is fixed to 1
         (e.g. ``"theta_dot**2"``).
     unpenalized : list of str, default=None
-        Terms known to be present: they are not shrunk and never thresholded.
+        Terms known to be present (Lagrangian terms, or dissipation names such as
+        ``"viscous(theta)"``): they are not shrunk and never thresholded.
     case : {"auto", "forces", "fixed", "acceleration"}, default="auto"
         ``"auto"``: case I when ``tau`` is given, else case III.
     formulation : {"strong", "weak"}, default="strong"
@@ -151,6 +161,14 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
     ----------
     coef_ : ndarray of shape (n_terms,)
         Coefficients over ``library_``'s terms (zero where pruned).
+    dissipation_coef_ : ndarray of shape (n_dissipation_terms,)
+        Coefficients of ``dissipation_terms_`` (empty without ``dissipation``).
+    dissipation_terms_ : list of lagsindy.dissipation.ForceTerm
+        The dissipation candidates (after removing those that duplicate a
+        Lagrangian column, listed in ``dissipation_removed_``).
+    dissipation_ : dict
+        The learned non-conservative part: ``{"D": Rayleigh function (sympy),
+        "forces": [direct generalized force per coordinate (sympy)]}``.
     support_ : ndarray of bool, shape (n_terms,)
     lagrangian_ : sympy.Expr
         The learned Lagrangian with numeric coefficients.
@@ -202,9 +220,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
     _parameter_constraints: dict = {
         "library": [HasMethods(["build", "get_feature_names_out"]), None],
+        "dissipation": [HasMethods(["build"]), None],
         "lam": [Interval(Real, 0, None, closed="left")],
         "alpha": [Interval(Real, 0, None, closed="neither"), None],
         "threshold": [Interval(Real, 0, 1, closed="left")],
+        "dissipation_threshold": [Interval(Real, 0, 1, closed="left")],
         "lam_decay": [Interval(Real, 1, None, closed="left")],
         "step_growth": [Interval(Real, 0, None, closed="neither")],
         "max_stages": [Interval(Integral, 1, None, closed="left")],
@@ -230,9 +250,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         self,
         library=None,
         *,
+        dissipation=None,
         lam=1e-3,
         alpha=None,
         threshold=0.05,
+        dissipation_threshold=1e-3,
         lam_decay=10.0,
         step_growth=2.0,
         max_stages=5,
@@ -254,9 +276,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         verbose=0,
     ):
         self.library = library
+        self.dissipation = dissipation
         self.lam = lam
         self.alpha = alpha
         self.threshold = threshold
+        self.dissipation_threshold = dissipation_threshold
         self.lam_decay = lam_decay
         self.step_growth = step_growth
         self.max_stages = max_stages
@@ -397,8 +421,14 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                 "terms; record more data or use a smaller library"
             )
         case = self._resolve_case(tau)
+        self._build_dissipation()
+        n_features = n_terms + len(self.dissipation_terms_)
+        self.feature_names_ = np.asarray(
+            list(self.term_names_) + [t.name for t in self.dissipation_terms_], dtype=object
+        )
         operator = EulerLagrangeOperator(
-            self.coordinates_, library.terms_, dtype=dtype, device=device
+            self.coordinates_, library.terms_,
+            forces=[t.forces for t in self.dissipation_terms_], dtype=dtype, device=device,
         )
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
@@ -414,7 +444,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         else:
             gram, n_rows, correct = operator.gram(Xt, tau_t), Xa.shape[0], False
         balanced = BalancedGram(
-            gram, n_rows, n_terms, normalize=self.normalize, project_psd=correct
+            gram, n_rows, n_features, normalize=self.normalize, project_psd=correct
         )
         identifiable = balanced.identifiable().cpu().numpy()
         if not identifiable.any():
@@ -422,24 +452,24 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                 "no candidate term varies on the data (every Euler-Lagrange column is "
                 "zero): the velocities and accelerations may all be zero; record motion"
             )
-        penalty = np.ones(n_terms)
+        penalty = np.ones(n_features)
         for term in self.unpenalized or []:
-            penalty[library.index(term)] = 0.0
+            penalty[self._feature_index(term)] = 0.0
 
         if case == "forces":
-            if balanced.target_scale(n_terms) <= 0:
+            if balanced.target_scale(n_features) <= 0:
                 raise ValueError(
                     "tau is identically zero: for passive data call fit(X) without tau "
                     "(case III or case='acceleration')"
                 )
             free = np.flatnonzero(identifiable)
-            coef, result = self._solve(balanced, free, n_terms, 1.0, penalty, 0.0, self.verbose)
+            coef, result = self._solve(balanced, free, n_features, 1.0, penalty, 0.0, self.verbose)
             fixed = None
-            _warn_if_not_identifiable(balanced, free, self.term_names_, allowed=0)
+            _warn_if_not_identifiable(balanced, free, self.feature_names_, allowed=0)
         elif case == "fixed":
             coef, result, fixed = self._fit_fixed(balanced, identifiable, penalty, Xt)
             _warn_if_not_identifiable(
-                balanced, np.flatnonzero(identifiable), self.term_names_, allowed=1
+                balanced, np.flatnonzero(identifiable), self.feature_names_, allowed=1
             )
         else:
             coef, result = self._fit_acceleration(balanced, identifiable, penalty, Xt, operator)
@@ -447,8 +477,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
         self.case_ = case
         self.fixed_term_ = None if fixed is None else str(library.terms_[fixed])
-        self.coef_ = coef
-        self.support_ = coef != 0
+        self.coef_ = coef[:n_terms]
+        self.dissipation_coef_ = coef[n_terms:]
+        self.support_ = self.coef_ != 0
         self.stages_ = result.stages
         self.n_iter_ = result.n_iter
         self.residual_ = result.cost
@@ -459,8 +490,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         warn_not_converged(result.stages, self.max_iter)
         if not self.support_.any():
             warnings.warn(
-                "every term was thresholded away: the learned Lagrangian is zero and "
-                "predicts zero forces. Lower lam or threshold.",
+                "every Lagrangian term was thresholded away: the learned Lagrangian is "
+                "zero. Lower lam or threshold.",
                 UserWarning,
                 stacklevel=2,
             )
@@ -469,6 +500,55 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         if self.support_.any():
             self._warn_if_mass_singular(Xt)
         return self
+
+    def _build_dissipation(self):
+        """Fitted copy of the dissipation library, minus terms a Lagrangian column covers."""
+        from .dissipation import reduce_forces
+
+        self.dissipation_terms_, self.dissipation_removed_ = [], []
+        if self.dissipation is None:
+            return
+        dlib = clone(self.dissipation)
+        if dlib.coordinates is None:
+            dlib.set_params(coordinates=self.coordinates_)
+        dlib.build()
+        if list(dlib.coordinates_) != self.coordinates_:
+            raise ValueError(
+                f"the dissipation library's coordinates {list(dlib.coordinates_)} differ "
+                f"from the Lagrangian library's {self.coordinates_}"
+            )
+        self.dissipation_library_ = dlib
+        self.dissipation_terms_, self.dissipation_removed_ = reduce_forces(
+            self.library_.terms_, dlib.terms_, self.coordinates_
+        )
+
+    def _feature_index(self, name) -> int:
+        """Index of a Lagrangian term or a dissipation term name among all features."""
+        if isinstance(name, str):
+            for j, t in enumerate(self.dissipation_terms_):
+                if t.name == name.replace(" ", ""):
+                    return len(self.library_.terms_) + j
+            for t_name, reason in self.dissipation_removed_:
+                if t_name == name.replace(" ", ""):
+                    raise ValueError(f"dissipation term {name!r} was removed: {reason}")
+        return self.library_.index(name)
+
+    def _all_coef(self) -> np.ndarray:
+        """Coefficients of the Lagrangian terms followed by the dissipation terms."""
+        extra = getattr(self, "dissipation_coef_", np.zeros(0))
+        return np.concatenate([self.coef_, extra])
+
+    def _feature_operator(self, indices, device, dtype) -> EulerLagrangeOperator:
+        """Operator of the features at ``indices`` (Lagrangian terms, then forces)."""
+        n_terms = len(self.library_.terms_)
+        terms = [self.library_.terms_[k] for k in indices if k < n_terms]
+        forces = [
+            self.dissipation_terms_[k - n_terms].forces
+            for k in indices if k >= n_terms
+        ]
+        return EulerLagrangeOperator(
+            self.coordinates_, terms, forces=forces, dtype=dtype, device=device
+        )
 
     def _warn_if_mass_singular(self, Xt):
         """Warn when the learned mass matrix is singular or indefinite on the data."""
@@ -558,6 +638,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             )
         return self.case
 
+    def _thresholds(self, free):
+        n_terms = len(self.library_.terms_)
+        return np.where(np.asarray(free) < n_terms, self.threshold, self.dissipation_threshold)
+
     def _solve(self, balanced, free, target, sign, penalty, reference, verbose):
         datafit, to_coef = balanced.problem(free, target, sign)
         weights = torch.as_tensor(penalty[free], dtype=datafit.rhs.dtype, device=datafit.rhs.device)
@@ -565,7 +649,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             datafit,
             lam=self.lam,
             penalty_weights=weights,
-            threshold=self.threshold,
+            threshold=torch.as_tensor(self._thresholds(free), dtype=weights.dtype,
+                                      device=weights.device),
             reference=reference,
             lam_decay=self.lam_decay,
             step_growth=self.step_growth,
@@ -599,7 +684,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                     "on this data, so it cannot set the scale; choose another term"
                 )
         else:
-            candidates = list(np.flatnonzero(identifiable))
+            candidates = [k for k in np.flatnonzero(identifiable) if k < n_terms]
         fits = []
         for r in candidates:
             free = np.array([k for k in np.flatnonzero(identifiable) if k != r])
@@ -642,14 +727,16 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         rows = np.sort(rng.choice(n, size=min(n, _CASE_II_ROWS), replace=False))
         Xs = Xt[torch.as_tensor(rows, device=Xt.device)]
         free = np.flatnonzero(identifiable)
-        sub = EulerLagrangeOperator(
-            self.coordinates_, [self.library_.terms_[k] for k in free],
-            dtype=Xt.dtype, device=Xt.device,
-        )
+        n_terms = len(self.library_.terms_)
+        sub = self._feature_operator(free, Xt.device, Xt.dtype)
         d = self.n_dof_
         q, qd, qdd = Xs[:, :d], Xs[:, d : 2 * d], Xs[:, 2 * d : 3 * d]
         mass, n_mat, o = lagrangian_components(sub._fn, q, qd)
         bias = torch.einsum("skij,sj->ski", n_mat, qd) - o
+        n_forces = int((free >= n_terms).sum())
+        if n_forces:  # force features: no inertia, left-hand side -Q
+            mass = torch.cat([mass, mass.new_zeros((mass.shape[0], n_forces, d, d))], dim=1)
+            bias = torch.cat([bias, -sub.force_values(q, qd).transpose(1, 2)], dim=1)
         scale = balanced.col_scale[torch.as_tensor(free, device=Xt.device)]
         datafit = AccelerationDatafit(mass, bias, qdd, scale)
         # Spectral start (no prior knowledge): the unit vector that best satisfies the
@@ -660,7 +747,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         w0 = torch.linalg.eigh(g)[1][:, 0]
         weights = torch.as_tensor(penalty[free], dtype=Xt.dtype, device=Xt.device)
         result = staged_fista(
-            datafit, lam=self.lam, penalty_weights=weights, threshold=self.threshold,
+            datafit, lam=self.lam, penalty_weights=weights,
+            threshold=torch.as_tensor(self._thresholds(free), dtype=weights.dtype,
+                                      device=weights.device),
             lam_decay=self.lam_decay, step_growth=self.step_growth, alpha=self.alpha,
             max_stages=self.max_stages, max_iter=self.max_iter, tol=self.tol,
             solver_tol=self.solver_tol, debias=self.debias, verbose=self.verbose, w0=w0,
@@ -673,7 +762,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             w = -w
         big = int(torch.argmax(result.coef.abs()))
         w = w / abs(float(w[big]))
-        coef = np.zeros(len(self.library_.terms_))
+        coef = np.zeros(balanced.n_features)
         coef[free] = to_numpy(w)
         for st in result.stages:
             full = np.zeros(len(coef))
@@ -686,10 +775,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         support = np.flatnonzero(coef)
         if support.size == 0:
             return -np.inf
-        op = EulerLagrangeOperator(
-            self.coordinates_, [self.library_.terms_[k] for k in support],
-            dtype=Xt.dtype, device=Xt.device,
-        )
+        op = self._feature_operator(support, Xt.device, Xt.dtype)
         c = torch.as_tensor(coef[support], dtype=Xt.dtype, device=Xt.device)
         qdd_pred = forward_accelerations(op, c, Xt, tau_t)
         n = self.n_dof_
@@ -700,10 +786,20 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         return float(r2_score(true, pred, multioutput="variance_weighted"))
 
     def _set_model(self):
+        from .dissipation import assemble
+
         terms = self.library_.terms_
         lag = sp.Add(*[sp.Float(c) * t for c, t in zip(self.coef_, terms) if c != 0])
+        rayleigh, forces = assemble(
+            getattr(self, "dissipation_terms_", []),
+            getattr(self, "dissipation_coef_", []),
+            self.coordinates_,
+        )
         self.lagrangian_ = lag
-        self.model_ = MechanicalModel(lag, self.coordinates_, name="learned model")
+        self.dissipation_ = {"D": rayleigh, "forces": forces}
+        self.model_ = MechanicalModel(
+            lag, self.coordinates_, dissipation=rayleigh, forces=forces, name="learned model"
+        )
 
     # ------------------------------------------------------------------ predict
     def _support_operator(self, device, dtype):
@@ -711,12 +807,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         key = (str(device), str(dtype))
         cache = self.__dict__.get("_operator_cache")
         if cache is None or cache[0] != key:
-            support = np.flatnonzero(self.coef_)
-            op = EulerLagrangeOperator(
-                self.coordinates_, [self.library_.terms_[k] for k in support],
-                dtype=dtype, device=device,
-            )
-            coef = torch.as_tensor(self.coef_[support], dtype=dtype, device=device)
+            all_coef = self._all_coef()
+            support = np.flatnonzero(all_coef)
+            op = self._feature_operator(support, device, dtype)
+            coef = torch.as_tensor(all_coef[support], dtype=dtype, device=device)
             cache = (key, op, coef)
             self._operator_cache = cache
         return cache[1], cache[2]
@@ -850,17 +944,21 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Returns
         -------
         pandas.DataFrame
-            Columns ``term`` (str), ``coefficient`` (float, 0 where pruned) and
-            ``kept`` (bool: the term is in the learned Lagrangian).
+            Columns ``term`` (str), ``kind`` (``"lagrangian"`` or ``"dissipation"``),
+            ``coefficient`` (float, 0 where pruned) and ``kept`` (bool: the term is in
+            the learned model).
         """
         import pandas as pd
 
         check_is_fitted(self)
+        extra = [t.name for t in getattr(self, "dissipation_terms_", [])]
+        coef = self._all_coef()
         return pd.DataFrame(
             {
-                "term": [str(t) for t in self.term_names_],
-                "coefficient": np.asarray(self.coef_, dtype=float),
-                "kept": np.asarray(self.support_, dtype=bool),
+                "term": [str(t) for t in self.term_names_] + extra,
+                "kind": ["lagrangian"] * len(self.term_names_) + ["dissipation"] * len(extra),
+                "coefficient": np.asarray(coef, dtype=float),
+                "kept": coef != 0,
             }
         )
 

@@ -221,14 +221,17 @@ class EulerLagrangeOperator:
         m_mat, _, _ = lagrangian_components(self._fn, q, qd, chunk_size=self.chunk_size)
         return m_mat
 
-    def gram(self, X: torch.Tensor, y: torch.Tensor | None = None):
-        """Per-dof Gram statistics of ``A = [Theta | y]``, accumulated in chunks.
+    def gram(self, X: torch.Tensor, y: torch.Tensor | None = None, extra=None):
+        """Per-dof Gram statistics of ``A = [Theta | extra | y]``, accumulated in chunks.
 
         Parameters
         ----------
         X : Tensor of shape (n_samples, 3 * n_dof)
         y : Tensor of shape (n_samples, n_dof), optional
             Target generalized forces, appended as the last column of ``A``.
+        extra : Tensor of shape (n_samples, n_dof, n_extra), optional
+            Further left-hand-side columns given per sample (e.g. a measured input,
+            to test an input gain error).
 
         Returns
         -------
@@ -236,10 +239,13 @@ class EulerLagrangeOperator:
             ``G[i] = A[:, i, :].T @ A[:, i, :]``, so Theta is never held in memory
             whole.
         """
-        width = self.n_columns + (0 if y is None else 1)
+        n_extra = 0 if extra is None else extra.shape[2]
+        width = self.n_columns + n_extra + (0 if y is None else 1)
         out = X.new_zeros((self.n_dof, width, width))
         for sl in _chunks(X.shape[0], self.chunk_size):
             theta = self.columns(X[sl])
+            if extra is not None:
+                theta = torch.cat([theta, extra[sl]], dim=2)
             if y is not None:
                 theta = torch.cat([theta, y[sl].unsqueeze(2)], dim=2)
             out += torch.einsum("sip,siq->ipq", theta, theta)
@@ -256,6 +262,8 @@ class EulerLagrangeOperator:
         dt: float,
         noise_cov: torch.Tensor | None = None,
         noise_rows: int = NOISE_ROWS,
+        extra: torch.Tensor | None = None,
+        return_noise: bool = False,
     ):
         r"""Per-dof Gram statistics of the weak (integral) Euler-Lagrange equations.
 
@@ -294,11 +302,20 @@ class EulerLagrangeOperator:
             Sampling interval.
         noise_cov : Tensor of shape (2 * n_dof, 2 * n_dof), optional
         noise_rows : int, default=10000
+        extra : Tensor of shape (n_samples, n_dof, n_extra), optional
+            Further left-hand-side integrands given per sample, integrated against
+            the test functions like forces (no noise correction for them).
+        return_noise : bool, default=False
+            Return the uncorrected Gram and the noise part separately (their
+            difference is the corrected Gram).
 
         Returns
         -------
         gram : Tensor of shape (n_dof, P, P)
-            With ``P = n_columns (+ 1 for y)``.
+            With ``P = n_columns (+ n_extra) (+ 1 for y)``; corrected for noise when
+            ``noise_cov`` is given.
+        noise : Tensor of shape (n_dof, P, P)
+            Only with ``return_noise=True`` (then ``gram`` is uncorrected).
         n_windows : int
         """
         d = self.n_dof
@@ -315,6 +332,10 @@ class EulerLagrangeOperator:
             forces = self.force_values(q, qd)  # (n, d, f)
             a_parts.append(torch.zeros_like(forces))
             b_parts.append(forces)
+        if extra is not None:
+            e = extra[order]
+            a_parts.append(torch.zeros_like(e))
+            b_parts.append(-e)  # the column below is then +int psi e
         if y is not None:
             tau = y[order].unsqueeze(2)
             a_parts.append(torch.zeros_like(tau))
@@ -335,10 +356,13 @@ class EulerLagrangeOperator:
             gram += torch.einsum("wip,wiq->ipq", cols, cols)
             if noise_cov is not None:
                 weights.append(_window_weights(n, -dt * dpsi, -dt * psi, stride))
+        noise = torch.zeros_like(gram)
         if noise_cov is not None:
             a2, ab, b2 = (torch.cat(w) for w in zip(*weights))
-            gram -= self._weak_noise_gram(q, qd, (a2, ab, b2), noise_cov, width, noise_rows)
-        return gram, n_windows
+            noise = self._weak_noise_gram(q, qd, (a2, ab, b2), noise_cov, width, noise_rows)
+        if return_noise:
+            return gram, noise, n_windows
+        return gram - noise, n_windows
 
     def _weak_noise_gram(self, q, qd, weights, noise_cov, width, noise_rows):
         """First-order noise contribution to the weak Gram (see :meth:`weak_gram`)."""

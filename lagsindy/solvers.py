@@ -439,7 +439,7 @@ def staged_fista(
     *,
     lam: float,
     penalty_weights: torch.Tensor | None = None,
-    threshold: float = 0.05,
+    threshold: float | torch.Tensor = 0.05,
     reference: float = 0.0,
     lam_decay: float = 10.0,
     step_growth: float = 2.0,
@@ -474,8 +474,8 @@ def staged_fista(
         Penalty of the first stage.
     penalty_weights : Tensor, optional
         0 for unpenalised (known) terms, 1 otherwise.
-    threshold : float, default=0.05
-        Relative hard threshold.
+    threshold : float or Tensor of shape (p,), default=0.05
+        Relative hard threshold (one value, or one per feature).
     reference : float, default=0.0
         Magnitude of a fixed term in the same units as ``w`` (1 for case III).
     lam_decay, step_growth : float
@@ -500,6 +500,9 @@ def staged_fista(
     device = template.device
     weights = torch.ones_like(template) if penalty_weights is None else penalty_weights
     support = np.arange(p)
+    thresholds = (
+        torch.as_tensor(threshold, dtype=template.dtype, device=device).expand(p).clone()
+    )
     w_full = template.clone() if w0 is None else w0.clone()
     stages, total_iter, reductions = [], 0, 0
     converged = True
@@ -519,8 +522,9 @@ def staged_fista(
         mags = w_sub.abs()
         largest = float(mags.max()) if mags.numel() else 0.0
         if largest > 0:  # an all-zero stage (lam too high) removes nothing
-            penalised = weights[torch.as_tensor(support, device=device)] > 0
-            keep = ~((mags < threshold * max(largest, reference)) & penalised)
+            sup_t = torch.as_tensor(support, device=device)
+            penalised = weights[sup_t] > 0
+            keep = ~((mags < thresholds[sup_t] * max(largest, reference)) & penalised)
         else:
             keep = torch.ones_like(mags, dtype=torch.bool)
         w_sub = torch.where(keep, w_sub, torch.zeros_like(w_sub))
@@ -543,12 +547,12 @@ def staged_fista(
             break
         cur_lam /= lam_decay
     if debias and len(support):
-        w_full, support = _debias(datafit, support, weights, threshold, reference, w_full)
+        w_full, support = _debias(datafit, support, weights, thresholds, reference, w_full)
         cost = datafit.relative_residual(w_full)
     return StagedResult(w_full, support, stages, total_iter, converged, cost, reductions)
 
 
-def _debias(datafit, support, weights, threshold, reference, w_start):
+def _debias(datafit, support, weights, thresholds, reference, w_start):
     """Unpenalised refit of the support, thresholding the refit until it is stable.
 
     The L1 stages shrink coefficients, so a term that the penalty kept alive only
@@ -561,7 +565,7 @@ def _debias(datafit, support, weights, threshold, reference, w_start):
         w_ls = datafit.restrict(support).least_squares(w0=w_start[idx])
         mags = w_ls.abs()
         peak = max(float(mags.max()), reference) if mags.numel() else 0.0
-        drop = (mags < threshold * peak) & (weights[idx] > 0)
+        drop = (mags < thresholds[idx] * peak) & (weights[idx] > 0)
         if not bool(drop.any()) or bool(drop.all()):
             break
         support = support[~drop.cpu().numpy()]
