@@ -253,32 +253,23 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         """Validate X (and y) and return float64 arrays with columns [q, qd, qdd].
 
         DataFrame columns are selected by name first, so ``feature_names_in_`` is in
-        the canonical order; then scikit-learn's ``validate_data`` gives its usual
-        messages (sparse, complex, empty, 1-D, too few samples), and the layout and
-        finiteness checks here name the offending column and row.
+        the canonical order; conversion errors name the column and row; then
+        scikit-learn's ``validate_data`` gives its usual messages (empty, too few
+        samples) and sets ``n_features_in_``; the layout and finiteness checks here
+        name the offending column and row. tau is checked by :meth:`_check_tau`.
         """
         if val.is_frame(X):
             if coordinates is None:
                 coordinates = val.coordinates_from_columns(X.columns)
             X = val.select_state_columns(X, coordinates)
-        if not reset and coordinates is not None and len(np.shape(X)) == 2:
-            if np.shape(X)[1] != 3 * len(coordinates):
-                raise ValueError(val.n_features_message(np.shape(X)[1], len(coordinates)))
-        common = dict(dtype=np.float64, ensure_all_finite=False, reset=reset,
-                      ensure_min_samples=2 if reset else 1)
-        if y is None:
-            Xa = validate_data(self, X, **common)
-            ya = None
+            X = X.__class__(val.frame_as_float(X, "X"), columns=X.columns, index=X.index)
         else:
-            try:
-                Xa, ya = validate_data(self, X, y, multi_output=True, y_numeric=True, **common)
-            except ValueError as exc:
-                if "could not convert" in str(exc) or "dtype" in str(exc):
-                    raise ValueError(
-                        f"X or tau could not be converted to floating point numbers ({exc}); "
-                        "pass numeric data"
-                    ) from None
-                raise
+            names = None if coordinates is None else state_names(coordinates)
+            X = val.as_float_array(X, "X", names=names)
+        if not reset and coordinates is not None and X.shape[1] != 3 * len(coordinates):
+            raise ValueError(val.n_features_message(X.shape[1], len(coordinates)))
+        Xa = validate_data(self, X, dtype=np.float64, ensure_all_finite=False, reset=reset,
+                           ensure_min_samples=2 if reset else 1)
         if coordinates is None:
             if Xa.shape[1] % 3:
                 raise ValueError(val.n_features_message(Xa.shape[1], None))
@@ -287,12 +278,24 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         if Xa.shape[1] != 3 * n_dof:
             raise ValueError(val.n_features_message(Xa.shape[1], n_dof))
         val.check_finite(Xa, state_names(coordinates), "X")
-        if ya is not None:
-            ya = self._check_tau(ya, Xa.shape[0], n_dof)
+        ya = None
+        if y is not None:
+            ya = self._check_tau(y, Xa.shape[0], n_dof, coordinates)
         return np.asarray(Xa, dtype=np.float64), ya, list(coordinates)
 
-    def _check_tau(self, tau, n_samples, n_dof):
-        arr = val.as_float_array(tau, "tau")
+    def _check_tau(self, tau, n_samples, n_dof, coordinates=None):
+        if coordinates is None:
+            coordinates = getattr(self, "coordinates_", None)
+        names = (
+            [f"tau_{c}" for c in coordinates] if coordinates is not None
+            else [f"tau[{i}]" for i in range(n_dof)]
+        )
+        if val.is_frame(tau):
+            if coordinates is not None:
+                tau = val.select_tau_columns(tau, coordinates)
+            arr = val.frame_as_float(tau, "tau")
+        else:
+            arr = val.as_float_array(tau, "tau", ndims=(1, 2), names=names)
         if arr.ndim == 1:
             if n_dof != 1:
                 raise ValueError(
@@ -301,16 +304,64 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                     "nothing drives it)"
                 )
             arr = arr[:, None]
-        if arr.ndim != 2 or arr.shape[1] != n_dof:
+        if arr.shape[1] != n_dof:
             raise ValueError(
-                f"tau must have shape (n_samples, n_dof={n_dof}), got {arr.shape}"
+                f"tau must have shape (n_samples, n_dof={n_dof}), one generalized force "
+                f"column per coordinate {names}, got shape {arr.shape}"
             )
         if arr.shape[0] != n_samples:
             raise ValueError(
-                f"X and tau have different numbers of rows: {n_samples} and {arr.shape[0]}"
+                f"X and tau have different numbers of rows: {n_samples} and "
+                f"{arr.shape[0]}; give one tau row per sample of X"
             )
-        val.check_finite(arr, [f"tau[{i}]" for i in range(n_dof)], "tau")
+        val.check_finite(arr, names, "tau")
         return arr
+
+    def _raise_not_finite(self, gram, n_terms, Xa, tau):
+        """Explain non-finite Euler-Lagrange statistics: undefined terms or overflow."""
+        diag = torch.diagonal(gram, dim1=1, dim2=2)
+        bad = ~torch.isfinite(diag).all(dim=0).cpu().numpy()
+        bad_terms = [str(t) for t, b in zip(self.library_.terms_, bad[:n_terms]) if b]
+        sizes = f"largest |X| = {np.abs(Xa).max():.3g}"
+        if tau is not None:
+            sizes += f", largest |tau| = {np.abs(tau).max():.3g}"
+        if bad_terms:
+            raise ValueError(
+                f"the Euler-Lagrange columns of the term(s) {bad_terms[:8]} are not finite "
+                f"on this data ({sizes}): a term may be undefined there (log or sqrt of a "
+                "negative number, division by zero) or its values overflow "
+                f"{self.dtype}. Remove those terms, or change units so that the values "
+                "are moderate."
+            )
+        raise ValueError(
+            f"the Euler-Lagrange regression overflows in {self.dtype} for this data "
+            f"({sizes}): change units so that the values are moderate"
+        )
+
+    def _term_index(self, library, param, term) -> int:
+        """Index of a term named by a parameter, with the parameter in the message."""
+        try:
+            return library.index(term)
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{param}={term!r}: {exc}") from None
+
+    def _check_known_terms(self, library, case):
+        """Resolve ``fixed_term`` and ``unpenalized`` before any heavy computation."""
+        if self.fixed_term is not None:
+            if case != "fixed":
+                why = (
+                    "with tau the forces set the scale" if case == "forces" else
+                    "case II fixes the scale by a unit norm instead"
+                )
+                raise ValueError(
+                    f"fixed_term={self.fixed_term!r} is only used in case III (passive "
+                    f"data, fit(X) without tau), but this fit is case={case!r} and {why}: "
+                    "drop fixed_term (unpenalized=[...] keeps a known term without fixing "
+                    "its value)."
+                )
+            self._term_index(library, "fixed_term", self.fixed_term)
+        for term in self.unpenalized if self.unpenalized is not None else []:
+            self._term_index(library, "unpenalized", term)
 
     # ------------------------------------------------------------------ fit
     @_fit_context(prefer_skip_nested_validation=True)
@@ -336,6 +387,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         if isinstance(lib_coords, str):
             lib_coords = [lib_coords]
         Xa, tau, coordinates = self._check_X(X, reset=True, y=y, coordinates=lib_coords)
+        val.check_motion(Xa, coordinates)
         if library is None:
             library = CandidateLibrary.polynomial(
                 coordinates, angles="all", degree=2, raw_angles=True
@@ -356,12 +408,15 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                 "terms; record more data or use a smaller library"
             )
         case = self._resolve_case(tau)
+        self._check_known_terms(library, case)
         operator = EulerLagrangeOperator(
             self.coordinates_, library.terms_, dtype=dtype, device=device
         )
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
         gram = operator.gram(Xt, tau_t)
+        if not bool(torch.isfinite(gram).all()):
+            self._raise_not_finite(gram, n_terms, Xa, tau)
         balanced = BalancedGram(gram, Xa.shape[0], n_terms, normalize=self.normalize)
         identifiable = balanced.identifiable().cpu().numpy()
         if not identifiable.any():
@@ -370,14 +425,16 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                 "zero): the velocities and accelerations may all be zero; record motion"
             )
         penalty = np.ones(n_terms)
-        for term in self.unpenalized or []:
+        for term in self.unpenalized if self.unpenalized is not None else []:
             penalty[library.index(term)] = 0.0
 
         if case == "forces":
             if balanced.target_scale(n_terms) <= 0:
                 raise ValueError(
                     "tau is identically zero: for passive data call fit(X) without tau "
-                    "(case III or case='acceleration')"
+                    "(case III or case='acceleration')" if not np.any(tau) else
+                    f"tau is too small to use (largest |tau| = {np.abs(tau).max():.3g}, "
+                    "its squares underflow): change its units"
                 )
             free = np.flatnonzero(identifiable)
             coef, result = self._solve(balanced, free, n_terms, 1.0, penalty, 0.0, self.verbose)
@@ -700,7 +757,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                          multioutput="variance_weighted")
             )
         pred = self.predict(X)
-        y = np.asarray(y, dtype=float).reshape(np.shape(pred))
+        y = self._check_tau(y, np.shape(pred)[0], self.n_dof_).reshape(np.shape(pred))
         return float(r2_score(y, pred, sample_weight=sample_weight, multioutput="variance_weighted"))
 
     # ------------------------------------------------------------------ model
