@@ -122,8 +122,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Torch device for the Euler-Lagrange tensors (``"cuda"`` where available).
     dtype : {"float64", "float32"}, default="float64"
     random_state : int, RandomState instance or None, default=None
-        Seeds the subsample used to rank fixed terms in case III and the start of
-        case II; fits are otherwise deterministic.
+        Seeds the row subsamples drawn when the data are large: the rows used to
+        rank candidate fixed terms in case III (above 4000 rows) and the rows of
+        case II (above 20000 rows). ``None``: evenly spaced rows, so the fit is
+        deterministic and never uses numpy's global random state. Fits are
+        otherwise deterministic.
     verbose : int, default=0
         Print stage progress when positive.
 
@@ -240,6 +243,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         self.dtype = dtype
         self.random_state = random_state
         self.verbose = verbose
+
+    def __sklearn_is_fitted__(self):
+        # model_ is set last in fit: a fit that raised leaves the estimator unfitted.
+        return "model_" in self.__dict__
 
     def __sklearn_tags__(self):
         tags = super().__sklearn_tags__()
@@ -380,6 +387,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         -------
         self : LagrangianSINDy
         """
+        # A refit starts from scratch: a failed fit leaves the estimator unfitted, not
+        # a mix of old and new attributes, and the previous model's compiled operator
+        # must not serve the new one.
+        for name in [k for k in vars(self) if k.endswith("_") and not k.endswith("__")]:
+            delattr(self, name)
+        self.__dict__.pop("_operator_cache", None)
         device = resolve_device(self.device)
         dtype = resolve_dtype(self.dtype)
         library = clone(self.library) if self.library is not None else None
@@ -568,9 +581,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         # Rank by relative residual, then score the best few on accelerations.
         fits.sort(key=lambda f: f[2].cost)
         shortlist = fits[:_SELECTION_TOP]
-        rng = check_random_state(self.random_state)
-        n = Xt.shape[0]
-        rows = np.sort(rng.choice(n, size=min(n, _SELECTION_ROWS), replace=False))
+        rows = self._subsample_rows(Xt.shape[0], _SELECTION_ROWS)
         Xs = Xt[torch.as_tensor(rows, device=Xt.device)]
         best, best_score = None, -np.inf
         for r, coef, result in shortlist:
@@ -588,11 +599,23 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         r, coef, result = best
         return coef, result, r
 
+    def _subsample_rows(self, n, size):
+        """Sorted row indices of a subsample of at most ``size`` of ``n`` rows.
+
+        All rows when they fit; otherwise a random choice seeded by ``random_state``,
+        or evenly spaced rows when it is ``None``, so a fit never draws from (or
+        changes) numpy's or torch's global random state.
+        """
+        if n <= size:
+            return np.arange(n)
+        if self.random_state is None:
+            return np.unique(np.linspace(0, n - 1, size).round().astype(np.int64))
+        rng = check_random_state(self.random_state)
+        return np.sort(rng.choice(n, size=size, replace=False))
+
     def _fit_acceleration(self, balanced, identifiable, penalty, Xt, operator):
         """Case II: sparse fit of accelerations through the learned mass matrix."""
-        rng = check_random_state(self.random_state)
-        n = Xt.shape[0]
-        rows = np.sort(rng.choice(n, size=min(n, _CASE_II_ROWS), replace=False))
+        rows = self._subsample_rows(Xt.shape[0], _CASE_II_ROWS)
         Xs = Xt[torch.as_tensor(rows, device=Xt.device)]
         free = np.flatnonzero(identifiable)
         sub = EulerLagrangeOperator(
@@ -612,12 +635,21 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         g = balanced.gram[idx][:, idx] / (scale[:, None] * scale[None, :])
         w0 = torch.linalg.eigh(g)[1][:, 0]
         weights = torch.as_tensor(penalty[free], dtype=Xt.dtype, device=Xt.device)
-        result = staged_fista(
-            datafit, lam=self.lam, penalty_weights=weights, threshold=self.threshold,
-            lam_decay=self.lam_decay, step_growth=self.step_growth, alpha=self.alpha,
-            max_stages=self.max_stages, max_iter=self.max_iter, tol=self.tol,
-            solver_tol=self.solver_tol, debias=self.debias, verbose=self.verbose, w0=w0,
-        )
+        try:
+            result = staged_fista(
+                datafit, lam=self.lam, penalty_weights=weights, threshold=self.threshold,
+                lam_decay=self.lam_decay, step_growth=self.step_growth, alpha=self.alpha,
+                max_stages=self.max_stages, max_iter=self.max_iter, tol=self.tol,
+                solver_tol=self.solver_tol, debias=self.debias, verbose=self.verbose, w0=w0,
+            )
+        except FloatingPointError as exc:
+            raise ValueError(
+                f"case='acceleration' failed: {exc}. The model lost every term that "
+                "gives it a mass matrix, so it predicts no accelerations. This happens "
+                "when the data are driven by forces that were not given (pass them: "
+                "fit(X, tau)) or when no velocity term of the library fits the data; "
+                "try a lower threshold, or case III (fit(X) with a fixed_term)."
+            ) from None
         w = result.coef / scale
         # Present the gauge-free answer with a positive-definite mass matrix and the
         # largest scaled term at unit size.
@@ -764,6 +796,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
     def simulate(self, x0, t, tau=None, **kwargs):
         """Integrate the learned equations of motion (see :meth:`MechanicalModel.simulate`)."""
         check_is_fitted(self)
+        if not np.any(self.coef_):
+            raise ValueError(
+                "the learned Lagrangian is zero (every term was thresholded away), so "
+                "it has no equations of motion to integrate; refit with a lower lam or "
+                "threshold"
+            )
         return self.model_.simulate(x0, t, tau, **kwargs)
 
     def equation(self, precision: int = 4) -> str:
