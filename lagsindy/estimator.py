@@ -591,9 +591,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                     f"[lagsindy] fixed term {library.terms_[r]}: {int((coef != 0).sum())} "
                     f"terms, relative residual {result.cost:.3g}, acceleration R2 {score:.4f}"
                 )
-            # Prefer the higher score; among (near) ties the sparser model.
+            # Prefer the higher score; among (near) ties the sparser model, then the
+            # earlier library term, so that rounding (e.g. the order of the rows)
+            # cannot pick between equivalent models.
             if best is None or score > best_score + 1e-9 or (
-                abs(score - best_score) <= 1e-9 and (coef != 0).sum() < (best[1] != 0).sum()
+                abs(score - best_score) <= 1e-9
+                and ((coef != 0).sum(), r) < ((best[1] != 0).sum(), best[0])
             ):
                 best, best_score = (r, coef, result), score
         r, coef, result = best
