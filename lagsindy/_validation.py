@@ -23,13 +23,18 @@ def is_frame(X) -> bool:
 def coordinates_from_columns(columns) -> list[str]:
     """Infer coordinate names from DataFrame columns ``[q..., q_dot..., q_ddot...]``."""
     columns = [str(c) for c in columns]
-    qs = [c for c in columns if not c.endswith(VELOCITY_SUFFIX) and not c.endswith(ACCELERATION_SUFFIX)]
+    qs = [
+        c
+        for c in columns
+        if not c.endswith(VELOCITY_SUFFIX) and not c.endswith(ACCELERATION_SUFFIX)
+    ]
     missing = [c for c in state_names(qs) if c not in columns]
     if not qs or missing:
+        gap = f"; missing {missing}" if missing else ""
         raise ValueError(
             "could not read coordinates from the DataFrame columns "
-            f"{columns}: expected columns named like 'theta', 'theta_dot', 'theta_ddot' "
-            f"for each coordinate{'; missing ' + str(missing) if missing else ''}. "
+            f"{columns}: expected columns named like 'theta', 'theta_dot', "
+            f"'theta_ddot' for each coordinate{gap}. "
             "Rename the columns, or pass a library with coordinates=[...]."
         )
     return qs
@@ -46,7 +51,7 @@ def _check_unique_columns(frame: pd.DataFrame, what: str):
 
 
 def select_state_columns(X: pd.DataFrame, coordinates) -> pd.DataFrame:
-    """Columns of ``X`` in the order ``[q..., q_dot..., q_ddot...]`` for ``coordinates``."""
+    """Columns of ``X`` in the order ``[q..., q_dot..., q_ddot...]``."""
     wanted = state_names(coordinates)
     _check_unique_columns(X, "X")
     present = {str(c): c for c in X.columns}
@@ -105,7 +110,11 @@ def _conversion_error(what: str, values: np.ndarray, names, exc) -> ValueError:
     if idx is None:
         where = ""
     elif len(idx) == 2:
-        col = names[idx[1]] if names is not None and idx[1] < len(names) else f"column {idx[1]}"
+        col = (
+            names[idx[1]]
+            if names is not None and idx[1] < len(names)
+            else f"column {idx[1]}"
+        )
         where = f"; the first is {v!r} at row {idx[0]}, column {col!r}"
     else:
         where = f"; the first is {v!r} at row {idx[0]}"
@@ -132,7 +141,8 @@ def as_float_array(X, what: str, *, ndims=(2,), names=None) -> np.ndarray:
         raise ValueError(f"{what} is None; pass an array of numbers")
     if sps.issparse(X):
         raise ValueError(
-            f"{what} is a sparse matrix, but dense data is required: use {what}.toarray()"
+            f"{what} is a sparse matrix, but dense data is required: "
+            f"use {what}.toarray()"
         )
     if isinstance(X, (str, bytes, dict, set)):
         raise ValueError(
@@ -152,7 +162,11 @@ def as_float_array(X, what: str, *, ndims=(2,), names=None) -> np.ndarray:
             if arr.ndim == 1 and 2 in ndims
             else ""
         )
-        got = "a scalar" if arr.ndim == 0 else f"a {arr.ndim}-D array of shape {arr.shape}"
+        got = (
+            "a scalar"
+            if arr.ndim == 0
+            else f"a {arr.ndim}-D array of shape {arr.shape}"
+        )
         raise ValueError(
             f"{what} must be a {expected} array"
             f"{' ' + _LAYOUT_HINT if what == 'X' else ''}, got {got}{shape_hint}"
@@ -183,7 +197,9 @@ def frame_as_float(frame: pd.DataFrame, what: str) -> np.ndarray:
     for name in frame.columns:
         col = frame[name]
         if isinstance(col, pd.DataFrame):  # repeated names; select_* rejects them first
-            raise ValueError(f"the {what} DataFrame has the column {name!r} more than once")
+            raise ValueError(
+                f"the {what} DataFrame has the column {name!r} more than once"
+            )
         kind = getattr(col.dtype, "kind", "O")
         if kind in "Mm":
             raise ValueError(
@@ -235,8 +251,8 @@ def check_motion(X: np.ndarray, coordinates):
         )
     if not np.any(X[:, n : 2 * n]):
         raise ValueError(
-            f"all velocities in X ({state_names(coordinates)[n : 2 * n]}) are zero: the "
-            "system never moves, so no kinetic energy (and no Lagrangian) can be "
+            f"all velocities in X ({state_names(coordinates)[n : 2 * n]}) are zero: "
+            "the system never moves, so no kinetic energy (and no Lagrangian) can be "
             "identified. Record trajectories with motion, and check that the columns "
             f"are in the order {_LAYOUT_HINT}."
         )

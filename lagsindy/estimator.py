@@ -269,14 +269,17 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             if coordinates is None:
                 coordinates = val.coordinates_from_columns(X.columns)
             X = val.select_state_columns(X, coordinates)
-            X = X.__class__(val.frame_as_float(X, "X"), columns=X.columns, index=X.index)
+            values = val.frame_as_float(X, "X")
+            X = X.__class__(values, columns=X.columns, index=X.index)
         else:
             names = None if coordinates is None else state_names(coordinates)
             X = val.as_float_array(X, "X", names=names)
         if not reset and coordinates is not None and X.shape[1] != 3 * len(coordinates):
             raise ValueError(val.n_features_message(X.shape[1], len(coordinates)))
-        Xa = validate_data(self, X, dtype=np.float64, ensure_all_finite=False, reset=reset,
-                           ensure_min_samples=2 if reset else 1)
+        Xa = validate_data(
+            self, X, dtype=np.float64, ensure_all_finite=False, reset=reset,
+            ensure_min_samples=2 if reset else 1,
+        )
         if coordinates is None:
             if Xa.shape[1] % 3:
                 raise ValueError(val.n_features_message(Xa.shape[1], None))
@@ -313,8 +316,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             arr = arr[:, None]
         if arr.shape[1] != n_dof:
             raise ValueError(
-                f"tau must have shape (n_samples, n_dof={n_dof}), one generalized force "
-                f"column per coordinate {names}, got shape {arr.shape}"
+                f"tau must have shape (n_samples, n_dof={n_dof}), one generalized "
+                f"force column per coordinate {names}, got shape {arr.shape}"
             )
         if arr.shape[0] != n_samples:
             raise ValueError(
@@ -334,9 +337,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             sizes += f", largest |tau| = {np.abs(tau).max():.3g}"
         if bad_terms:
             raise ValueError(
-                f"the Euler-Lagrange columns of the term(s) {bad_terms[:8]} are not finite "
-                f"on this data ({sizes}): a term may be undefined there (log or sqrt of a "
-                "negative number, division by zero) or its values overflow "
+                f"the Euler-Lagrange columns of the term(s) {bad_terms[:8]} are not "
+                f"finite on this data ({sizes}): a term may be undefined there (log or "
+                "sqrt of a negative number, division by zero) or its values overflow "
                 f"{self.dtype}. Remove those terms, or change units so that the values "
                 "are moderate."
             )
@@ -362,9 +365,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                 )
                 raise ValueError(
                     f"fixed_term={self.fixed_term!r} is only used in case III (passive "
-                    f"data, fit(X) without tau), but this fit is case={case!r} and {why}: "
-                    "drop fixed_term (unpenalized=[...] keeps a known term without fixing "
-                    "its value)."
+                    f"data, fit(X) without tau), but this fit is case={case!r} and "
+                    f"{why}: drop fixed_term (unpenalized=[...] keeps a known term "
+                    "without fixing its value)."
                 )
             self._term_index(library, "fixed_term", self.fixed_term)
         for term in self.unpenalized if self.unpenalized is not None else []:
@@ -446,8 +449,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                 raise ValueError(
                     "tau is identically zero: for passive data call fit(X) without tau "
                     "(case III or case='acceleration')" if not np.any(tau) else
-                    f"tau is too small to use (largest |tau| = {np.abs(tau).max():.3g}, "
-                    "its squares underflow): change its units"
+                    "tau is too small to use (largest |tau| = "
+                    f"{np.abs(tau).max():.3g}, its squares underflow): change its units"
                 )
             free = np.flatnonzero(identifiable)
             coef, result = self._solve(balanced, free, n_terms, 1.0, penalty, 0.0, self.verbose)
@@ -640,10 +643,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         weights = torch.as_tensor(penalty[free], dtype=Xt.dtype, device=Xt.device)
         try:
             result = staged_fista(
-                datafit, lam=self.lam, penalty_weights=weights, threshold=self.threshold,
-                lam_decay=self.lam_decay, step_growth=self.step_growth, alpha=self.alpha,
+                datafit, lam=self.lam, penalty_weights=weights,
+                threshold=self.threshold, lam_decay=self.lam_decay,
+                step_growth=self.step_growth, alpha=self.alpha,
                 max_stages=self.max_stages, max_iter=self.max_iter, tol=self.tol,
-                solver_tol=self.solver_tol, debias=self.debias, verbose=self.verbose, w0=w0,
+                solver_tol=self.solver_tol, debias=self.debias, verbose=self.verbose,
+                w0=w0,
             )
         except FloatingPointError as exc:
             raise ValueError(

@@ -21,13 +21,20 @@ TERMS = ["theta_dot**2", "cos(theta)", "theta**2"]
 
 @pytest.fixture(scope="module")
 def pend():
-    return make_dataset(single_pendulum(), n_trajectories=3, duration=1.0, random_state=0)
+    return make_dataset(
+        single_pendulum(), n_trajectories=3, duration=1.0, random_state=0
+    )
 
 
 @pytest.fixture(scope="module")
 def cart():
-    return make_dataset(cart_pendulum(), n_trajectories=2, duration=1.0, excitation="sincos",
-                        random_state=0)
+    return make_dataset(
+        cart_pendulum(),
+        n_trajectories=2,
+        duration=1.0,
+        excitation="sincos",
+        random_state=0,
+    )
 
 
 def small(**kwargs):
@@ -76,8 +83,20 @@ def test_wrong_width_at_predict(pend):
         (lambda X: X[:1], "1 sample(s)"),
         (lambda X: X[:, :0], "0 feature(s)"),
     ],
-    ids=["3d", "1d", "scalar", "none", "str", "dict", "ragged", "complex", "sparse",
-         "empty", "one-row", "no-columns"],
+    ids=[
+        "3d",
+        "1d",
+        "scalar",
+        "none",
+        "str",
+        "dict",
+        "ragged",
+        "complex",
+        "sparse",
+        "empty",
+        "one-row",
+        "no-columns",
+    ],
 )
 def test_malformed_X(pend, make, match):
     with raises(match):
@@ -137,7 +156,13 @@ def test_tau_all_zero_and_too_small(pend):
 def test_tau_dataframe_columns_are_matched_by_name(cart):
     lib = CandidateLibrary.from_terms(
         ["x", "theta"],
-        ["x_dot**2", "theta_dot**2", "x_dot*theta_dot*cos(theta)", "cos(theta)", "x**2"],
+        [
+            "x_dot**2",
+            "theta_dot**2",
+            "x_dot*theta_dot*cos(theta)",
+            "cos(theta)",
+            "x**2",
+        ],
     )
     ref = LagrangianSINDy(lib).fit(cart.X, cart.tau)
     # named like Dataset.to_frame, in the wrong order: reordered by name
@@ -145,7 +170,9 @@ def test_tau_dataframe_columns_are_matched_by_name(cart):
     est = LagrangianSINDy(lib).fit(cart.X, frame)
     np.testing.assert_array_equal(est.coef_, ref.coef_)
     bare = pd.DataFrame({"theta": cart.tau[:, 1], "x": cart.tau[:, 0]})
-    np.testing.assert_array_equal(LagrangianSINDy(lib).fit(cart.X, bare).coef_, ref.coef_)
+    np.testing.assert_array_equal(
+        LagrangianSINDy(lib).fit(cart.X, bare).coef_, ref.coef_
+    )
     # names that do not identify the coordinates are ambiguous: an error, not a guess
     with raises("name them ['tau_x', 'tau_theta']"):
         LagrangianSINDy(lib).fit(cart.X, frame.set_axis(["f1", "f2"], axis=1))
@@ -166,14 +193,17 @@ def test_tau_at_score_and_predict_acceleration(pend):
 
 
 # ----------------------------------------------------------------- NaN / inf
-@pytest.mark.parametrize("value, kind", [(np.nan, "NaN"), (np.inf, "infinite"),
-                                         (-np.inf, "infinite")])
+@pytest.mark.parametrize(
+    "value, kind", [(np.nan, "NaN"), (np.inf, "infinite"), (-np.inf, "infinite")]
+)
 def test_non_finite_X_names_row_and_column(pend, value, kind):
     X = pend.X.copy()
     X[7, 1] = value
     X[9, 2] = value
-    with raises(f"X contains 2 NaN or infinite value(s); the first is {kind} at row 7, "
-                "column 'theta_dot'"):
+    with raises(
+        f"X contains 2 NaN or infinite value(s); the first is {kind} at row 7, "
+        "column 'theta_dot'"
+    ):
         small().fit(X, pend.tau)
 
 
@@ -181,8 +211,10 @@ def test_non_finite_X_names_row_and_column(pend, value, kind):
 def test_non_finite_tau_names_row_and_column(pend, value, kind):
     tau = pend.tau.copy()
     tau[4, 0] = value
-    with raises(f"tau contains 1 NaN or infinite value(s); the first is {kind} at row 4, "
-                "column 'tau_theta'"):
+    with raises(
+        f"tau contains 1 NaN or infinite value(s); the first is {kind} at row 4, "
+        "column 'tau_theta'"
+    ):
         small().fit(pend.X, tau)
 
 
@@ -271,7 +303,9 @@ def test_dataframe_repeated_columns(pend):
 
 # ----------------------------------------------------------------- data content
 def test_fewer_samples_than_terms(pend):
-    with raises("too few samples: 5 sample(s) x 1 coordinate(s) give 5 equations for 9"):
+    with raises(
+        "too few samples: 5 sample(s) x 1 coordinate(s) give 5 equations for 9"
+    ):
         LagrangianSINDy(single_pendulum().paper_library()).fit(pend.X[:5], pend.tau[:5])
 
 
@@ -299,7 +333,9 @@ def test_overflow_and_undefined_terms(pend):
     with raises("overflows in float64"):
         small().fit(pend.X, pend.tau * 1e300)
     # sqrt(theta) is undefined for the negative angles of the swing
-    lib = CandidateLibrary.from_terms(["theta"], ["theta_dot**2", "cos(theta)", "sqrt(theta)"])
+    lib = CandidateLibrary.from_terms(
+        ["theta"], ["theta_dot**2", "cos(theta)", "sqrt(theta)"]
+    )
     with raises("['sqrt(theta)'] are not finite"):
         LagrangianSINDy(lib).fit(pend.X, pend.tau)
 
@@ -314,22 +350,45 @@ def test_unknown_coordinate_in_library_term(pend):
 @pytest.mark.parametrize(
     "library, match",
     [
-        (lambda: CandidateLibrary.from_terms(["sin"], ["sin_dot**2"]), "'sin' is reserved"),
-        (lambda: CandidateLibrary.from_terms(["theta_dot"], ["theta_dot_dot**2"]),
-         "'theta_dot' ends in '_dot'"),
+        (
+            lambda: CandidateLibrary.from_terms(["sin"], ["sin_dot**2"]),
+            "'sin' is reserved",
+        ),
+        (
+            lambda: CandidateLibrary.from_terms(["theta_dot"], ["theta_dot_dot**2"]),
+            "'theta_dot' ends in '_dot'",
+        ),
         (lambda: CandidateLibrary.from_terms(["2x"], ["x"]), "'2x' is not valid"),
-        (lambda: CandidateLibrary.polynomial(["theta"], angles=["phi"]),
-         "angles ['phi'] are not among the coordinates"),
+        (
+            lambda: CandidateLibrary.polynomial(["theta"], angles=["phi"]),
+            "angles ['phi'] are not among the coordinates",
+        ),
         (lambda: CandidateLibrary.polynomial(["theta"], degree=0), "degree must be"),
-        (lambda: CandidateLibrary.from_terms(["theta"], ["theta_dot**2 +"]),
-         "unexpected end of text"),
-        (lambda: CandidateLibrary.from_terms(["theta"], ["__import__('os')"]),
-         "unexpected character"),
-        (lambda: CandidateLibrary.from_terms(["theta"], ["theta_dot", "theta*theta_dot"]),
-         "every candidate term is trivial"),
+        (
+            lambda: CandidateLibrary.from_terms(["theta"], ["theta_dot**2 +"]),
+            "unexpected end of text",
+        ),
+        (
+            lambda: CandidateLibrary.from_terms(["theta"], ["__import__('os')"]),
+            "unexpected character",
+        ),
+        (
+            lambda: CandidateLibrary.from_terms(
+                ["theta"], ["theta_dot", "theta*theta_dot"]
+            ),
+            "every candidate term is trivial",
+        ),
     ],
-    ids=["reserved", "suffix", "identifier", "angles", "degree", "syntax", "injection",
-         "all-trivial"],
+    ids=[
+        "reserved",
+        "suffix",
+        "identifier",
+        "angles",
+        "degree",
+        "syntax",
+        "injection",
+        "all-trivial",
+    ],
 )
 def test_bad_library(pend, library, match):
     with raises(match):
@@ -340,8 +399,14 @@ def test_bad_library(pend, library, match):
     "fixed_term, match",
     [
         ("phi_dot**2", "fixed_term='phi_dot**2': unknown name 'phi_dot'"),
-        ("theta_dot**4", "fixed_term='theta_dot**4': term 'theta_dot**4' is not in the library"),
-        ("theta_dot", "fixed_term='theta_dot': term 'theta_dot' is not in the library: trivial"),
+        (
+            "theta_dot**4",
+            "fixed_term='theta_dot**4': term 'theta_dot**4' is not in the library",
+        ),
+        (
+            "theta_dot",
+            "fixed_term='theta_dot': term 'theta_dot' is not in the library: trivial",
+        ),
         ("theta_dot**", "fixed_term='theta_dot**': unexpected end of text"),
     ],
 )
@@ -360,7 +425,9 @@ def test_fixed_term_outside_case_III(pend):
 
 
 def test_bad_unpenalized_terms(pend):
-    with raises("unpenalized='theta_dot**4': term 'theta_dot**4' is not in the library"):
+    with raises(
+        "unpenalized='theta_dot**4': term 'theta_dot**4' is not in the library"
+    ):
         small(unpenalized=["cos(theta)", "theta_dot**4"]).fit(pend.X, pend.tau)
     with raises("unpenalized='phi'"):
         small(unpenalized=["phi"]).fit(pend.X, pend.tau)
@@ -404,7 +471,9 @@ def test_case_and_tau_mismatch(pend):
     ],
 )
 def test_invalid_parameters(pend, params, name):
-    with pytest.raises(ValueError, match=f"The '{name}' parameter of LagrangianSINDy must be"):
+    with pytest.raises(
+        ValueError, match=f"The '{name}' parameter of LagrangianSINDy must be"
+    ):
         small(**params).fit(pend.X, pend.tau)
 
 

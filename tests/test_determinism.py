@@ -19,23 +19,36 @@ import lagsindy.estimator as estimator_module
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy.systems import make_dataset, single_pendulum
 
-TERMS = ["theta_dot**2", "cos(theta)", "theta**2", "theta_dot**2*cos(theta)", "sin(theta)"]
+TERMS = [
+    "theta_dot**2",
+    "cos(theta)",
+    "theta**2",
+    "theta_dot**2*cos(theta)",
+    "sin(theta)",
+]
 
 
 @pytest.fixture(scope="module")
 def active():
-    return make_dataset(single_pendulum(), n_trajectories=4, duration=1.5, random_state=0)
+    return make_dataset(
+        single_pendulum(), n_trajectories=4, duration=1.5, random_state=0
+    )
 
 
 @pytest.fixture(scope="module")
 def passive():
-    return make_dataset(single_pendulum(), n_trajectories=4, duration=1.5, excitation=None,
-                        random_state=1)
+    return make_dataset(
+        single_pendulum(),
+        n_trajectories=4,
+        duration=1.5,
+        excitation=None,
+        random_state=1,
+    )
 
 
 @pytest.fixture
 def subsampling(monkeypatch):
-    """Make the row subsamples of case III's ranking and of case II kick in on small data."""
+    """Make the row subsamples (case III ranking, case II) kick in on small data."""
     monkeypatch.setattr(estimator_module, "_SELECTION_ROWS", 150)
     monkeypatch.setattr(estimator_module, "_CASE_II_ROWS", 200)
 
@@ -68,15 +81,18 @@ def _global_states():
 
 def _assert_same_states(before, after):
     (np_a, torch_a, py_a), (np_b, torch_b, py_b) = before, after
-    assert np_a[0] == np_b[0] and np.array_equal(np_a[1], np_b[1]) and np_a[2:] == np_b[2:]
+    assert (
+        np_a[0] == np_b[0] and np.array_equal(np_a[1], np_b[1]) and np_a[2:] == np_b[2:]
+    )
     assert torch.equal(torch_a, torch_b)
     assert py_a == py_b
 
 
 @pytest.mark.parametrize("kind", list(FITS))
 @pytest.mark.parametrize("random_state", [None, 0])
-def test_same_data_same_coefficients_bit_for_bit(kind, random_state, active, passive,
-                                                 subsampling):
+def test_same_data_same_coefficients_bit_for_bit(
+    kind, random_state, active, passive, subsampling
+):
     data = _data(kind, active, passive)
     a = _fit(kind, data, random_state=random_state)
     b = _fit(kind, data, random_state=random_state)
@@ -88,11 +104,14 @@ def test_same_data_same_coefficients_bit_for_bit(kind, random_state, active, pas
 
 @pytest.mark.parametrize("kind", list(FITS))
 @pytest.mark.parametrize("random_state", [None, 0, "instance"])
-def test_fit_leaves_global_random_state_alone(kind, random_state, active, passive,
-                                              subsampling):
+def test_fit_leaves_global_random_state_alone(
+    kind, random_state, active, passive, subsampling
+):
     data = _data(kind, active, passive)
     if random_state == "instance":
-        random_state = np.random.RandomState(3)  # the caller's own generator may advance
+        random_state = np.random.RandomState(
+            3
+        )  # the caller's own generator may advance
     np.random.seed(12345)
     torch.manual_seed(12345)
     random.seed(12345)
@@ -148,8 +167,13 @@ def test_same_coefficients_in_a_fresh_interpreter(active):
         print(est.coef_.tobytes().hex())
         """
     )
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         check=True, cwd=str(__import__("pathlib").Path(__file__).parents[1]))
+    out = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=str(__import__("pathlib").Path(__file__).parents[1]),
+    )
     assert out.stdout.strip() == est.coef_.tobytes().hex()
 
 

@@ -21,7 +21,9 @@ from lagsindy.systems import make_dataset, single_pendulum
 
 @pytest.fixture(scope="module")
 def pend():
-    return make_dataset(single_pendulum(), n_trajectories=4, duration=2.0, random_state=0)
+    return make_dataset(
+        single_pendulum(), n_trajectories=4, duration=2.0, random_state=0
+    )
 
 
 @pytest.fixture(scope="module")
@@ -114,9 +116,14 @@ def test_empty_support_predicts_zero(empty, pend):
     assert not empty.coef_.any() and not empty.support_.any()
     assert empty.lagrangian_ == 0 and empty.equation() == "L = 0"
     np.testing.assert_array_equal(empty.predict(pend.X), np.zeros((len(pend.X), 1)))
-    np.testing.assert_array_equal(empty.predict_acceleration(pend.X), np.zeros((len(pend.X), 1)))
+    np.testing.assert_array_equal(
+        empty.predict_acceleration(pend.X), np.zeros((len(pend.X), 1))
+    )
     # R^2 of an all-zero prediction: finite, and no better than predicting the mean
-    assert np.isfinite(empty.score(pend.X, pend.tau)) and empty.score(pend.X, pend.tau) <= 0.0
+    assert (
+        np.isfinite(empty.score(pend.X, pend.tau))
+        and empty.score(pend.X, pend.tau) <= 0.0
+    )
     assert np.isfinite(empty.score(pend.X)) and empty.score(pend.X) <= 0.0
 
 
@@ -138,14 +145,27 @@ def test_threshold_near_one_keeps_the_dominant_term(pend, library):
 
 # ----------------------------------------------------------------- dependent columns
 def test_duplicate_and_dependent_terms_are_reported_not_split(pend):
-    terms = ["theta_dot**2", "cos(theta)", "2*theta_dot**2", "cos(theta)**2",
-             "sin(theta)**2", "theta_dot**2 + cos(theta)", "theta**2"]
+    terms = [
+        "theta_dot**2",
+        "cos(theta)",
+        "2*theta_dot**2",
+        "cos(theta)**2",
+        "sin(theta)**2",
+        "theta_dot**2 + cos(theta)",
+        "theta**2",
+    ]
     lib = CandidateLibrary.from_terms(["theta"], terms)
     removed = dict(lib.removed_)
-    assert [str(t) for t in lib.terms_] == ["theta_dot**2", "cos(theta)", "cos(theta)**2",
-                                            "theta**2"]
-    assert removed["2*theta_dot**2"].startswith("dependent") and "+2*[theta_dot**2]" in \
-        removed["2*theta_dot**2"]
+    assert [str(t) for t in lib.terms_] == [
+        "theta_dot**2",
+        "cos(theta)",
+        "cos(theta)**2",
+        "theta**2",
+    ]
+    assert (
+        removed["2*theta_dot**2"].startswith("dependent")
+        and "+2*[theta_dot**2]" in removed["2*theta_dot**2"]
+    )
     assert "-1*[cos(theta)**2]" in removed["sin(theta)**2"]
     assert "+1*[theta_dot**2] +1*[cos(theta)]" in removed["theta_dot**2 + cos(theta)"]
     est = LagrangianSINDy(lib).fit(pend.X, pend.tau)
@@ -158,24 +178,34 @@ def test_duplicate_and_dependent_terms_are_reported_not_split(pend):
 
 def test_kept_duplicates_are_flagged_by_the_estimator(pend):
     lib = CandidateLibrary.from_terms(
-        ["theta"], ["theta_dot**2", "cos(theta)", "2*theta_dot**2"], remove_dependent=False
+        ["theta"],
+        ["theta_dot**2", "cos(theta)", "2*theta_dot**2"],
+        remove_dependent=False,
     )
     assert len(lib) == 3
-    with pytest.warns(IdentifiabilityWarning, match=r"theta_dot\*\*2.*2\*theta_dot\*\*2|"
-                                                    r"2\*theta_dot\*\*2.*theta_dot\*\*2"):
+    with pytest.warns(
+        IdentifiabilityWarning,
+        match=r"theta_dot\*\*2.*2\*theta_dot\*\*2|"
+        r"2\*theta_dot\*\*2.*theta_dot\*\*2",
+    ):
         LagrangianSINDy(lib).fit(pend.X, pend.tau)
 
 
 def test_ill_conditioned_data_are_flagged():
-    """At tiny amplitudes cos(theta) and theta**2 have the same Euler-Lagrange column."""
+    """At tiny amplitudes cos(theta) and theta**2 have the same EL column."""
     system = single_pendulum()
     t = np.arange(200) / 100.0
     x0 = np.array([[1e-5, 0.0], [0.0, 1e-5], [-5e-6, 5e-6]])
     states = system.simulate(x0, t)  # passive
     X = system.trajectory_to_X(states.reshape(-1, 2))
-    lib = CandidateLibrary.from_terms(["theta"], ["theta_dot**2", "cos(theta)", "theta**2"])
-    with pytest.warns(IdentifiabilityWarning, match=r"cos\(theta\).*theta\*\*2|"
-                                                    r"theta\*\*2.*cos\(theta\)"):
+    lib = CandidateLibrary.from_terms(
+        ["theta"], ["theta_dot**2", "cos(theta)", "theta**2"]
+    )
+    with pytest.warns(
+        IdentifiabilityWarning,
+        match=r"cos\(theta\).*theta\*\*2|"
+        r"theta\*\*2.*cos\(theta\)",
+    ):
         LagrangianSINDy(lib, fixed_term="theta_dot**2").fit(X)
 
 

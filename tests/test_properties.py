@@ -25,14 +25,26 @@ from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy._expr import symbols_for
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
-SETTINGS = settings(max_examples=200, deadline=None,
-                    suppress_health_check=[HealthCheck.too_slow])
+SETTINGS = settings(
+    max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow]
+)
 
 PEND_TERMS = ["theta_dot**2", "cos(theta)", "theta**2", "theta_dot**2*cos(theta)"]
-CART_TERMS = ["x_dot**2", "theta_dot**2", "x_dot*theta_dot*cos(theta)", "cos(theta)",
-              "x**2", "x*cos(theta)", "theta_dot**2*cos(theta)"]
-CART_TRUTH = {"x_dot**2": 0.75, "theta_dot**2": 0.25, "theta_dot*x_dot*cos(theta)": 0.5,
-              "cos(theta)": 4.905}
+CART_TERMS = [
+    "x_dot**2",
+    "theta_dot**2",
+    "x_dot*theta_dot*cos(theta)",
+    "cos(theta)",
+    "x**2",
+    "x*cos(theta)",
+    "theta_dot**2*cos(theta)",
+]
+CART_TRUTH = {
+    "x_dot**2": 0.75,
+    "theta_dot**2": 0.25,
+    "theta_dot*x_dot*cos(theta)": 0.5,
+    "cos(theta)": 4.905,
+}
 SYSTEMS = {
     "pendulum": (single_pendulum, ["theta"], PEND_TERMS, "paper"),
     "cart": (cart_pendulum, ["x", "theta"], CART_TERMS, "sincos"),
@@ -40,15 +52,21 @@ SYSTEMS = {
 
 
 # ----------------------------------------------------------------- cached pieces
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def dataset(system, active, noise=0.0):
     make, _, _, excitation = SYSTEMS[system]
-    return make_dataset(make(), n_trajectories=3, duration=1.0,
-                        excitation=excitation if active else None, noise=noise,
-                        protocol="paper", random_state=3 if active else 4)
+    return make_dataset(
+        make(),
+        n_trajectories=3,
+        duration=1.0,
+        excitation=excitation if active else None,
+        noise=noise,
+        protocol="paper",
+        random_state=3 if active else 4,
+    )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def library(system):
     _, coords, terms, _ = SYSTEMS[system]
     return CandidateLibrary.from_terms(coords, terms).build()
@@ -60,23 +78,28 @@ def fit(lib, X, tau=None, **params):
         return LagrangianSINDy(lib, **params).fit(X, tau)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def reference(system, case, noise=0.0, lam=1e-3, threshold=0.05):
     data = dataset(system, case == "forces", noise)
     params = dict(lam=lam, threshold=threshold)
     if case == "fixed":
         params["fixed_term"] = "theta_dot**2"
-    return fit(library(system), data.X, data.tau if case == "forces" else None, **params)
+    return fit(
+        library(system), data.X, data.tau if case == "forces" else None, **params
+    )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def unit_exponents(system):
     """Per term: (power of the cart coordinate's unit, power of the time unit)."""
     (x, _), (xd, thd), _ = symbols_for(["x", "theta"])
-    return np.array([
-        [sp.degree(t, x) + sp.degree(t, xd), sp.degree(t, xd) + sp.degree(t, thd)]
-        for t in library(system).terms_
-    ], dtype=float)
+    return np.array(
+        [
+            [sp.degree(t, x) + sp.degree(t, xd), sp.degree(t, xd) + sp.degree(t, thd)]
+            for t in library(system).terms_
+        ],
+        dtype=float,
+    )
 
 
 def log_scale(lo, hi):
@@ -96,9 +119,15 @@ def test_valid_input_never_crashes_and_gives_finite_coefficients(data):
     length = data.draw(st.integers(len(lib) // n_dof + 2, n), label="rows")
     start = data.draw(st.integers(0, n - length), label="start")
     rows = slice(start, start + length)
-    X = ds.X[rows] * np.repeat([data.draw(log_scale(-2, 2), label=f"scale {g}")
-                                for g in ("q", "qd", "qdd")], n_dof)
-    tau = None if not active else ds.tau[rows] * data.draw(log_scale(-3, 3), label="tau scale")
+    X = ds.X[rows] * np.repeat(
+        [data.draw(log_scale(-2, 2), label=f"scale {g}") for g in ("q", "qd", "qdd")],
+        n_dof,
+    )
+    tau = (
+        None
+        if not active
+        else ds.tau[rows] * data.draw(log_scale(-3, 3), label="tau scale")
+    )
     params = dict(
         lam=data.draw(st.floats(0.0, 2.0), label="lam"),
         threshold=data.draw(st.floats(0.0, 0.5), label="threshold"),
@@ -109,7 +138,9 @@ def test_valid_input_never_crashes_and_gives_finite_coefficients(data):
         max_iter=500,
     )
     if not active:
-        params["fixed_term"] = data.draw(st.sampled_from(["theta_dot**2", "cos(theta)"]))
+        params["fixed_term"] = data.draw(
+            st.sampled_from(["theta_dot**2", "cos(theta)"])
+        )
     if data.draw(st.booleans(), label="DataFrame"):
         X = pd.DataFrame(X, columns=ds.feature_names)
     if tau is not None and n_dof == 1 and data.draw(st.booleans(), label="1-D tau"):
@@ -131,31 +162,44 @@ def _not_a_number(text):
 
 
 def _corrupt(kind, X, tau, draw):
-    """Return (X, tau, params) with one thing wrong, and a word the message must hold."""
+    """(X, tau, params) with one thing wrong, and a word the message must hold."""
     n, p = X.shape
     row = draw(st.integers(0, n - 1), label="row")
     if kind == "non-finite X":
         X = X.copy()
-        X[row, draw(st.integers(0, p - 1))] = draw(st.sampled_from([np.nan, np.inf, -np.inf]))
+        X[row, draw(st.integers(0, p - 1))] = draw(
+            st.sampled_from([np.nan, np.inf, -np.inf])
+        )
         return X, tau, {}, f"row {row}"
     if kind == "non-finite tau":
         tau = tau.copy()
         tau[row, draw(st.integers(0, tau.shape[1] - 1))] = draw(
-            st.sampled_from([np.nan, np.inf, -np.inf]))
+            st.sampled_from([np.nan, np.inf, -np.inf])
+        )
         return X, tau, {}, f"row {row}"
     if kind == "text in X":
         X = X.astype(object)
-        X[row, draw(st.integers(0, p - 1))] = draw(st.text(max_size=8).filter(_not_a_number))
+        X[row, draw(st.integers(0, p - 1))] = draw(
+            st.text(max_size=8).filter(_not_a_number)
+        )
         return X, tau, {}, f"row {row}"
     if kind == "columns":
-        extra = draw(st.integers(1 - p, 7).filter(lambda k: k != 0), label="extra columns")
-        X = X[:, :p + extra] if extra < 0 else np.hstack([X, np.tile(X[:, :1], (1, extra))])
+        extra = draw(
+            st.integers(1 - p, 7).filter(lambda k: k != 0), label="extra columns"
+        )
+        X = (
+            X[:, : p + extra]
+            if extra < 0
+            else np.hstack([X, np.tile(X[:, :1], (1, extra))])
+        )
         return X, tau, {}, "n_features ="
     if kind == "tau rows":
         cut = draw(st.integers(1, n - 1), label="missing tau rows")
         return X, tau[cut:], {}, "different numbers of rows"
     if kind == "tau columns":
-        k = draw(st.integers(1, 4).filter(lambda k: k != tau.shape[1]), label="tau columns")
+        k = draw(
+            st.integers(1, 4).filter(lambda k: k != tau.shape[1]), label="tau columns"
+        )
         return X, np.tile(tau[:, :1], (1, k)), {}, "tau must have shape"
     if kind == "dimensions":
         shape = draw(st.sampled_from(["1-D", "3-D", "scalar"]))
@@ -170,28 +214,70 @@ def _corrupt(kind, X, tau, draw):
         X[:, d:] = 0.0
         return X, tau, {}, "velocities"
     if kind == "parameter":
-        name, value = draw(st.one_of(
-            st.tuples(st.just("lam"), st.floats(max_value=-1e-12) | st.just(np.nan)),
-            st.tuples(st.just("alpha"), st.floats(max_value=0.0)),
-            st.tuples(st.just("threshold"), st.floats(min_value=1.0) | st.floats(max_value=-1e-9)),
-            st.tuples(st.just("max_iter"), st.integers(max_value=0)),
-            st.tuples(st.just("case"), st.text(max_size=6).filter(
-                lambda s: s not in ("auto", "forces", "fixed", "acceleration"))),
-        ), label="parameter")
+        name, value = draw(
+            st.one_of(
+                st.tuples(
+                    st.just("lam"), st.floats(max_value=-1e-12) | st.just(np.nan)
+                ),
+                st.tuples(st.just("alpha"), st.floats(max_value=0.0)),
+                st.tuples(
+                    st.just("threshold"),
+                    st.floats(min_value=1.0) | st.floats(max_value=-1e-9),
+                ),
+                st.tuples(st.just("max_iter"), st.integers(max_value=0)),
+                st.tuples(
+                    st.just("case"),
+                    st.text(max_size=6).filter(
+                        lambda s: s not in ("auto", "forces", "fixed", "acceleration")
+                    ),
+                ),
+            ),
+            label="parameter",
+        )
         return X, tau, {name: value}, name
     if kind == "unknown term":
-        name = draw(st.from_regex(r"\A[a-z]{1,5}\Z").filter(lambda s: s not in (
-            "theta", "x", "sin", "cos", "tan", "exp", "log", "sqrt", "abs", "sign", "sinh",
-            "cosh", "tanh", "pi")))
+        name = draw(
+            st.from_regex(r"\A[a-z]{1,5}\Z").filter(
+                lambda s: (
+                    s
+                    not in (
+                        "theta",
+                        "x",
+                        "sin",
+                        "cos",
+                        "tan",
+                        "exp",
+                        "log",
+                        "sqrt",
+                        "abs",
+                        "sign",
+                        "sinh",
+                        "cosh",
+                        "tanh",
+                        "pi",
+                    )
+                )
+            )
+        )
         param = draw(st.sampled_from(["unpenalized", "fixed_term"]))
         value = [f"{name}_dot**2"] if param == "unpenalized" else f"{name}_dot**2"
         return X, (None if param == "fixed_term" else tau), {param: value}, param
     raise AssertionError(kind)
 
 
-KINDS = ["non-finite X", "non-finite tau", "text in X", "columns", "tau rows",
-         "tau columns", "dimensions", "too few rows", "no motion", "parameter",
-         "unknown term"]
+KINDS = [
+    "non-finite X",
+    "non-finite tau",
+    "text in X",
+    "columns",
+    "tau rows",
+    "tau columns",
+    "dimensions",
+    "too few rows",
+    "no motion",
+    "parameter",
+    "unknown term",
+]
 
 
 @SETTINGS
@@ -204,7 +290,11 @@ def test_invalid_input_always_raises_a_value_error(data):
     with pytest.raises(ValueError) as err:
         fit(library(system), X, tau, **params)
     # a message of ours or scikit-learn's, never a numpy/pandas/torch exception type
-    assert type(err.value).__module__.split(".")[0] in {"builtins", "lagsindy", "sklearn"}
+    assert type(err.value).__module__.split(".")[0] in {
+        "builtins",
+        "lagsindy",
+        "sklearn",
+    }
     assert word in str(err.value)
 
 
@@ -219,9 +309,10 @@ def test_invalid_input_always_raises_a_value_error(data):
     time_unit=log_scale(-2, 2),
     energy_unit=log_scale(-3, 3),
 )
-def test_a_change_of_units_rescales_the_coefficients(case, noise, lam, threshold,
-                                                     length_unit, time_unit, energy_unit):
-    """x in other units (m -> mm: factor 1000), time in other units, energy in other units.
+def test_a_change_of_units_rescales_the_coefficients(
+    case, noise, lam, threshold, length_unit, time_unit, energy_unit
+):
+    """x (m -> mm: factor 1000), time and energy in other units.
 
     A term of degree a in (x, x_dot) and b in the velocities gets its coefficient
     multiplied by energy / length**a * time**b; the generalized force on x by
@@ -242,11 +333,14 @@ def test_a_change_of_units_rescales_the_coefficients(case, noise, lam, threshold
         factor = factor * energy_unit
         est = fit(library("cart"), X, tau, lam=lam, threshold=threshold)
     else:
-        est = fit(library("cart"), X, lam=lam, threshold=threshold, fixed_term="theta_dot**2")
+        est = fit(
+            library("cart"), X, lam=lam, threshold=threshold, fixed_term="theta_dot**2"
+        )
         factor = factor / factor[library("cart").index("theta_dot**2")]
     np.testing.assert_array_equal(est.support_, ref.support_)
-    np.testing.assert_allclose(est.coef_ / factor, ref.coef_, rtol=1e-8,
-                               atol=1e-8 * np.abs(ref.coef_).max())
+    np.testing.assert_allclose(
+        est.coef_ / factor, ref.coef_, rtol=1e-8, atol=1e-8 * np.abs(ref.coef_).max()
+    )
 
 
 # ----------------------------------------------------------------- sample order
@@ -259,7 +353,9 @@ def test_a_change_of_units_rescales_the_coefficients(case, noise, lam, threshold
 )
 def test_permuting_samples_does_not_change_the_fit(system, case, noise, seed):
     """Rows are independent samples: only the summation order of the Gram changes."""
-    assume(not (case == "search" and system == "cart"))  # the costly search: pendulum only
+    assume(
+        not (case == "search" and system == "cart")
+    )  # the costly search: pendulum only
     data = dataset(system, case == "forces", noise)
     perm = np.random.default_rng(seed).permutation(len(data.X))
     lib = library(system)
@@ -274,32 +370,49 @@ def test_permuting_samples_does_not_change_the_fit(system, case, noise, seed):
         est = fit(lib, data.X[perm])
         assert est.fixed_term_ == ref.fixed_term_
     np.testing.assert_array_equal(est.support_, ref.support_)
-    np.testing.assert_allclose(est.coef_, ref.coef_, rtol=1e-10,
-                               atol=1e-10 * np.abs(ref.coef_).max())
+    np.testing.assert_allclose(
+        est.coef_, ref.coef_, rtol=1e-10, atol=1e-10 * np.abs(ref.coef_).max()
+    )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _search_reference(system, noise):
     return fit(library(system), dataset(system, False, noise).X)
 
 
 # ----------------------------------------------------------------- gauge
-CONSTANT_LIKE = ["1", "7.5", "pi", "cos(theta)**2 + sin(theta)**2", "theta_dot - theta_dot"]
-TOTAL_DERIVATIVES = ["theta_dot", "theta*theta_dot", "theta_dot*sin(theta)",
-                     "theta_dot*cos(theta)", "theta**2*theta_dot"]
+CONSTANT_LIKE = [
+    "1",
+    "7.5",
+    "pi",
+    "cos(theta)**2 + sin(theta)**2",
+    "theta_dot - theta_dot",
+]
+TOTAL_DERIVATIVES = [
+    "theta_dot",
+    "theta*theta_dot",
+    "theta_dot*sin(theta)",
+    "theta_dot*cos(theta)",
+    "theta**2*theta_dot",
+]
 
 
 @SETTINGS
 @given(
-    extras=st.lists(st.sampled_from(CONSTANT_LIKE + TOTAL_DERIVATIVES), unique=True,
-                    min_size=1, max_size=5),
+    extras=st.lists(
+        st.sampled_from(CONSTANT_LIKE + TOTAL_DERIVATIVES),
+        unique=True,
+        min_size=1,
+        max_size=5,
+    ),
     positions=st.lists(st.integers(0, 10), min_size=5, max_size=5),
     active=st.booleans(),
     constant=st.floats(-1e3, 1e3),
     derivative=st.floats(-10, 10),
 )
-def test_constants_and_total_derivatives_change_nothing(extras, positions, active,
-                                                        constant, derivative):
+def test_constants_and_total_derivatives_change_nothing(
+    extras, positions, active, constant, derivative
+):
     """L and L + c + dF/dt have the same equations of motion (the Lagrangian's gauge).
 
     Constant-like candidates and total time derivatives are dropped by the library
@@ -329,7 +442,7 @@ def test_constants_and_total_derivatives_change_nothing(extras, positions, activ
 PEND_TRUTH = single_pendulum().lagrangian
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _truth_coefficients():
     return library("pendulum").decompose(PEND_TRUTH)
 
@@ -342,8 +455,9 @@ def _truth_coefficients():
     seed=st.integers(0, 2**32 - 1),
     fraction=st.floats(0.5, 1.0),
 )
-def test_fixed_term_choice_rescales_passive_models(fixed_term, lam, threshold, seed,
-                                                   fraction):
+def test_fixed_term_choice_rescales_passive_models(
+    fixed_term, lam, threshold, seed, fraction
+):
     """Passive data fix L only up to a factor: any true term can be fixed to 1.
 
     The learned coefficients are the true ones divided by the fixed term's, so the
@@ -352,11 +466,15 @@ def test_fixed_term_choice_rescales_passive_models(fixed_term, lam, threshold, s
     """
     data = dataset("cart", False)
     n = len(data.X)
-    X = data.X[np.sort(np.random.default_rng(seed).choice(n, int(fraction * n), replace=False))]
+    X = data.X[
+        np.sort(np.random.default_rng(seed).choice(n, int(fraction * n), replace=False))
+    ]
     est = fit(library("cart"), X, lam=lam, threshold=threshold, fixed_term=fixed_term)
     learned = {est.term_names_[k]: est.coef_[k] for k in np.flatnonzero(est.coef_)}
     assert set(learned) == set(CART_TRUTH)
     assert learned[fixed_term] == 1.0
     for term, value in CART_TRUTH.items():
         assert learned[term] == pytest.approx(value / CART_TRUTH[fixed_term], rel=1e-6)
-    np.testing.assert_allclose(est.predict_acceleration(X), X[:, 4:6], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(
+        est.predict_acceleration(X), X[:, 4:6], rtol=1e-5, atol=1e-5
+    )

@@ -189,7 +189,8 @@ def test_deep_params_expose_the_library(data):
 def test_set_params_nested_and_invalid(data):
     from lagsindy import CandidateLibrary
 
-    est = LagrangianSINDy(CandidateLibrary.polynomial(["theta"], angles="all", degree=1))
+    lib = CandidateLibrary.polynomial(["theta"], angles="all", degree=1)
+    est = LagrangianSINDy(lib)
     assert est.set_params(library__degree=2, lam=0.002) is est
     assert est.library.degree == 2 and est.lam == 0.002
     with pytest.raises(ValueError, match="Invalid parameter 'nonsense'"):
@@ -219,7 +220,8 @@ def test_n_features_in_and_feature_names(data):
     frame = pd.DataFrame(data.X, columns=data.feature_names)
     est.fit(frame[frame.columns[::-1]], data.tau)  # columns taken by name
     assert list(est.feature_names_in_) == data.feature_names
-    np.testing.assert_array_equal(est.predict(frame[frame.columns[::-1]]), est.predict(data.X))
+    reordered = frame[frame.columns[::-1]]
+    np.testing.assert_array_equal(est.predict(reordered), est.predict(data.X))
     est.fit(data.X, data.tau)  # a refit on an array forgets the names
     assert not hasattr(est, "feature_names_in_")
 
@@ -234,8 +236,9 @@ def test_tags_repr_and_regressor_type(est):
 
 
 def test_refit_with_other_data_replaces_everything(data):
-    passive = make_dataset(single_pendulum(), n_trajectories=4, duration=2.0, excitation=None,
-                           random_state=5)
+    passive = make_dataset(
+        single_pendulum(), n_trajectories=4, duration=2.0, excitation=None, random_state=5
+    )
     est = LagrangianSINDy(single_pendulum().paper_library(), fixed_term="theta_dot**2")
     est.fit(passive.X)
     assert est.case_ == "fixed" and est.fixed_term_ == "theta_dot**2"
