@@ -221,7 +221,7 @@ def test_n_features_in_and_feature_names(data):
     est.fit(frame[frame.columns[::-1]], data.tau)  # columns taken by name
     assert list(est.feature_names_in_) == data.feature_names
     reordered = frame[frame.columns[::-1]]
-    np.testing.assert_array_equal(est.predict(reordered), est.predict(data.X))
+    np.testing.assert_array_equal(est.predict(reordered), est.predict(frame))
     est.fit(data.X, data.tau)  # a refit on an array forgets the names
     assert not hasattr(est, "feature_names_in_")
 
