@@ -186,6 +186,8 @@ def test_tau_at_score_and_predict_acceleration(pend):
     est = small().fit(pend.X, pend.tau)
     with raises("tau must have shape (n_samples, n_dof=1)"):
         est.score(pend.X, np.hstack([pend.tau, pend.tau]))
+    with raises("got shape (150, 2)"):  # the same size: once silently reshaped
+        est.score(pend.X, pend.tau.reshape(150, 2))
     with raises("different numbers of rows: 300 and 3"):
         est.predict_acceleration(pend.X, pend.tau[:3])
     with raises("tau contains 300 NaN"):
