@@ -22,7 +22,12 @@ def resolve_dtype(dtype) -> torch.dtype:
 
 def resolve_device(device) -> torch.device:
     """Return a torch device; ``"cuda"`` without a GPU raises a clear ``ValueError``."""
-    dev = torch.device(device if device is not None else "cpu")
+    try:
+        dev = torch.device(device if device is not None else "cpu")
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(
+            f"device={device!r} is not a torch device ({exc}); use 'cpu' or 'cuda'"
+        ) from None
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(
             f"device={device!r} was requested but torch.cuda.is_available() is False; "

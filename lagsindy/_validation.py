@@ -1,11 +1,19 @@
-"""Layout checks for X = [q, qdot, qddot] and tau, with messages that say what to do."""
+"""Layout checks for X = [q, qdot, qddot] and tau, with messages that say what to do.
+
+Every check raises a ``ValueError`` that names what is wrong (the column, the row, the
+shape received) and what to do about it, so bad input never surfaces as a numpy,
+pandas or torch traceback.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+import scipy.sparse as sps
 
 from ._expr import ACCELERATION_SUFFIX, VELOCITY_SUFFIX, state_names
+
+_LAYOUT_HINT = "[q..., q_dot..., q_ddot...]"
 
 
 def is_frame(X) -> bool:
@@ -15,30 +23,208 @@ def is_frame(X) -> bool:
 def coordinates_from_columns(columns) -> list[str]:
     """Infer coordinate names from DataFrame columns ``[q..., q_dot..., q_ddot...]``."""
     columns = [str(c) for c in columns]
-    qs = [c for c in columns if not c.endswith(VELOCITY_SUFFIX) and not c.endswith(ACCELERATION_SUFFIX)]
+    qs = [
+        c
+        for c in columns
+        if not c.endswith(VELOCITY_SUFFIX) and not c.endswith(ACCELERATION_SUFFIX)
+    ]
     missing = [c for c in state_names(qs) if c not in columns]
     if not qs or missing:
+        gap = f"; missing {missing}" if missing else ""
         raise ValueError(
             "could not read coordinates from the DataFrame columns "
-            f"{columns}: expected columns named like 'theta', 'theta_dot', 'theta_ddot' "
-            f"for each coordinate{'; missing ' + str(missing) if missing else ''}. "
+            f"{columns}: expected columns named like 'theta', 'theta_dot', "
+            f"'theta_ddot' for each coordinate{gap}. "
             "Rename the columns, or pass a library with coordinates=[...]."
         )
     return qs
 
 
+def _check_unique_columns(frame: pd.DataFrame, what: str):
+    names = [str(c) for c in frame.columns]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise ValueError(
+            f"the {what} DataFrame has repeated column names {repeated}; each column "
+            "must appear once. Drop or rename the duplicates."
+        )
+
+
 def select_state_columns(X: pd.DataFrame, coordinates) -> pd.DataFrame:
-    """Columns of ``X`` in the order ``[q..., q_dot..., q_ddot...]`` for ``coordinates``."""
+    """Columns of ``X`` in the order ``[q..., q_dot..., q_ddot...]``."""
     wanted = state_names(coordinates)
+    _check_unique_columns(X, "X")
     present = {str(c): c for c in X.columns}
     missing = [w for w in wanted if w not in present]
     if missing:
         raise ValueError(
             f"the DataFrame is missing the columns {missing} (it has {list(present)}); "
-            f"X needs {wanted}: positions, velocities ('<name>_dot') and accelerations "
-            "('<name>_ddot'). Estimate derivatives with lagsindy.differentiation first."
+            f"for the library's coordinates {list(coordinates)} X needs {wanted}: "
+            "positions, velocities ('<name>_dot') and accelerations ('<name>_ddot'). "
+            "Rename the columns to match the library's coordinates, or estimate "
+            "derivatives with lagsindy.differentiation first."
         )
     return X[[present[w] for w in wanted]]
+
+
+def select_tau_columns(tau: pd.DataFrame, coordinates) -> pd.DataFrame:
+    """Columns of a tau DataFrame in coordinate order.
+
+    Columns are matched by name, ``tau_<coordinate>`` (as written by
+    ``Dataset.to_frame``) or ``<coordinate>``. Unnamed (default integer) columns and
+    a single column for a single coordinate are taken in order; any other naming is
+    ambiguous and raises.
+    """
+    _check_unique_columns(tau, "tau")
+    coordinates = list(coordinates)
+    present = {str(c): c for c in tau.columns}
+    for prefix in ("tau_", ""):
+        wanted = [prefix + c for c in coordinates]
+        if all(w in present for w in wanted):
+            return tau[[present[w] for w in wanted]]
+    positional = isinstance(tau.columns, pd.RangeIndex) or (
+        len(coordinates) == 1 and tau.shape[1] == 1
+    )
+    if positional:
+        return tau
+    want = [f"tau_{c}" for c in coordinates]
+    raise ValueError(
+        f"cannot match the tau DataFrame's columns {list(present)} to the coordinates "
+        f"{coordinates}: name them {want} (or {coordinates}), or pass a numpy array "
+        "with one column per coordinate in that order"
+    )
+
+
+def _first_unconvertible(values: np.ndarray):
+    """Index and value of the first entry that does not convert to float."""
+    for idx, v in np.ndenumerate(values):
+        try:
+            np.asarray(v, dtype=np.float64)
+        except (TypeError, ValueError):
+            return idx, v
+    return None, None
+
+
+def _conversion_error(what: str, values: np.ndarray, names, exc) -> ValueError:
+    idx, v = _first_unconvertible(values)
+    if idx is None:
+        where = ""
+    elif len(idx) == 2:
+        col = (
+            names[idx[1]]
+            if names is not None and idx[1] < len(names)
+            else f"column {idx[1]}"
+        )
+        where = f"; the first is {v!r} at row {idx[0]}, column {col!r}"
+    else:
+        where = f"; the first is {v!r} at row {idx[0]}"
+    return ValueError(
+        f"{what} could not be converted to floating point numbers ({exc}){where}. "
+        "Pass numeric data: convert or drop non-numeric columns and entries."
+    )
+
+
+def as_float_array(X, what: str, *, ndims=(2,), names=None) -> np.ndarray:
+    """Convert array-like input to float64, with clear errors for what cannot be.
+
+    Parameters
+    ----------
+    X : array-like
+    what : str
+        Name used in messages (``"X"``, ``"tau"``).
+    ndims : tuple of int, default=(2,)
+        Accepted numbers of dimensions.
+    names : list of str, optional
+        Column names for messages.
+    """
+    if X is None:
+        raise ValueError(f"{what} is None; pass an array of numbers")
+    if sps.issparse(X):
+        raise ValueError(
+            f"{what} is a sparse matrix, but dense data is required: "
+            f"use {what}.toarray()"
+        )
+    if isinstance(X, (str, bytes, dict, set)):
+        raise ValueError(
+            f"{what} must be an array of numbers, got a {type(X).__name__}"
+        )
+    try:
+        arr = np.asarray(X)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(
+            f"{what} could not be read as an array ({exc}); pass a numeric array whose "
+            "rows all have the same length"
+        ) from None
+    if arr.ndim not in ndims:
+        expected = " or ".join(f"{n}-D" for n in ndims)
+        shape_hint = (
+            f". Reshape your data: for a single sample use {what}.reshape(1, -1)"
+            if arr.ndim == 1 and 2 in ndims
+            else ""
+        )
+        got = (
+            "a scalar"
+            if arr.ndim == 0
+            else f"a {arr.ndim}-D array of shape {arr.shape}"
+        )
+        raise ValueError(
+            f"{what} must be a {expected} array"
+            f"{' ' + _LAYOUT_HINT if what == 'X' else ''}, got {got}{shape_hint}"
+        )
+    if np.iscomplexobj(arr):
+        raise ValueError(
+            f"Complex data not supported: {what} has complex values; pass real numbers"
+        )
+    if arr.dtype.kind in "fiub":
+        return arr.astype(np.float64, copy=False)
+    if arr.dtype.kind in "Mm":
+        raise ValueError(
+            f"{what} holds dates or time spans (dtype {arr.dtype}); pass numbers "
+            "(convert times to seconds)"
+        )
+    try:
+        out = arr.astype(np.float64)
+    except (TypeError, ValueError) as exc:
+        raise _conversion_error(what, arr, names, exc) from None
+    if np.iscomplexobj(out):  # pragma: no cover - astype(float) never returns complex
+        raise ValueError(f"Complex data not supported: {what} has complex values")
+    return out
+
+
+def frame_as_float(frame: pd.DataFrame, what: str) -> np.ndarray:
+    """Convert a DataFrame to float64 column by column, naming a column that fails."""
+    columns = []
+    for name in frame.columns:
+        col = frame[name]
+        if isinstance(col, pd.DataFrame):  # repeated names; select_* rejects them first
+            raise ValueError(
+                f"the {what} DataFrame has the column {name!r} more than once"
+            )
+        kind = getattr(col.dtype, "kind", "O")
+        if kind in "Mm":
+            raise ValueError(
+                f"{what} column {str(name)!r} holds dates or time spans (dtype "
+                f"{col.dtype}); pass numbers (convert times to seconds)"
+            )
+        if kind == "c":
+            raise ValueError(
+                f"Complex data not supported: {what} column {str(name)!r} is complex"
+            )
+        try:
+            values = col.to_numpy(dtype=np.float64, na_value=np.nan)
+        except (TypeError, ValueError) as exc:
+            raw = np.asarray(col.to_numpy(dtype=object))
+            idx, v = _first_unconvertible(raw)
+            where = "" if idx is None else f"; the first is {v!r} at row {idx[0]}"
+            raise ValueError(
+                f"{what} column {str(name)!r} could not be converted to floating point "
+                f"numbers ({exc}){where}. Pass numeric data: convert or drop "
+                "non-numeric columns and entries."
+            ) from None
+        columns.append(values)
+    if not columns:
+        return np.empty((len(frame), 0))
+    return np.stack(columns, axis=1)
 
 
 def check_finite(array: np.ndarray, names, what: str):
@@ -51,29 +237,34 @@ def check_finite(array: np.ndarray, names, what: str):
         name = names[col] if names is not None and col < len(names) else f"column {col}"
         raise ValueError(
             f"{what} contains {count} NaN or infinite value(s); the first is {kind} at "
-            f"row {row}, column {name!r}. Drop or interpolate those rows before fitting."
+            f"row {row}, column {name!r}. Drop or interpolate those rows."
         )
 
 
-def as_float_array(X, what: str) -> np.ndarray:
-    """Convert to a 2-D float64 array with a clear error for unconvertible dtypes."""
-    try:
-        arr = np.asarray(X, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+def check_motion(X: np.ndarray, coordinates):
+    """Raise when the data show no motion, so no Lagrangian can be identified."""
+    n = len(coordinates)
+    if X.shape[0] > 1 and np.all(X == X[0]):
         raise ValueError(
-            f"{what} could not be converted to floating point numbers ({exc}); "
-            "pass numeric data"
-        ) from None
-    return arr
+            f"X is constant: all {X.shape[0]} rows are the same sample, so nothing "
+            "can be identified. Record trajectories in which the system moves."
+        )
+    if not np.any(X[:, n : 2 * n]):
+        raise ValueError(
+            f"all velocities in X ({state_names(coordinates)[n : 2 * n]}) are zero: "
+            "the system never moves, so no kinetic energy (and no Lagrangian) can be "
+            "identified. Record trajectories with motion, and check that the columns "
+            f"are in the order {_LAYOUT_HINT}."
+        )
 
 
 def n_features_message(n_features: int, n_dof: int | None) -> str:
     if n_dof is None:
         return (
-            f"X must have 3 * n_dof columns [q..., q_dot..., q_ddot...], but "
+            f"X must have 3 * n_dof columns {_LAYOUT_HINT}, but "
             f"n_features = {n_features} is not divisible by 3"
         )
     return (
-        f"X must have 3 * n_dof = {3 * n_dof} columns [q..., q_dot..., q_ddot...] for the "
+        f"X must have 3 * n_dof = {3 * n_dof} columns {_LAYOUT_HINT} for the "
         f"library's {n_dof} coordinate(s), got n_features = {n_features}"
     )

@@ -152,8 +152,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Torch device for the Euler-Lagrange tensors (``"cuda"`` where available).
     dtype : {"float64", "float32"}, default="float64"
     random_state : int, RandomState instance or None, default=None
-        Seeds the subsample used to rank fixed terms in case III and the start of
-        case II; fits are otherwise deterministic.
+        Seeds the row subsamples drawn when the data are large: the rows used to
+        rank candidate fixed terms in case III (above 4000 rows) and the rows of
+        case II (above 20000 rows). ``None``: evenly spaced rows, so the fit is
+        deterministic and never uses numpy's global random state. Fits are
+        otherwise deterministic.
     verbose : int, default=0
         Print stage progress when positive.
 
@@ -301,6 +304,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         self.random_state = random_state
         self.verbose = verbose
 
+    def __sklearn_is_fitted__(self):
+        # model_ is set last in fit: a fit that raised leaves the estimator unfitted.
+        return "model_" in self.__dict__
+
     def __sklearn_tags__(self):
         tags = super().__sklearn_tags__()
         tags.target_tags.required = False
@@ -313,32 +320,26 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         """Validate X (and y) and return float64 arrays with columns [q, qd, qdd].
 
         DataFrame columns are selected by name first, so ``feature_names_in_`` is in
-        the canonical order; then scikit-learn's ``validate_data`` gives its usual
-        messages (sparse, complex, empty, 1-D, too few samples), and the layout and
-        finiteness checks here name the offending column and row.
+        the canonical order; conversion errors name the column and row; then
+        scikit-learn's ``validate_data`` gives its usual messages (empty, too few
+        samples) and sets ``n_features_in_``; the layout and finiteness checks here
+        name the offending column and row. tau is checked by :meth:`_check_tau`.
         """
         if val.is_frame(X):
             if coordinates is None:
                 coordinates = val.coordinates_from_columns(X.columns)
             X = val.select_state_columns(X, coordinates)
-        if not reset and coordinates is not None and len(np.shape(X)) == 2:
-            if np.shape(X)[1] != 3 * len(coordinates):
-                raise ValueError(val.n_features_message(np.shape(X)[1], len(coordinates)))
-        common = dict(dtype=np.float64, ensure_all_finite=False, reset=reset,
-                      ensure_min_samples=2 if reset else 1)
-        if y is None:
-            Xa = validate_data(self, X, **common)
-            ya = None
+            values = val.frame_as_float(X, "X")
+            X = X.__class__(values, columns=X.columns, index=X.index)
         else:
-            try:
-                Xa, ya = validate_data(self, X, y, multi_output=True, y_numeric=True, **common)
-            except ValueError as exc:
-                if "could not convert" in str(exc) or "dtype" in str(exc):
-                    raise ValueError(
-                        f"X or tau could not be converted to floating point numbers ({exc}); "
-                        "pass numeric data"
-                    ) from None
-                raise
+            names = None if coordinates is None else state_names(coordinates)
+            X = val.as_float_array(X, "X", names=names)
+        if not reset and coordinates is not None and X.shape[1] != 3 * len(coordinates):
+            raise ValueError(val.n_features_message(X.shape[1], len(coordinates)))
+        Xa = validate_data(
+            self, X, dtype=np.float64, ensure_all_finite=False, reset=reset,
+            ensure_min_samples=2 if reset else 1,
+        )
         if coordinates is None:
             if Xa.shape[1] % 3:
                 raise ValueError(val.n_features_message(Xa.shape[1], None))
@@ -347,12 +348,24 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         if Xa.shape[1] != 3 * n_dof:
             raise ValueError(val.n_features_message(Xa.shape[1], n_dof))
         val.check_finite(Xa, state_names(coordinates), "X")
-        if ya is not None:
-            ya = self._check_tau(ya, Xa.shape[0], n_dof)
+        ya = None
+        if y is not None:
+            ya = self._check_tau(y, Xa.shape[0], n_dof, coordinates)
         return np.asarray(Xa, dtype=np.float64), ya, list(coordinates)
 
-    def _check_tau(self, tau, n_samples, n_dof):
-        arr = val.as_float_array(tau, "tau")
+    def _check_tau(self, tau, n_samples, n_dof, coordinates=None):
+        if coordinates is None:
+            coordinates = getattr(self, "coordinates_", None)
+        names = (
+            [f"tau_{c}" for c in coordinates] if coordinates is not None
+            else [f"tau[{i}]" for i in range(n_dof)]
+        )
+        if val.is_frame(tau):
+            if coordinates is not None:
+                tau = val.select_tau_columns(tau, coordinates)
+            arr = val.frame_as_float(tau, "tau")
+        else:
+            arr = val.as_float_array(tau, "tau", ndims=(1, 2), names=names)
         if arr.ndim == 1:
             if n_dof != 1:
                 raise ValueError(
@@ -361,16 +374,67 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                     "nothing drives it)"
                 )
             arr = arr[:, None]
-        if arr.ndim != 2 or arr.shape[1] != n_dof:
+        if arr.shape[1] != n_dof:
             raise ValueError(
-                f"tau must have shape (n_samples, n_dof={n_dof}), got {arr.shape}"
+                f"tau must have shape (n_samples, n_dof={n_dof}), one generalized "
+                f"force column per coordinate {names}, got shape {arr.shape}"
             )
         if arr.shape[0] != n_samples:
             raise ValueError(
-                f"X and tau have different numbers of rows: {n_samples} and {arr.shape[0]}"
+                f"X and tau have different numbers of rows: {n_samples} and "
+                f"{arr.shape[0]}; give one tau row per sample of X"
             )
-        val.check_finite(arr, [f"tau[{i}]" for i in range(n_dof)], "tau")
+        val.check_finite(arr, names, "tau")
         return arr
+
+    def _raise_not_finite(self, gram, n_terms, Xa, tau):
+        """Explain non-finite Euler-Lagrange statistics: undefined terms or overflow."""
+        diag = torch.diagonal(gram, dim1=1, dim2=2)
+        bad = ~torch.isfinite(diag).all(dim=0).cpu().numpy()
+        bad_terms = [str(t) for t, b in zip(self.library_.terms_, bad[:n_terms]) if b]
+        sizes = f"largest |X| = {np.abs(Xa).max():.3g}"
+        if tau is not None:
+            sizes += f", largest |tau| = {np.abs(tau).max():.3g}"
+        if bad_terms:
+            raise ValueError(
+                f"the Euler-Lagrange columns of the term(s) {bad_terms[:8]} are not "
+                f"finite on this data ({sizes}): a term may be undefined there (log or "
+                "sqrt of a negative number, division by zero) or its values overflow "
+                f"{self.dtype}. Remove those terms, or change units so that the values "
+                "are moderate."
+            )
+        raise ValueError(
+            f"the Euler-Lagrange regression overflows in {self.dtype} for this data "
+            f"({sizes}): change units so that the values are moderate"
+        )
+
+    def _term_index(self, library, param, term) -> int:
+        """Index of a term named by a parameter, with the parameter in the message."""
+        try:
+            return library.index(term)
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{param}={term!r}: {exc}") from None
+
+    def _check_known_terms(self, library, case):
+        """Resolve ``fixed_term`` and ``unpenalized`` before any heavy computation."""
+        if self.fixed_term is not None:
+            if case != "fixed":
+                why = (
+                    "with tau the forces set the scale" if case == "forces" else
+                    "case II fixes the scale by a unit norm instead"
+                )
+                raise ValueError(
+                    f"fixed_term={self.fixed_term!r} is only used in case III (passive "
+                    f"data, fit(X) without tau), but this fit is case={case!r} and "
+                    f"{why}: drop fixed_term (unpenalized=[...] keeps a known term "
+                    "without fixing its value)."
+                )
+            self._term_index(library, "fixed_term", self.fixed_term)
+        for term in self.unpenalized if self.unpenalized is not None else []:
+            try:
+                self._feature_index(term)
+            except (ValueError, TypeError) as exc:
+                raise ValueError(f"unpenalized={term!r}: {exc}") from None
 
     # ------------------------------------------------------------------ fit
     @_fit_context(prefer_skip_nested_validation=True)
@@ -394,6 +458,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         -------
         self : LagrangianSINDy
         """
+        # A refit starts from scratch: a failed fit leaves the estimator unfitted, not
+        # a mix of old and new attributes, and the previous model's compiled operator
+        # must not serve the new one.
+        for name in [k for k in vars(self) if k.endswith("_") and not k.endswith("__")]:
+            delattr(self, name)
+        self.__dict__.pop("_operator_cache", None)
         device = resolve_device(self.device)
         dtype = resolve_dtype(self.dtype)
         library = clone(self.library) if self.library is not None else None
@@ -401,6 +471,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         if isinstance(lib_coords, str):
             lib_coords = [lib_coords]
         Xa, tau, coordinates = self._check_X(X, reset=True, y=y, coordinates=lib_coords)
+        val.check_motion(Xa, coordinates)
         if library is None:
             library = CandidateLibrary.polynomial(
                 coordinates, angles="all", degree=2, raw_angles=True
@@ -422,6 +493,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             )
         case = self._resolve_case(tau)
         self._build_dissipation()
+        self._check_known_terms(library, case)
         n_features = n_terms + len(self.dissipation_terms_)
         self.feature_names_ = np.asarray(
             list(self.term_names_) + [t.name for t in self.dissipation_terms_], dtype=object
@@ -443,6 +515,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             correct = self.noise_cov_ is not None
         else:
             gram, n_rows, correct = operator.gram(Xt, tau_t), Xa.shape[0], False
+        if not bool(torch.isfinite(gram).all()):
+            self._raise_not_finite(gram, n_features, Xa, tau)
         balanced = BalancedGram(
             gram, n_rows, n_features, normalize=self.normalize, project_psd=correct
         )
@@ -453,14 +527,16 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                 "zero): the velocities and accelerations may all be zero; record motion"
             )
         penalty = np.ones(n_features)
-        for term in self.unpenalized or []:
+        for term in self.unpenalized if self.unpenalized is not None else []:
             penalty[self._feature_index(term)] = 0.0
 
         if case == "forces":
             if balanced.target_scale(n_features) <= 0:
                 raise ValueError(
                     "tau is identically zero: for passive data call fit(X) without tau "
-                    "(case III or case='acceleration')"
+                    "(case III or case='acceleration')" if not np.any(tau) else
+                    "tau is too small to use (largest |tau| = "
+                    f"{np.abs(tau).max():.3g}, its squares underflow): change its units"
                 )
             free = np.flatnonzero(identifiable)
             coef, result = self._solve(balanced, free, n_features, 1.0, penalty, 0.0, self.verbose)
@@ -700,9 +776,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         # Rank by relative residual, then score the best few on accelerations.
         fits.sort(key=lambda f: f[2].cost)
         shortlist = fits[:_SELECTION_TOP]
-        rng = check_random_state(self.random_state)
-        n = Xt.shape[0]
-        rows = np.sort(rng.choice(n, size=min(n, _SELECTION_ROWS), replace=False))
+        rows = self._subsample_rows(Xt.shape[0], _SELECTION_ROWS)
         Xs = Xt[torch.as_tensor(rows, device=Xt.device)]
         best, best_score = None, -np.inf
         for r, coef, result in shortlist:
@@ -712,19 +786,34 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                     f"[lagsindy] fixed term {library.terms_[r]}: {int((coef != 0).sum())} "
                     f"terms, relative residual {result.cost:.3g}, acceleration R2 {score:.4f}"
                 )
-            # Prefer the higher score; among (near) ties the sparser model.
+            # Prefer the higher score; among (near) ties the sparser model, then the
+            # earlier library term, so that rounding (e.g. the order of the rows)
+            # cannot pick between equivalent models.
             if best is None or score > best_score + 1e-9 or (
-                abs(score - best_score) <= 1e-9 and (coef != 0).sum() < (best[1] != 0).sum()
+                abs(score - best_score) <= 1e-9
+                and ((coef != 0).sum(), r) < ((best[1] != 0).sum(), best[0])
             ):
                 best, best_score = (r, coef, result), score
         r, coef, result = best
         return coef, result, r
 
+    def _subsample_rows(self, n, size):
+        """Sorted row indices of a subsample of at most ``size`` of ``n`` rows.
+
+        All rows when they fit; otherwise a random choice seeded by ``random_state``,
+        or evenly spaced rows when it is ``None``, so a fit never draws from (or
+        changes) numpy's or torch's global random state.
+        """
+        if n <= size:
+            return np.arange(n)
+        if self.random_state is None:
+            return np.unique(np.linspace(0, n - 1, size).round().astype(np.int64))
+        rng = check_random_state(self.random_state)
+        return np.sort(rng.choice(n, size=size, replace=False))
+
     def _fit_acceleration(self, balanced, identifiable, penalty, Xt, operator):
         """Case II: sparse fit of accelerations through the learned mass matrix."""
-        rng = check_random_state(self.random_state)
-        n = Xt.shape[0]
-        rows = np.sort(rng.choice(n, size=min(n, _CASE_II_ROWS), replace=False))
+        rows = self._subsample_rows(Xt.shape[0], _CASE_II_ROWS)
         Xs = Xt[torch.as_tensor(rows, device=Xt.device)]
         free = np.flatnonzero(identifiable)
         n_terms = len(self.library_.terms_)
@@ -746,14 +835,24 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         g = balanced.gram[idx][:, idx] / (scale[:, None] * scale[None, :])
         w0 = torch.linalg.eigh(g)[1][:, 0]
         weights = torch.as_tensor(penalty[free], dtype=Xt.dtype, device=Xt.device)
-        result = staged_fista(
-            datafit, lam=self.lam, penalty_weights=weights,
-            threshold=torch.as_tensor(self._thresholds(free), dtype=weights.dtype,
-                                      device=weights.device),
-            lam_decay=self.lam_decay, step_growth=self.step_growth, alpha=self.alpha,
-            max_stages=self.max_stages, max_iter=self.max_iter, tol=self.tol,
-            solver_tol=self.solver_tol, debias=self.debias, verbose=self.verbose, w0=w0,
-        )
+        try:
+            result = staged_fista(
+                datafit, lam=self.lam, penalty_weights=weights,
+                threshold=torch.as_tensor(self._thresholds(free), dtype=weights.dtype,
+                                          device=weights.device),
+                lam_decay=self.lam_decay, step_growth=self.step_growth, alpha=self.alpha,
+                max_stages=self.max_stages, max_iter=self.max_iter, tol=self.tol,
+                solver_tol=self.solver_tol, debias=self.debias, verbose=self.verbose,
+                w0=w0,
+            )
+        except FloatingPointError as exc:
+            raise ValueError(
+                f"case='acceleration' failed: {exc}. The model lost every term that "
+                "gives it a mass matrix, so it predicts no accelerations. This happens "
+                "when the data are driven by forces that were not given (pass them: "
+                "fit(X, tau)) or when no velocity term of the library fits the data; "
+                "try a lower threshold, or case III (fit(X) with a fixed_term)."
+            ) from None
         w = result.coef / scale
         # Present the gauge-free answer with a positive-definite mass matrix and the
         # largest scaled term at unit size.
@@ -907,13 +1006,19 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                          multioutput="variance_weighted")
             )
         pred = self.predict(X)
-        y = np.asarray(y, dtype=float).reshape(np.shape(pred))
+        y = self._check_tau(y, np.shape(pred)[0], self.n_dof_).reshape(np.shape(pred))
         return float(r2_score(y, pred, sample_weight=sample_weight, multioutput="variance_weighted"))
 
     # ------------------------------------------------------------------ model
     def simulate(self, x0, t, tau=None, **kwargs):
         """Integrate the learned equations of motion (see :meth:`MechanicalModel.simulate`)."""
         check_is_fitted(self)
+        if not np.any(self.coef_):
+            raise ValueError(
+                "the learned Lagrangian is zero (every term was thresholded away), so "
+                "it has no equations of motion to integrate; refit with a lower lam or "
+                "threshold"
+            )
         return self.model_.simulate(x0, t, tau, **kwargs)
 
     def equation(self, precision: int = 4) -> str:

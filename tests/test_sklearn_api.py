@@ -165,3 +165,85 @@ def test_cart_grid_with_groups_n_jobs():
                         {"lam": [1e-4, 1e-3]}, cv=GroupKFold(2), n_jobs=2)
     grid.fit(data.X, data.tau, groups=data.groups)
     assert grid.best_score_ > 0.999
+
+
+# ----------------------------------------------------------------- explicit invariants
+def test_deep_params_expose_the_library(data):
+    from lagsindy import CandidateLibrary
+
+    lib = CandidateLibrary.polynomial(angles="all", degree=2, raw_angles=True)
+    est = LagrangianSINDy(lib, lam=0.01)
+    deep = est.get_params(deep=True)
+    shallow = est.get_params(deep=False)
+    assert set(shallow) < set(deep)
+    for key, value in lib.get_params().items():
+        assert deep[f"library__{key}"] == value
+    assert deep["library"] is lib and deep["lam"] == 0.01
+    # fitting fills the coordinates of a copy, never of the user's library
+    est.fit(data.X, data.tau)
+    assert est.get_params(deep=True)["library__coordinates"] is None
+    assert est.library_.coordinates == ["q0"]
+    assert "terms_" not in vars(lib)
+
+
+def test_set_params_nested_and_invalid(data):
+    from lagsindy import CandidateLibrary
+
+    lib = CandidateLibrary.polynomial(["theta"], angles="all", degree=1)
+    est = LagrangianSINDy(lib)
+    assert est.set_params(library__degree=2, lam=0.002) is est
+    assert est.library.degree == 2 and est.lam == 0.002
+    with pytest.raises(ValueError, match="Invalid parameter 'nonsense'"):
+        est.set_params(nonsense=1)
+    with pytest.raises(ValueError, match="Invalid parameter 'nonsense'"):
+        est.set_params(library__nonsense=1)
+    # library=None is a valid setting: the default library over the data's coordinates
+    est.set_params(library=None).fit(data.X, data.tau)
+    assert est.coordinates_ == ["q0"] and "cos(q0)" in set(est.term_names_)
+
+
+def test_clone_copies_the_library_and_keeps_nested_params(est, data):
+    c = clone(est.set_params(library__degree=3))
+    assert c.library is not est.library
+    assert c.get_params(deep=True)["library__degree"] == 3
+    assert c.get_params(deep=True).keys() == est.get_params(deep=True).keys()
+    c.set_params(library__degree=1)
+    assert est.library.degree == 3
+
+
+def test_n_features_in_and_feature_names(data):
+    import pandas as pd
+
+    est = LagrangianSINDy(single_pendulum().paper_library())
+    est.fit(data.X, data.tau)
+    assert est.n_features_in_ == 3 and not hasattr(est, "feature_names_in_")
+    frame = pd.DataFrame(data.X, columns=data.feature_names)
+    est.fit(frame[frame.columns[::-1]], data.tau)  # columns taken by name
+    assert list(est.feature_names_in_) == data.feature_names
+    reordered = frame[frame.columns[::-1]]
+    np.testing.assert_array_equal(est.predict(reordered), est.predict(frame))
+    est.fit(data.X, data.tau)  # a refit on an array forgets the names
+    assert not hasattr(est, "feature_names_in_")
+
+
+def test_tags_repr_and_regressor_type(est):
+    from sklearn.base import is_regressor
+
+    tags = est.__sklearn_tags__()
+    assert tags.target_tags.multi_output and not tags.target_tags.required
+    assert is_regressor(est)
+    assert "LagrangianSINDy(library=CandidateLibrary(" in repr(est)
+
+
+def test_refit_with_other_data_replaces_everything(data):
+    passive = make_dataset(
+        single_pendulum(), n_trajectories=4, duration=2.0, excitation=None, random_state=5
+    )
+    est = LagrangianSINDy(single_pendulum().paper_library(), fixed_term="theta_dot**2")
+    est.fit(passive.X)
+    assert est.case_ == "fixed" and est.fixed_term_ == "theta_dot**2"
+    est.set_params(fixed_term=None, case="forces").fit(data.X, data.tau)
+    assert est.case_ == "forces" and est.fixed_term_ is None
+    fresh = LagrangianSINDy(single_pendulum().paper_library()).fit(data.X, data.tau)
+    np.testing.assert_array_equal(est.coef_, fresh.coef_)
+    np.testing.assert_array_equal(est.predict(data.X), fresh.predict(data.X))
