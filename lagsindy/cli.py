@@ -433,6 +433,25 @@ def _library(args, coords, angles):
 
 
 def _fit(args) -> int:
+    _check_out(args.out)
+    est, X, tau, inputs, elapsed = _fit_csv(args)
+    est.save(args.out)
+    print(est.equation(args.precision))
+    kept = int(est.support_.sum())
+    if tau is not None:
+        quality = f"R^2 of forces {est.score(X, tau):.4f}"
+    else:
+        quality = f"R^2 of accelerations {est.score(X):.4f}"
+    _say(
+        args,
+        f"{kept} of {len(est.coef_)} terms kept, {quality}; fit took "
+        f"{elapsed:.1f} s; saved the model to {args.out}",
+    )
+    return 0
+
+
+def _fit_csv(args):
+    """Read the CSV named in ``args`` and fit a model as the options say."""
     from ._expr import check_coordinate_names
     from .estimator import LagrangianSINDy
 
@@ -444,7 +463,6 @@ def _fit(args) -> int:
     unknown = [a for a in angles if a not in coords]
     if unknown:
         raise CLIError(f"--angles {unknown} are not among --coordinates {coords}")
-    _check_out(args.out)
     df = _read_csv(args.data)
     X = _state_frame(df, coords, args, args.data)
     inputs = _input_columns(df, coords, args)
@@ -463,6 +481,7 @@ def _fit(args) -> int:
         fixed_term=args.fixed_term,
         unpenalized=_split(args.unpenalized) or None,
         case=args.case,
+        formulation=getattr(args, "formulation", "strong"),
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
     )
@@ -472,21 +491,57 @@ def _fit(args) -> int:
         + (f"forces from {inputs}" if inputs else "passive (no input columns)")
         + f", library {args.library} ({len(library)} terms after reduction)",
     )
+    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
     start = time.perf_counter()
-    est.fit(X, tau)
+    est.fit(X, tau, groups=groups)
     elapsed = time.perf_counter() - start
-    est.save(args.out)
-    print(est.equation(args.precision))
-    kept = int(est.support_.sum())
-    if tau is not None:
-        quality = f"R^2 of forces {est.score(X, tau):.4f}"
+    return est, X, tau, inputs, elapsed
+
+
+# ----------------------------------------------------------------------------- diagnose
+def _diagnose(args) -> int:
+    from .diagnostics import diagnose
+
+    for out in (args.plot, args.out_model):
+        if out:
+            _check_out(out)
+    if args.model:
+        est = _load(args.model)
+        df = _read_csv(args.data)
+        coords = list(est.coordinates_)
+        X = _state_frame(df, coords, args, args.data)
+        inputs = _input_columns(df, coords, args)
+        tau = None if inputs is None else _numeric(df, inputs, args.data)
+        if (tau is None) != (est.case_ != "forces"):
+            raise CLIError(
+                "the model was fitted "
+                + ("with" if est.case_ == "forces" else "without")
+                + " input forces; diagnose it on data of the same kind (--input or "
+                "tau_<q> columns for forced data, --passive for passive data)"
+            )
     else:
-        quality = f"R^2 of accelerations {est.score(X):.4f}"
-    _say(
-        args,
-        f"{kept} of {len(est.coef_)} terms kept, {quality}; fit took "
-        f"{elapsed:.1f} s; saved the model to {args.out}",
-    )
+        if not args.coordinates:
+            raise CLIError("give --model model.json, or --coordinates to fit one first")
+        est, X, tau, inputs, _ = _fit_csv(args)
+        df = _read_csv(args.data)
+        _say(args, f"fitted: {est.equation(args.precision).splitlines()[0]}")
+    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="X has feature names")
+        report = diagnose(
+            est, X, tau, groups=groups, min_explained=args.min_explained,
+            max_effects=args.max_effects, n_splits=args.splits,
+        )
+    print(report)
+    if args.plot:
+        try:
+            report.plot(args.plot)
+            _say(args, f"saved the residual figure to {args.plot}")
+        except ImportError as exc:
+            _say(args, f"note: no figure ({exc})")
+    if args.out_model:
+        report.final.save(args.out_model)
+        _say(args, f"saved the final model to {args.out_model}")
     return 0
 
 
@@ -547,6 +602,64 @@ def _add_derivative_options(p):
         type=float,
         default=None,
         help="sampling interval in seconds when the CSV has no 't' column",
+    )
+
+
+def _add_fit_options(p, *, required):
+    """Options of a fit from a CSV (shared by ``fit`` and ``diagnose``)."""
+    p.add_argument(
+        "--coordinates", required=required, default=None,
+        help="position columns, e.g. x,theta",
+    )
+    p.add_argument(
+        "--angles",
+        default="",
+        help="coordinates that are angles (get sin/cos), " "e.g. theta, or 'all'",
+    )
+    p.add_argument(
+        "--input",
+        default=None,
+        help="generalized-force columns, one per coordinate, e.g. tau_x,tau_theta",
+    )
+    p.add_argument(
+        "--passive", action="store_true", help="ignore input columns (case III)"
+    )
+    p.add_argument(
+        "--library", default="poly2", help="polyN, separatedN or terms (default poly2)"
+    )
+    p.add_argument(
+        "--raw-angles",
+        action="store_true",
+        help="also use the angles themselves as polynomial variables",
+    )
+    p.add_argument(
+        "--terms", default="", help="extra candidate terms, comma-separated"
+    )
+    p.add_argument(
+        "--fixed-term",
+        default=None,
+        help="passive data: the term whose coefficient is fixed to 1, e.g. "
+        "theta_dot**2 (default: try every term)",
+    )
+    p.add_argument("--unpenalized", default="", help="terms known to be present")
+    p.add_argument(
+        "--case", default="auto", choices=["auto", "forces", "fixed", "acceleration"]
+    )
+    p.add_argument("--lam", type=float, default=1e-3, help="L1 weight (default 1e-3)")
+    p.add_argument(
+        "--threshold",
+        type=float,
+        default=0.05,
+        help="relative hard threshold between stages (default 0.05)",
+    )
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--precision", type=int, default=4, help="digits in the printed Lagrangian"
+    )
+    p.add_argument(
+        "--formulation", default="strong", choices=["strong", "weak"],
+        help="weak: integral Euler-Lagrange equations with a noise correction (needs "
+        "time-ordered trajectories; see LagrangianSINDy)",
     )
 
 
@@ -695,58 +808,35 @@ def build_parser() -> argparse.ArgumentParser:
         "present; without them the data are treated as passive (case III).",
     )
     fit.add_argument("data", help="CSV file")
-    fit.add_argument(
-        "--coordinates", required=True, help="position columns, e.g. x,theta"
-    )
-    fit.add_argument(
-        "--angles",
-        default="",
-        help="coordinates that are angles (get sin/cos), " "e.g. theta, or 'all'",
-    )
-    fit.add_argument(
-        "--input",
-        default=None,
-        help="generalized-force columns, one per coordinate, e.g. tau_x,tau_theta",
-    )
-    fit.add_argument(
-        "--passive", action="store_true", help="ignore input columns (case III)"
-    )
-    fit.add_argument(
-        "--library", default="poly2", help="polyN, separatedN or terms (default poly2)"
-    )
-    fit.add_argument(
-        "--raw-angles",
-        action="store_true",
-        help="also use the angles themselves as polynomial variables",
-    )
-    fit.add_argument(
-        "--terms", default="", help="extra candidate terms, comma-separated"
-    )
-    fit.add_argument(
-        "--fixed-term",
-        default=None,
-        help="passive data: the term whose coefficient is fixed to 1, e.g. "
-        "theta_dot**2 (default: try every term)",
-    )
-    fit.add_argument("--unpenalized", default="", help="terms known to be present")
-    fit.add_argument(
-        "--case", default="auto", choices=["auto", "forces", "fixed", "acceleration"]
-    )
-    fit.add_argument("--lam", type=float, default=1e-3, help="L1 weight (default 1e-3)")
-    fit.add_argument(
-        "--threshold",
-        type=float,
-        default=0.05,
-        help="relative hard threshold between stages (default 0.05)",
-    )
-    fit.add_argument("--seed", type=int, default=0)
-    fit.add_argument(
-        "--precision", type=int, default=4, help="digits in the printed Lagrangian"
-    )
+    _add_fit_options(fit, required=True)
     fit.add_argument("--out", required=True, help="where to save the model (JSON)")
     _add_derivative_options(fit)
     fit.add_argument("--quiet", action="store_true", help="print only the Lagrangian")
     fit.set_defaults(func=_fit)
+
+    diag = sub.add_parser(
+        "diagnose",
+        help="find what a fitted model leaves unexplained (friction, damping, ...) "
+        "and add it",
+        description="Residual diagnosis: fit a Lagrangian (or load --model), test "
+        "candidate missing effects (viscous, joint and quadratic damping, Coulomb "
+        "friction, offsets, input gain errors, missing conservative terms) for how much "
+        "of the residual each explains on held-out trajectories, add the best, refit, "
+        "and repeat. Prints the report; --plot saves the residual figure.",
+    )
+    diag.add_argument("data", help="CSV file")
+    diag.add_argument("--model", default=None, help="a saved model (JSON) to diagnose")
+    _add_fit_options(diag, required=False)
+    diag.add_argument("--min-explained", type=float, default=0.02,
+                      help="smallest held-out share of the residual an effect must "
+                      "explain (default 0.02)")
+    diag.add_argument("--max-effects", type=int, default=3)
+    diag.add_argument("--splits", type=int, default=3, help="held-out folds of trajectories")
+    diag.add_argument("--plot", default=None, help="save the residual figure (PNG)")
+    diag.add_argument("--out-model", default=None, help="save the final model (JSON)")
+    _add_derivative_options(diag)
+    diag.add_argument("--quiet", action="store_true")
+    diag.set_defaults(func=_diagnose)
 
     pred = sub.add_parser(
         "predict",

@@ -17,8 +17,9 @@ the target are accumulated once (strong or weak form, as the estimator was fitte
 For a candidate ``j`` and fold ``f``, the current terms are refitted by least squares
 with and without ``j`` on the other folds, and the residual sum of squares is
 evaluated on fold ``f``; the *explained share* is ``1 - SSE(with j) / SSE(without)``.
-A candidate is accepted when its mean share reaches ``min_explained`` and it improves
-every fold (so it does not just fit noise), the best-scoring first.
+A candidate is accepted when its mean share reaches ``min_explained``, it improves
+every fold (so it does not just fit noise), and the refitted model predicts the
+accelerations of held-out trajectories better than before; the best-scoring first.
 """
 
 from __future__ import annotations
@@ -183,7 +184,13 @@ class DiagnosisReport:
                 )
                 previous = s.heldout_error
         last = self.rankings[-1] if self.rankings else None
-        if last is not None and not len(last):
+        if last is not None and "rejected" in last.attrs:
+            name, before, after = last.attrs["rejected"]
+            lines.append(
+                f"stopped: {name} explains part of the residual but does not improve "
+                f"held-out predictions ({before:.3g} -> {after:.3g})"
+            )
+        elif last is not None and not len(last):
             lines.append("stopped: the remaining residual is at rounding level")
         elif last is not None and (not self.steps or len(self.rankings) > len(self.steps)):
             top = last.iloc[0]
@@ -572,6 +579,7 @@ def diagnose(
     n_splits: int = 3,
     min_explained: float = 0.02,
     max_effects: int = 3,
+    min_improvement: float = 1e-3,
     eps: float = DEFAULT_EPS,
     verbose: int = 0,
 ) -> DiagnosisReport:
@@ -604,6 +612,9 @@ def diagnose(
         Smallest mean held-out share of the residual an effect must explain (and it
         must improve every fold).
     max_effects : int, default=3
+    min_improvement : float, default=1e-3
+        An effect is kept only if the refitted model also predicts the accelerations
+        of held-out trajectories better, by at least this fraction.
     eps : float, default=0.01
         Smoothing velocity of Coulomb candidates.
     verbose : int, default=0
@@ -679,16 +690,27 @@ def diagnose(
         if top["explained"] < min_explained or top["worst_fold"] <= 0:
             break
         best = next(c for c in candidates if c.name == top["term"])
+        trial_gains, trial_effects = dict(gains), list(effects)
         if best.kind == "gain":
-            gains[best.term] = gains.get(best.term, 0.0) + float(top["coefficient"])
+            trial_gains[best.term] = trial_gains.get(best.term, 0.0) + float(top["coefficient"])
         else:
-            effects.append(best)
-        tau_now = _adjusted_tau(tau_a, gains)
-        current = _refit(est, effects, Xa, tau_now, groups)
+            trial_effects.append(best)
+        tau_now = _adjusted_tau(tau_a, trial_gains)
+        trial = _refit(est, trial_effects, Xa, tau_now, groups)
+        err = _heldout_error(trial, Xa, tau_now, groups, folds)
+        previous = steps[-1].heldout_error if steps else before_err
+        if not err < (1 - min_improvement) * previous:
+            # It explains residual but does not predict held-out motion better: noise.
+            rejected = top["term"]
+            if verbose:
+                print(f"[lagsindy] {rejected} does not improve held-out predictions "
+                      f"({previous:.3g} -> {err:.3g}): stop")
+            table.attrs["rejected"] = (rejected, previous, err)
+            break
+        current, gains, effects = trial, trial_gains, trial_effects
         coefficient = _effect_coefficient(current, best, gains)
         residual = _residual(current, Xa, tau_now)
         residuals.append(residual)
-        err = _heldout_error(current, Xa, tau_now, groups, folds)
         steps.append(Step(
             candidate=best,
             coefficient=coefficient,

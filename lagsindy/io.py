@@ -30,10 +30,12 @@ Document layout (``schema_version`` 1)::
       "dissipation": []                      # see below
     }
 
-``dissipation`` is a list of ``{"name": str, "forces": [expression per coordinate],
-"coefficient": float}``: generalized forces (over positions and velocities) each
-scaled by its coefficient. It is read back into the estimator's ``dissipation_``
-attribute as ``{"name", "forces" (sympy expressions), "coefficient"}`` dictionaries.
+``dissipation`` lists the candidate non-conservative terms of the fit (see
+:mod:`lagsindy.dissipation`), each ``{"name": "viscous(theta)", "kind": "viscous",
+"coordinates": ["theta"], "forces": [generalized force per coordinate for a unit
+coefficient], "rayleigh": Rayleigh function or null, "coefficient": float}``. On
+load each entry is rebuilt from its kind and coordinates and must match the stored
+expressions, so a tampered entry cannot smuggle in other forces.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ import sympy as sp
 import torch
 from sympy.printing.str import StrPrinter
 
+from .dissipation import DEFAULT_EPS, DissipationLibrary
 from ._expr import (
     MAX_EXPRESSION_LENGTH,
     ExpressionError,
@@ -167,15 +170,19 @@ def model_to_dict(est) -> dict:
         raise ValueError("the model has non-finite coefficients; it cannot be saved")
     params = est.get_params(deep=False)
     params.pop("library", None)
+    params.pop("dissipation", None)  # its terms are stored under "dissipation"
     if not isinstance(params.get("random_state"), Integral | type(None)):
         params["random_state"] = None  # a RandomState instance has no JSON form
     hyper = {k: _plain(v) for k, v in sorted(params.items())}
+    dissipation_names = {t.name for t in getattr(est, "dissipation_terms_", [])}
     unpenalized = [
-        _to_text(
+        t if isinstance(t, str) and t in dissipation_names else _to_text(
             est.library_.terms_[est.library_.index(t)], allowed, "unpenalized term"
         )
-        for t in (est.unpenalized or [])
+        for t in (est.unpenalized if est.unpenalized is not None else [])
     ]
+    if hyper.get("unpenalized") is not None:
+        hyper["unpenalized"] = unpenalized
     fixed = est.fixed_term_
     if fixed is not None:
         fixed = terms[est.library_.index(fixed)]
@@ -185,13 +192,17 @@ def model_to_dict(est) -> dict:
         None if residual is None or not math.isfinite(residual) else float(residual)
     )
     dissipation = []
-    for entry in getattr(est, "dissipation_", None) or []:
-        forces = [_to_text(f, allowed, "dissipation force") for f in entry["forces"]]
+    for term, d in zip(getattr(est, "dissipation_terms_", []),
+                       getattr(est, "dissipation_coef_", [])):
         dissipation.append(
             {
-                "name": str(entry["name"]),
-                "forces": forces,
-                "coefficient": float(entry["coefficient"]),
+                "name": term.name,
+                "kind": term.kind,
+                "coordinates": list(term.coordinates),
+                "forces": [_to_text(f, allowed, "dissipation force") for f in term.forces],
+                "rayleigh": None if term.rayleigh is None else _to_text(
+                    term.rayleigh, allowed, "Rayleigh function"),
+                "coefficient": float(d),
             }
         )
     return {
@@ -329,7 +340,7 @@ def _parse(text, allowed, what):
 def _hyperparameters(hyper: dict) -> dict:
     from .estimator import LagrangianSINDy
 
-    known = set(LagrangianSINDy().get_params(deep=False)) - {"library"}
+    known = set(LagrangianSINDy().get_params(deep=False)) - {"library", "dissipation"}
     unknown = sorted(set(hyper) - known)
     if unknown:
         raise ValueError(
@@ -446,11 +457,13 @@ def model_from_dict(doc: dict):
     if case == "fixed" and fixed is None:
         raise ValueError("the model file has case 'fixed' but no fixed_term")
     unpenalized = _check_strings(values["unpenalized"], "unpenalized")
+    named = {e.get("name") for e in values["dissipation"] if isinstance(e, dict)}
     for text in ([fixed] if fixed is not None else []) + list(unpenalized):
-        _parse(text, allowed, "term")
+        if text not in named:  # a dissipation name, or else a term
+            _parse(text, allowed, "term")
     hyper = _hyperparameters(values["hyperparameters"])
     for text in [hyper.get("fixed_term")] + list(hyper.get("unpenalized") or []):
-        if isinstance(text, str):
+        if isinstance(text, str) and text not in named:
             _parse(text, allowed, "hyperparameter term")
 
     n_features = values["n_features_in"]
@@ -477,41 +490,9 @@ def model_from_dict(doc: dict):
     if residual is not None and not math.isfinite(float(residual)):
         raise ValueError("field 'residual' of the model file is not finite")
 
-    dissipation = []
-    entries = values["dissipation"]
-    if len(entries) > MAX_TERMS:
-        raise ValueError(f"the model file has {len(entries)} dissipation entries")
-    for i, entry in enumerate(entries):
-        where = f"dissipation[{i}]"
-        if not isinstance(entry, dict):
-            raise ValueError(f"{where} in the model file must be an object")
-        if set(entry) != {"name", "forces", "coefficient"}:
-            raise ValueError(
-                f"{where} in the model file must have exactly the fields 'name', "
-                f"'forces' and 'coefficient', got {sorted(entry)[:5]}"
-            )
-        name = entry["name"]
-        if not isinstance(name, str) or len(name) > _MAX_NAME_LENGTH:
-            raise ValueError(
-                f"{where}['name'] in the model file must be a short string"
-            )
-        forces = entry["forces"]
-        if not isinstance(forces, list) or len(forces) != n_dof:
-            raise ValueError(
-                f"{where}['forces'] in the model file must be a list of {n_dof} "
-                "expressions (one generalized force per coordinate)"
-            )
-        _check_strings(forces, f"{where}['forces']")
-        (coefficient,) = _check_numbers(
-            [entry["coefficient"]], f"{where}['coefficient']"
-        )
-        dissipation.append(
-            {
-                "name": name,
-                "forces": [_parse(f, allowed, f"{where} force") for f in forces],
-                "coefficient": coefficient,
-            }
-        )
+    dissipation_terms, dissipation_coef = _dissipation_entries(
+        values["dissipation"], coords, allowed
+    )
 
     library = CandidateLibrary.from_terms(
         coords, list(terms), remove_trivial=False, remove_dependent=False
@@ -537,7 +518,8 @@ def model_from_dict(doc: dict):
         None if fixed is None else str(fitted.terms_[_index(fitted, fixed)])
     )
     for text in unpenalized:
-        _index(fitted, text)
+        if text not in {t.name for t in dissipation_terms}:
+            _index(fitted, text)
     est.stages_ = []
     est.n_iter_ = int(values["n_iter"])
     est.residual_ = None if residual is None else float(residual)
@@ -545,9 +527,82 @@ def model_from_dict(doc: dict):
     est.n_features_in_ = 3 * n_dof
     if names is not None:
         est.feature_names_in_ = np.asarray(names, dtype=object)
-    est.dissipation_ = dissipation
+    est.dissipation_terms_ = dissipation_terms
+    est.dissipation_coef_ = np.asarray(dissipation_coef, dtype=float)
+    est.dissipation_removed_ = []
+    if dissipation_terms:
+        eps = [_coulomb_eps(t) for t in dissipation_terms if t.kind == "coulomb"]
+        est.set_params(dissipation=DissipationLibrary(
+            kinds=(), coordinates=coords, eps=eps[0] if eps else DEFAULT_EPS,
+            terms=[(t.kind, t.coordinates if t.kind == "relative" else t.coordinates[0])
+                   for t in dissipation_terms],
+        ))
     est._set_model()
     return est
+
+
+def _coulomb_eps(term) -> float:
+    force = next(f for f in term.forces if f != 0)
+    arg = next(iter(force.atoms(sp.tanh))).args[0]
+    return float(1 / arg.as_coeff_Mul()[0])
+
+
+def _dissipation_entries(entries, coords, allowed):
+    """Validate the ``dissipation`` field and rebuild its terms from kind and coordinates."""
+    from .dissipation import KINDS, make_term
+
+    if len(entries) > MAX_TERMS:
+        raise ValueError(f"the model file has {len(entries)} dissipation entries")
+    fields = {"name", "kind", "coordinates", "forces", "rayleigh", "coefficient"}
+    terms, coefs = [], []
+    for i, entry in enumerate(entries):
+        where = f"dissipation[{i}]"
+        if not isinstance(entry, dict) or set(entry) != fields:
+            got = sorted(entry)[:6] if isinstance(entry, dict) else type(entry).__name__
+            raise ValueError(
+                f"{where} in the model file must be an object with exactly the fields "
+                f"{sorted(fields)}, got {got}"
+            )
+        kind = entry["kind"]
+        if kind not in KINDS:
+            raise ValueError(f"{where}['kind'] must be one of {KINDS}, got {str(kind)[:40]!r}")
+        on = _check_strings(entry["coordinates"], f"{where}['coordinates']",
+                            limit=_MAX_NAME_LENGTH)
+        if not on or any(c not in coords for c in on):
+            raise ValueError(f"{where}['coordinates'] must name coordinates of the model")
+        forces = entry["forces"]
+        if not isinstance(forces, list) or len(forces) != len(coords):
+            raise ValueError(
+                f"{where}['forces'] must be a list of {len(coords)} expressions "
+                "(one generalized force per coordinate)"
+            )
+        _check_strings(forces, f"{where}['forces']")
+        parsed = [_parse(f, allowed, f"{where} force") for f in forces]
+        rayleigh = entry["rayleigh"]
+        if rayleigh is not None and not isinstance(rayleigh, str):
+            raise ValueError(f"{where}['rayleigh'] must be a string or null")
+        (coefficient,) = _check_numbers([entry["coefficient"]], f"{where}['coefficient']")
+        eps = DEFAULT_EPS
+        if kind == "coulomb":
+            tanhs = [a for f in parsed for a in f.atoms(sp.tanh)]
+            if len(tanhs) != 1:
+                raise ValueError(f"{where} is a Coulomb term without one tanh(qdot/eps)")
+            eps = float(1 / tanhs[0].args[0].as_coeff_Mul()[0])
+            if not (math.isfinite(eps) and eps > 0):
+                raise ValueError(f"{where} has an invalid Coulomb smoothing velocity")
+        try:
+            term = make_term(kind, on if kind == "relative" else on[0], coords, eps=eps)
+        except ValueError as exc:
+            raise ValueError(f"{where} is not a valid dissipation term: {exc}") from None
+        same = all(sp.simplify(a - b) == 0 for a, b in zip(term.forces, parsed))
+        if not same or entry["name"] != term.name:
+            raise ValueError(
+                f"{where} does not match its kind and coordinates (expected name "
+                f"{term.name!r} and forces {[str(f) for f in term.forces]})"
+            )
+        terms.append(term)
+        coefs.append(coefficient)
+    return terms, coefs
 
 
 def _index(library, text):

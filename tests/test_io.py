@@ -14,6 +14,11 @@ from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy import io as lio
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
+_VISCOUS = {
+    "name": "viscous(x)", "kind": "viscous", "coordinates": ["x"],
+    "forces": ["-x_dot", "0"], "rayleigh": "x_dot**2/2", "coefficient": 0.1,
+}
+
 
 @pytest.fixture(scope="module")
 def cart_data():
@@ -166,26 +171,29 @@ def test_document_has_documented_fields(saved, cart_model):
     assert [float(c) for c in doc["coefficients"]] == list(cart_model.coef_)
 
 
-def test_dissipation_field_round_trips(cart_model, tmp_path):
-    est = pickle.loads(pickle.dumps(cart_model))
-    est.dissipation_ = [
-        {"name": "viscous x", "forces": ["-x_dot", "0"], "coefficient": 0.3},
-        {
-            "name": "coulomb theta",
-            "forces": [sp.Integer(0), "-tanh(theta_dot/0.01)"],
-            "coefficient": 0.05,
-        },
-    ]
+def test_dissipation_field_round_trips(tmp_path):
+    from lagsindy import DissipationLibrary
+    from lagsindy.systems import cart_pendulum, make_dataset
+
+    system = cart_pendulum().with_damping(coulomb={"x": 0.2}, viscous={"theta": 0.05})
+    data = make_dataset(system, n_trajectories=6, excitation="sincos", random_state=0)
+    est = LagrangianSINDy(
+        system.paper_library(), dissipation=DissipationLibrary(["viscous", "coulomb"])
+    ).fit(data.X, data.tau)
     path = est.save(tmp_path / "d.json")
-    assert _doc(path)["dissipation"][1]["forces"] == ["0", "-tanh(100.0*theta_dot)"]
+    entries = _doc(path)["dissipation"]
+    assert [e["name"] for e in entries] == [
+        "viscous(x)", "viscous(theta)", "coulomb(x)", "coulomb(theta)"]
+    assert entries[2]["forces"] == ["-tanh(100.0*x_dot)", "0"]
     loaded = LagrangianSINDy.load(path)
-    assert [d["name"] for d in loaded.dissipation_] == ["viscous x", "coulomb theta"]
-    assert [d["coefficient"] for d in loaded.dissipation_] == [0.3, 0.05]
-    td = sp.Symbol("theta_dot", real=True)
-    assert loaded.dissipation_[1]["forces"][1] == -sp.tanh(sp.Float(100.0) * td)
-    assert LagrangianSINDy.load(loaded.save(tmp_path / "again.json")).dissipation_ == (
-        loaded.dissipation_
+    np.testing.assert_array_equal(loaded.dissipation_coef_, est.dissipation_coef_)
+    np.testing.assert_array_equal(loaded.predict(data.X), est.predict(data.X))
+    np.testing.assert_array_equal(
+        loaded.predict_acceleration(data.X, data.tau), est.predict_acceleration(data.X, data.tau)
     )
+    assert loaded.equation() == est.equation()
+    again = LagrangianSINDy.load(loaded.save(tmp_path / "again.json"))
+    np.testing.assert_array_equal(again.dissipation_coef_, est.dissipation_coef_)
 
 
 def test_loaded_model_pickles_and_refits(saved, cart_data):
@@ -325,32 +333,21 @@ def test_wrong_json_type_is_named(saved, tmp_path, field):
         ),
         (lambda d: d.update(dissipation=["x_dot"]), r"dissipation\[0\]"),
         (
-            lambda d: d.update(
-                dissipation=[{"name": "a", "forces": ["x_dot"], "coefficient": 1}]
-            ),
+            lambda d: d.update(dissipation=[dict(_VISCOUS, forces=["-x_dot"])]),
             "2 expressions",
         ),
         (
-            lambda d: d.update(
-                dissipation=[
-                    {"name": "a", "forces": ["x_dot", "exec('1')"], "coefficient": 1}
-                ]
-            ),
+            lambda d: d.update(dissipation=[dict(_VISCOUS, forces=["-x_dot", "exec('1')"])]),
             "not valid",
         ),
+        (lambda d: d.update(dissipation=[dict(_VISCOUS, code="x")]), "exactly the fields"),
+        (lambda d: d.update(dissipation=[dict(_VISCOUS, kind="magic")]), "kind"),
         (
-            lambda d: d.update(
-                dissipation=[
-                    {
-                        "name": "a",
-                        "forces": ["x_dot", "0"],
-                        "coefficient": 1,
-                        "code": "x",
-                    }
-                ]
-            ),
-            "exactly the fields",
+            lambda d: d.update(dissipation=[dict(_VISCOUS, forces=["-x_dot**3", "0"])]),
+            "does not match",
         ),
+        (lambda d: d.update(dissipation=[dict(_VISCOUS, coordinates=["y"])]), "coordinates"),
+        (lambda d: d.update(dissipation=[dict(_VISCOUS, coefficient="big")]), "coefficient"),
     ],
 )
 def test_tampered_document_gives_clear_error(saved, tmp_path, change, message):
@@ -421,7 +418,8 @@ def test_cuda_model_loads_on_cpu_with_a_warning(saved, tmp_path):
 # ---------------------------------------- pandas
 def test_coef_table(cart_model):
     table = cart_model.coef_table()
-    assert list(table.columns) == ["term", "coefficient", "kept"]
+    assert list(table.columns) == ["term", "kind", "coefficient", "kept"]
+    assert set(table.kind) == {"lagrangian"}
     assert len(table) == len(cart_model.coef_)
     assert set(table.loc[table.kept, "term"]) == {
         "x_dot**2",
