@@ -59,8 +59,37 @@ def compare_structure(system, est, *, up_to_scale: bool) -> dict:
     }
 
 
-def timed_fit(est, X, tau=None):
-    """Fit ``est``; return ``(est or None, seconds, warning names, error text or None)``."""
+def _fit_worker(est, X, tau, queue):
+    queue.put(timed_fit(est, X, tau))
+
+
+def timed_fit(est, X, tau=None, *, time_limit=None):
+    """Fit ``est``; return ``(est or None, seconds, warning names, error text or None)``.
+
+    With ``time_limit`` (seconds) the fit runs in a fresh (spawned) process that is
+    stopped after that long; the error text then says so. The time reported is the
+    child's own fit time.
+    """
+    if time_limit is not None:
+        import multiprocessing as mp
+        import queue as _queue
+
+        ctx = mp.get_context("spawn")
+        q = ctx.Queue()
+        proc = ctx.Process(target=_fit_worker, args=(est, X, tau, q))
+        proc.start()
+        try:
+            # Generous margin for the child's start (imports) beyond the fit itself.
+            out = q.get(timeout=time_limit + 60)
+        except _queue.Empty:
+            out = (None, float(time_limit), [],
+                   f"stopped: no result after {time_limit + 60:g} s (limit {time_limit:g} s "
+                   "plus 60 s for the process start)")
+        proc.join(timeout=5)
+        if proc.is_alive():
+            proc.terminate()
+            proc.join()
+        return out
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         start = time.perf_counter()
