@@ -82,9 +82,13 @@ def timed_fit(est, X, tau=None, *, time_limit=None):
             # Generous margin for the child's start (imports) beyond the fit itself.
             out = q.get(timeout=time_limit + 60)
         except _queue.Empty:
-            out = (None, float(time_limit), [],
-                   f"stopped: no result after {time_limit + 60:g} s (limit {time_limit:g} s "
-                   "plus 60 s for the process start)")
+            out = (
+                None,
+                float(time_limit),
+                [],
+                f"stopped: no result after {time_limit + 60:g} s (limit {time_limit:g} s "
+                "plus 60 s for the process start)",
+            )
         proc.join(timeout=5)
         if proc.is_alive():
             proc.terminate()
@@ -102,8 +106,13 @@ def timed_fit(est, X, tau=None, *, time_limit=None):
         except (ValueError, FloatingPointError, RuntimeError) as exc:
             error = f"{type(exc).__name__}: {exc}"
         seconds = time.perf_counter() - start
-    names = sorted({w.category.__name__ for w in caught
-                    if not issubclass(w.category, (DeprecationWarning, FutureWarning))})
+    names = sorted(
+        {
+            w.category.__name__
+            for w in caught
+            if not issubclass(w.category, (DeprecationWarning, FutureWarning))
+        }
+    )
     return (None if error else est), seconds, names, error
 
 

@@ -23,8 +23,15 @@ import sympy as sp
 from lagsindy import LagrangianSINDy
 from lagsindy.systems import PAPER_SYSTEMS, make_dataset
 
-from ._common import header, write
-from ._evaluate import NOISE_LEVELS, compare_structure, fmt_sigma, short, timed_fit, tiny
+from ._common import command, header, write
+from ._evaluate import (
+    NOISE_LEVELS,
+    compare_structure,
+    fmt_sigma,
+    short,
+    timed_fit,
+    tiny,
+)
 
 SEED = 0
 
@@ -40,46 +47,46 @@ PAPER_TABLE_I = {
     },
     "cart_pendulum": {
         0.0: "0.25*theta_dot**2 + 0.75*x_dot**2 + 0.5*x_dot*theta_dot*cos(theta)"
-             " + 4.89*cos(theta)",
+        " + 4.89*cos(theta)",
         1e-3: "0.25*theta_dot**2 + 0.75*x_dot**2 + 0.5*x_dot*theta_dot*cos(theta)"
-              " + 4.88*cos(theta)",
+        " + 4.88*cos(theta)",
         2e-2: "0.24*theta_dot**2 + 0.72*x_dot**2 + 0.48*x_dot*theta_dot*cos(theta)"
-              " + 4.69*cos(theta)",
+        " + 4.69*cos(theta)",
         6e-2: "0.17*theta_dot**2 + 0.53*x_dot**2 + 0.36*x_dot*theta_dot*cos(theta)"
-              " + 3.32*cos(theta)",
+        " + 3.32*cos(theta)",
         1e-1: "0.11*theta_dot**2 + 0.36*x_dot**2 + 0.24*x_dot*theta_dot*cos(theta)"
-              " + 2.03*cos(theta)",
+        " + 2.03*cos(theta)",
     },
     "double_pendulum": {
         0.0: "19.45*cos(theta1) + 9.72*cos(theta2)"
-             " + 0.99*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
-             " + 0.99*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
-             " + 0.99*theta1_dot**2 + 0.5*theta2_dot**2",
+        " + 0.99*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
+        " + 0.99*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
+        " + 0.99*theta1_dot**2 + 0.5*theta2_dot**2",
         1e-3: "19.31*cos(theta1) + 9.65*cos(theta2)"
-              " + 0.99*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
-              " + 0.99*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
-              " + 0.99*theta1_dot**2 + 0.49*theta2_dot**2",
+        " + 0.99*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
+        " + 0.99*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
+        " + 0.99*theta1_dot**2 + 0.49*theta2_dot**2",
         2e-2: "17.52*cos(theta1) + 8.76*cos(theta2)"
-              " + 0.99*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
-              " + 0.89*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
-              " + 0.89*theta1_dot**2 + 0.45*theta2_dot**2",
+        " + 0.99*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
+        " + 0.89*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
+        " + 0.89*theta1_dot**2 + 0.45*theta2_dot**2",
         6e-2: "10.72*cos(theta1) + 5.42*cos(theta2)"
-              " + 0.55*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
-              " + 0.55*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
-              " + 0.55*theta1_dot**2 + 0.27*theta2_dot**2",
+        " + 0.55*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
+        " + 0.55*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
+        " + 0.55*theta1_dot**2 + 0.27*theta2_dot**2",
         1e-1: "5.18*cos(theta1) + 2.66*cos(theta2)"
-              " + 0.26*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
-              " + 0.26*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
-              " + 0.26*theta1_dot**2 + 0.13*theta2_dot**2",
+        " + 0.26*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
+        " + 0.26*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
+        " + 0.26*theta1_dot**2 + 0.13*theta2_dot**2",
     },
     "spherical_pendulum": {
         0.0: "0.5*phi_dot**2*sin(theta)**2 + 0.5*theta_dot**2 + 9.76*cos(theta)",
         1e-3: "0.5*phi_dot**2*sin(theta)**2 + 0.5*theta_dot**2 + 9.8*cos(theta)",
         2e-2: "0.31*phi_dot**2*sin(theta)**2 + 0.31*theta_dot**2 + 6.09*cos(theta)",
         6e-2: "-0.66*phi_dot**2*sin(theta)**2 - 0.06*theta_dot**2 - 1.94*cos(theta)"
-              " + 0.08*theta_dot*phi_dot - 0.03*phi**2",
+        " + 0.08*theta_dot*phi_dot - 0.03*phi**2",
         1e-1: "0.04*phi_dot**2*sin(theta)**2 + 0.04*theta_dot**2 + 1.59*cos(theta)"
-              " - 0.1*theta_dot*phi*sin(theta) - 0.22*phi**2",
+        " - 0.1*theta_dot*phi*sin(theta) - 0.22*phi**2",
     },
 }
 
@@ -90,51 +97,51 @@ PAPER_TABLE_II = {
         2e-2: "0.334*theta_dot**2 + 6.540*cos(theta)",
         6e-2: "0.557*theta_dot**2 + 10.938*cos(theta)",
         1e-1: "0.085*theta_dot**2 + 1.540*cos(theta) - 0.129*theta_dot*sin(theta)"
-              " + 0.551*sin(theta)**2 - 0.019*theta**2",
+        " + 0.551*sin(theta)**2 - 0.019*theta**2",
     },
     "cart_pendulum": {
         0.0: "1.000*theta_dot**2 + 2.975*x_dot**2 + 1.984*x_dot*theta_dot*cos(theta)"
-             " + 19.755*cos(theta)",
+        " + 19.755*cos(theta)",
         1e-3: "1.000*theta_dot**2 + 2.975*x_dot**2 + 1.984*x_dot*theta_dot*cos(theta)"
-              " + 19.756*cos(theta)",
+        " + 19.756*cos(theta)",
         2e-2: "1.000*theta_dot**2 + 2.993*x_dot**2 + 1.994*x_dot*theta_dot*cos(theta)"
-              " + 19.534*cos(theta)",
+        " + 19.534*cos(theta)",
         6e-2: "1.000*theta_dot**2 + 1.696*x_dot**2 + 1.136*x_dot*theta_dot*cos(theta)"
-              " + 18.082*cos(theta) - 0.121*x_dot**2*cos(theta) + 1.463*cos(theta)**3",
+        " + 18.082*cos(theta) - 0.121*x_dot**2*cos(theta) + 1.463*cos(theta)**3",
         1e-1: "1.000*theta_dot**2 + 1.562*x_dot**2 + 1.050*x_dot*theta_dot*cos(theta)"
-              " + 19.504*cos(theta) - 0.143*theta_dot**2*cos(theta)",
+        " + 19.504*cos(theta) - 0.143*theta_dot**2*cos(theta)",
     },
     "double_pendulum": {
         0.0: "19.620*cos(theta1) + 9.750*cos(theta2)"
-             " + 1.000*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
-             " + 0.999*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
-             " + 1.000*theta1_dot**2 + 0.499*theta2_dot**2",
+        " + 1.000*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
+        " + 0.999*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
+        " + 1.000*theta1_dot**2 + 0.499*theta2_dot**2",
         1e-3: "19.508*cos(theta1) + 9.755*cos(theta2)"
-              " + 1.000*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
-              " + 0.999*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
-              " + 1.000*theta1_dot**2 + 0.499*theta2_dot**2",
+        " + 1.000*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
+        " + 0.999*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
+        " + 1.000*theta1_dot**2 + 0.499*theta2_dot**2",
         2e-2: "19.545*cos(theta1) + 9.770*cos(theta2)"
-              " + 1.000*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
-              " + 0.999*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
-              " + 1.000*theta1_dot**2 + 0.499*theta2_dot**2",
+        " + 1.000*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
+        " + 0.999*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
+        " + 1.000*theta1_dot**2 + 0.499*theta2_dot**2",
         6e-2: "19.541*cos(theta1) + 9.753*cos(theta2)"
-              " + 0.999*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
-              " + 0.999*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
-              " + 1.000*theta1_dot**2 + 0.496*theta2_dot**2",
+        " + 0.999*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
+        " + 0.999*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
+        " + 1.000*theta1_dot**2 + 0.496*theta2_dot**2",
         1e-1: "19.381*cos(theta1) + 9.679*cos(theta2)"
-              " + 0.998*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
-              " + 0.992*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
-              " + 1.000*theta1_dot**2 + 0.495*theta2_dot**2",
+        " + 0.998*theta1_dot*theta2_dot*cos(theta1)*cos(theta2)"
+        " + 0.992*theta1_dot*theta2_dot*sin(theta1)*sin(theta2)"
+        " + 1.000*theta1_dot**2 + 0.495*theta2_dot**2",
     },
     "spherical_pendulum": {
         0.0: "1.000*phi_dot**2*sin(theta)**2 + 1.000*theta_dot**2 + 19.630*cos(theta)",
         1e-3: "1.000*phi_dot**2*sin(theta)**2 + 1.000*theta_dot**2 + 19.630*cos(theta)",
         2e-2: "1.000*phi_dot**2*sin(theta)**2 + 1.000*theta_dot**2 + 19.600*cos(theta)",
         6e-2: "0.130*phi_dot**2*sin(theta)**2 + 1.000*theta_dot**2 + 2.350*cos(theta)"
-              " - 0.790*theta_dot**2*sin(theta) - 0.430*theta_dot**2*cos(theta)",
+        " - 0.790*theta_dot**2*sin(theta) - 0.430*theta_dot**2*cos(theta)",
         1e-1: "-0.2*phi_dot**2*sin(theta)**2 + 1.000*theta_dot**2 + 5.12*cos(theta)"
-              " - 1.100*theta_dot**2*sin(theta) - 0.560*theta_dot**2*cos(theta)"
-              " - 0.055*phi_dot**2*sin(2*theta)",
+        " - 1.100*theta_dot**2*sin(theta) - 0.560*theta_dot**2*cos(theta)"
+        " - 0.055*phi_dot**2*sin(2*theta)",
     },
 }
 
@@ -170,8 +177,9 @@ def structure_text(res: dict) -> str:
 
 def run_cell(system, data, est, *, passive: bool, time_limit=None) -> dict:
     X = data.X
-    fitted, seconds, warns, error = timed_fit(est, X, None if passive else data.tau,
-                                              time_limit=time_limit)
+    fitted, seconds, warns, error = timed_fit(
+        est, X, None if passive else data.tau, time_limit=time_limit
+    )
     out = {"time": seconds, "warnings": warns, "error": error}
     if fitted is None:
         out.update(equation=error, structure=None, coef_error=np.inf)
@@ -192,13 +200,26 @@ def methods_for(name: str, system, passive: bool):
     if not passive:
         return [("case I", lambda: LagrangianSINDy(lib, random_state=SEED))]
     if name == "single_pendulum":
-        return [("case II", lambda: LagrangianSINDy(lib, case="acceleration", random_state=SEED))]
+        return [
+            (
+                "case II",
+                lambda: LagrangianSINDy(lib, case="acceleration", random_state=SEED),
+            )
+        ]
     return [
-        (f"case III, fixed `{system.fixed_term}`, prior {system.prior_terms}",
-         lambda: LagrangianSINDy(lib, fixed_term=system.fixed_term,
-                                 unpenalized=system.prior_terms, random_state=SEED)),
-        ("automatic fixed-term search, no prior",
-         lambda: LagrangianSINDy(lib, fixed_term=None, random_state=SEED)),
+        (
+            f"case III, fixed `{system.fixed_term}`, prior {system.prior_terms}",
+            lambda: LagrangianSINDy(
+                lib,
+                fixed_term=system.fixed_term,
+                unpenalized=system.prior_terms,
+                random_state=SEED,
+            ),
+        ),
+        (
+            "automatic fixed-term search, no prior",
+            lambda: LagrangianSINDy(lib, fixed_term=None, random_state=SEED),
+        ),
     ]
 
 
@@ -219,21 +240,33 @@ def render_sigma(value):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true",
-                        help="10 trajectories, sigma in {0, 2e-2}, shared protocol only")
-    parser.add_argument("--systems", nargs="+", choices=list(PAPER_SYSTEMS),
-                        default=list(PAPER_SYSTEMS))
-    parser.add_argument("--protocols", nargs="+", choices=["shared", "paper"], default=None)
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="10 trajectories, sigma in {0, 2e-2}, shared protocol only",
+    )
+    parser.add_argument(
+        "--systems", nargs="+", choices=list(PAPER_SYSTEMS), default=list(PAPER_SYSTEMS)
+    )
+    parser.add_argument(
+        "--protocols", nargs="+", choices=["shared", "paper"], default=None
+    )
     parser.add_argument("--noise", nargs="+", type=float, default=None)
     parser.add_argument("--trajectories", type=int, default=None)
-    parser.add_argument("--case2-limit", type=float, default=240.0,
-                        help="seconds after which a case II fit is stopped (it is "
-                             "non-convex and can take many minutes)")
+    parser.add_argument(
+        "--case2-limit",
+        type=float,
+        default=240.0,
+        help="seconds after which a case II fit is stopped (it is "
+        "non-convex and can take many minutes)",
+    )
     args = parser.parse_args(argv)
     quick = args.quick or tiny()
     n_traj = args.trajectories or (3 if tiny() else 10 if quick else 100)
     duration = 2.0 if tiny() else 5.0
-    noise = args.noise or ([2e-2] if tiny() else [0.0, 2e-2] if quick else list(NOISE_LEVELS))
+    noise = args.noise or (
+        [2e-2] if tiny() else [0.0, 2e-2] if quick else list(NOISE_LEVELS)
+    )
     protocols = args.protocols or (["shared"] if quick else ["shared", "paper"])
     start_all = time.perf_counter()
 
@@ -250,38 +283,61 @@ def main(argv=None):
                     methods = methods_for(name, system, passive)
                     for sigma in noise:
                         data = make_dataset(
-                            system, n_trajectories=n_traj, duration=duration,
-                            excitation=excitation, protocol=protocol, noise=sigma,
+                            system,
+                            n_trajectories=n_traj,
+                            duration=duration,
+                            excitation=excitation,
+                            protocol=protocol,
+                            noise=sigma,
                             random_state=SEED,
                         )
                         for label, factory in methods:
                             key = (table, protocol, name, excitation, label)
                             labels.setdefault((table, protocol, name, excitation), [])
                             if label not in labels[(table, protocol, name, excitation)]:
-                                labels[(table, protocol, name, excitation)].append(label)
+                                labels[(table, protocol, name, excitation)].append(
+                                    label
+                                )
                             limit = args.case2_limit if label == "case II" else None
-                            cell = run_cell(system, data, factory(), passive=passive,
-                                            time_limit=limit)
+                            cell = run_cell(
+                                system,
+                                data,
+                                factory(),
+                                passive=passive,
+                                time_limit=limit,
+                            )
                             results.setdefault(key, {})[sigma] = cell
-                            print(f"[{protocol}] Table {table} {name} exc={excitation} "
-                                  f"sigma={sigma:g} {label}: {cell['equation']} "
-                                  f"({cell['time']:.1f} s)", flush=True)
+                            print(
+                                f"[{protocol}] Table {table} {name} exc={excitation} "
+                                f"sigma={sigma:g} {label}: {cell['equation']} "
+                                f"({cell['time']:.1f} s)",
+                                flush=True,
+                            )
 
     total = time.perf_counter() - start_all
-    text = header("Paper Tables I and II reproduced")
+    text = header("Paper Tables I and II reproduced", command("paper_tables", argv))
     text += notes(n_traj, duration, noise, protocols, total, args.case2_limit)
     text += summary(results, labels, args.systems, protocols)
     for protocol in protocols:
-        for table, title in (("I", "Table I: active systems (case I, forces known)"),
-                             ("II", "Table II: passive systems (no input)")):
+        for table, title in (
+            ("I", "Table I: active systems (case I, forces known)"),
+            ("II", "Table II: passive systems (no input)"),
+        ):
             text += f"\n## {title}, `{protocol}` noise protocol\n"
             for name in args.systems:
                 system = PAPER_SYSTEMS[name]()
                 for (tb, pr, nm, excitation), method_labels in labels.items():
                     if (tb, pr, nm) != (table, protocol, name):
                         continue
-                    text += cell_table(system, name, table, protocol, excitation,
-                                       method_labels, results)
+                    text += cell_table(
+                        system,
+                        name,
+                        table,
+                        protocol,
+                        excitation,
+                        method_labels,
+                        results,
+                    )
     write("paper_tables_quick.md" if quick else "paper_tables.md", text)
 
 
@@ -298,12 +354,12 @@ def notes(n_traj, duration, noise, protocols, total, case2_limit):
         f"{', '.join(protocols)}. `shared`: one scalar sample per time step added to "
         "every channel (q, qdot, qddot of every coordinate), as in the authors' code; "
         "`paper`: independent noise on every entry, as the paper's text describes.\n"
-        "- Active inputs are the authors' forms (`excitation=\"paper\"`): single "
+        '- Active inputs are the authors\' forms (`excitation="paper"`): single '
         "2 cos(wt); cart cos(wt) on the cart; double [cos(wt) - sin(wt), sin(wt)]; "
         "spherical a constant 1 on phi; w ~ U(pi/2, pi).\n"
         "- Estimators: `LagrangianSINDy` with its defaults and the paper's library of "
         "each system (`system.paper_library()`). Table I: case I, `fit(X, tau)`. "
-        "Table II: case II (`case=\"acceleration\"`) for the single pendulum; case III "
+        'Table II: case II (`case="acceleration"`) for the single pendulum; case III '
         "for the others with the paper's fixed term and prior (`fixed_term="
         "system.fixed_term, unpenalized=system.prior_terms`), and, as an extra "
         "column, our automatic search over every candidate fixed term with no prior "
@@ -324,7 +380,7 @@ def notes(n_traj, duration, noise, protocols, total, case2_limit):
         "explains the forces as well as the true Lagrangian plus -phi (the data "
         "cannot tell them apart; `LagrangianSINDy` warns with an "
         "`IdentifiabilityWarning`). The rows marked `sincos` refit the same cells "
-        "with `excitation=\"sincos\"` (a sin(wt) + b cos(wt) on both coordinates) "
+        'with `excitation="sincos"` (a sin(wt) + b cos(wt) on both coordinates) '
         "for comparison.\n"
         "- Fit times were measured on a machine shared with other jobs; they show "
         "orders of magnitude, see `speed.md` for timings on a quiet machine. Warnings "
@@ -354,17 +410,22 @@ def summary(results, labels, systems, protocols):
             else:
                 paper_rows = {s: paper_structure(system, paper[name][s]) for s in rows}
                 paper_best = render_sigma(largest_correct(paper_rows, lambda r: r))
-            method = label + (" (input a sin + b cos)" if excitation == "sincos" else "")
-            text += (f"| {table} | {protocol} | {PRETTY[name]} | {method} | "
-                     f"{render_sigma(ours)} | {paper_best} |\n")
+            method = label + (
+                " (input a sin + b cos)" if excitation == "sincos" else ""
+            )
+            text += (
+                f"| {table} | {protocol} | {PRETTY[name]} | {method} | "
+                f"{render_sigma(ours)} | {paper_best} |\n"
+            )
     return text + "\n"
 
 
 def cell_table(system, name, table, protocol, excitation, method_labels, results):
     paper = PAPER_TABLE_I if table == "I" else PAPER_TABLE_II
     sincos = excitation == "sincos"
-    title = f"### {PRETTY[name]}" + (" — input a sin(wt) + b cos(wt) (not the paper's)"
-                                     if sincos else "")
+    title = f"### {PRETTY[name]}" + (
+        " — input a sin(wt) + b cos(wt) (not the paper's)" if sincos else ""
+    )
     text = f"\n{title}\n\nTrue: `{short(str(system.lagrangian))}`\n\n"
     head = "| sigma | paper |"
     sep = "|---|---|"
@@ -373,7 +434,9 @@ def cell_table(system, name, table, protocol, excitation, method_labels, results
         sep += "---|---|---|---|"
     text += head + "\n" + sep + "\n"
     footnotes = []
-    rows = {lab: results[(table, protocol, name, excitation, lab)] for lab in method_labels}
+    rows = {
+        lab: results[(table, protocol, name, excitation, lab)] for lab in method_labels
+    }
     for sigma in sorted(next(iter(rows.values()))):
         if sincos:
             paper_cell = "(paper used a constant input)"
@@ -390,12 +453,16 @@ def cell_table(system, name, table, protocol, excitation, method_labels, results
             if cell.get("fixed_term") and "automatic" in label:
                 eq += f" (fixed term chosen: `{cell['fixed_term']}`)"
             err = cell["coef_error"]
-            line += (f" {eq} | {structure_text(cell['structure'])} | "
-                     f"{'inf' if not np.isfinite(err) else f'{err:.3g}'} | "
-                     f"{cell['time']:.1f} s |")
+            line += (
+                f" {eq} | {structure_text(cell['structure'])} | "
+                f"{'inf' if not np.isfinite(err) else f'{err:.3g}'} | "
+                f"{cell['time']:.1f} s |"
+            )
             if cell["warnings"]:
-                footnotes.append(f"sigma={fmt_sigma(sigma)}, {label}: warnings "
-                                 + ", ".join(cell["warnings"]))
+                footnotes.append(
+                    f"sigma={fmt_sigma(sigma)}, {label}: warnings "
+                    + ", ".join(cell["warnings"])
+                )
         text += line + "\n"
     if footnotes:
         text += "\n" + "\n".join(f"- {f}" for f in footnotes) + "\n"

@@ -33,7 +33,6 @@ import argparse
 import contextlib
 import io
 import itertools
-import math
 import time
 import warnings
 
@@ -44,8 +43,15 @@ from scipy.integrate import solve_ivp
 from lagsindy import LagrangianSINDy, rollout_error
 from lagsindy.systems import PAPER_SYSTEMS, make_dataset
 
-from ._common import header, write
-from ._evaluate import NOISE_LEVELS, compare_structure, fmt_sigma, short, timed_fit, tiny
+from ._common import command, header, write
+from ._evaluate import (
+    NOISE_LEVELS,
+    compare_structure,
+    fmt_sigma,
+    short,
+    timed_fit,
+    tiny,
+)
 
 SYSTEMS = ("cart_pendulum", "double_pendulum", "spherical_pendulum")
 SEED = 0
@@ -95,10 +101,11 @@ def sindy_pi_library(system, degree: int = 2):
     qd = [sp.Symbol(n + "_dot", real=True) for n in names]
     qdd = [sp.Symbol(n + "_ddot", real=True) for n in names]
     angles = _angles(system)
-    trig = [f(q[i]) for i, n in enumerate(names) if n in angles for f in (sp.sin, sp.cos)]
+    trig = [
+        f(q[i]) for i, n in enumerate(names) if n in angles for f in (sp.sin, sp.cos)
+    ]
     cos2 = {sp.cos(q[i]) ** 2 for i, n in enumerate(names) if n in angles}
-    t_mon = [m for m in _monomials(trig, degree)
-             if not any(m.has(c) for c in cos2)]
+    t_mon = [m for m in _monomials(trig, degree) if not any(m.has(c) for c in cos2)]
     other = [q[i] for i, n in enumerate(names) if n not in angles] + qd
     v_mon = _monomials(other, degree)
     terms, acc = [], []
@@ -138,14 +145,19 @@ class SINDyPIResult:
     def text(self, precision=3):
         out = []
         for lhs, e in self.equations:
-            expr = sum(sp.Float(-e[k] / e[lhs], precision) * self.terms[k]
-                       for k in np.flatnonzero(e) if k != lhs)
+            expr = sum(
+                sp.Float(-e[k] / e[lhs], precision) * self.terms[k]
+                for k in np.flatnonzero(e)
+                if k != lhs
+            )
             out.append(f"{self.terms[lhs]} = {expr}")
         return "; ".join(out)
 
     def implicit_exprs(self):
-        return [sum(sp.Float(e[k]) * self.terms[k] for k in np.flatnonzero(e))
-                for _, e in self.equations]
+        return [
+            sum(sp.Float(e[k]) * self.terms[k] for k in np.flatnonzero(e))
+            for _, e in self.equations
+        ]
 
 
 def _solve_accelerations(equations, cols, acc_cols, n_dof):
@@ -194,7 +206,7 @@ def fit_sindy_pi(system, X_fit, X_val):
     n_rows = X_fit.shape[0]
     lhs_all = [k for k, m in enumerate(acc) if m >= 0]
     # (acceleration index, values of t(q) in qddot_m * t(q)) of each column on X_val.
-    qdd_val = X_val[:, 2 * n_dof:]
+    qdd_val = X_val[:, 2 * n_dof :]
     qdd_sym = symbols[2]
     acc_cols = []
     for k, m in enumerate(acc):
@@ -205,7 +217,8 @@ def fit_sindy_pi(system, X_fit, X_val):
             acc_cols.append((m, _evaluate([base], symbols, X_val)[:, 0]))
 
     best = None
-    for lam in LAM_PER_ROW:
+    # The test suite's smoke run (LAGSINDY_BENCH_TINY) tries two values only.
+    for lam in LAM_PER_ROW[1::2][:2] if tiny() else LAM_PER_ROW:
         opt = ps.SINDyPI(reg_weight_lam=lam * n_rows, model_subset=lhs_all)
         with contextlib.redirect_stdout(io.StringIO()), warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -219,8 +232,9 @@ def fit_sindy_pi(system, X_fit, X_val):
             e_scaled[j] = 1.0
             e = e_scaled / scale
             res_val = theta_val @ e
-            rel = np.linalg.norm(res_val) / max(np.linalg.norm(theta_val[:, j] / scale[j]),
-                                                1e-300)
+            rel = np.linalg.norm(res_val) / max(
+                np.linalg.norm(theta_val[:, j] / scale[j]), 1e-300
+            )
             eqs[j] = (e, rel)
         per_dof = []
         for i in range(n_dof):
@@ -265,22 +279,34 @@ def sindy_pi_structure(result, system, X_clean):
     for lhs, e in result.equations:
         support = list(np.flatnonzero(e))
         exact = has_exact_relation(theta[:, support])
-        extra = [str(result.terms[k]) for k in support
-                 if has_exact_relation(theta[:, [s for s in support if s != k]])]
-        degenerate = exact and not extra and _vanishing_acceleration_factor(
-            result, theta, support, X_clean)
+        extra = [
+            str(result.terms[k])
+            for k in support
+            if has_exact_relation(theta[:, [s for s in support if s != k]])
+        ]
+        degenerate = (
+            exact
+            and not extra
+            and _vanishing_acceleration_factor(result, theta, support, X_clean)
+        )
         if degenerate:
             # Reported, not counted against the structure (the lenient reading).
-            detail.append(f"`{result.terms[lhs]}` equation has a spurious factor: its "
-                          "acceleration coefficients vanish inside the data")
+            detail.append(
+                f"`{result.terms[lhs]}` equation has a spurious factor: its "
+                "acceleration coefficients vanish inside the data"
+            )
         if not exact:
             ok = False
-            detail.append(f"`{result.terms[lhs]}` equation: missing terms (not an exact "
-                          "relation on noise-free data)")
+            detail.append(
+                f"`{result.terms[lhs]}` equation: missing terms (not an exact "
+                "relation on noise-free data)"
+            )
         elif extra:
             ok = False
-            detail.append(f"`{result.terms[lhs]}` equation: superfluous terms "
-                          + ", ".join(f"`{t}`" for t in extra))
+            detail.append(
+                f"`{result.terms[lhs]}` equation: superfluous terms "
+                + ", ".join(f"`{t}`" for t in extra)
+            )
     return {"correct": ok, "detail": detail}
 
 
@@ -327,18 +353,22 @@ def simulate_sindy_pi(result, system, x0, t):
         a = np.empty((batch, n, n))
         b = np.empty((batch, n))
         for i in range(n):
-            b[:, i] = np.broadcast_to(np.asarray(b_fns[i](*vals), dtype=float), (batch,))
+            b[:, i] = np.broadcast_to(
+                np.asarray(b_fns[i](*vals), dtype=float), (batch,)
+            )
             for j in range(n):
-                a[:, i, j] = np.broadcast_to(np.asarray(a_fns[i][j](*vals), dtype=float),
-                                             (batch,))
+                a[:, i, j] = np.broadcast_to(
+                    np.asarray(a_fns[i][j](*vals), dtype=float), (batch,)
+                )
         cond = np.linalg.cond(a)
         if not np.all(np.isfinite(cond)) or np.any(cond > 1e12):
             raise RuntimeError("the implicit equations became singular")
         acc = np.linalg.solve(a, -b[..., None])[..., 0]
         return np.concatenate([x[:, n:], acc], axis=1).ravel()
 
-    sol = solve_ivp(rhs, (t[0], t[-1]), x0.ravel(), method="DOP853", t_eval=t,
-                    rtol=1e-9, atol=1e-9)
+    sol = solve_ivp(
+        rhs, (t[0], t[-1]), x0.ravel(), method="DOP853", t_eval=t, rtol=1e-9, atol=1e-9
+    )
     if sol.status != 0:
         raise RuntimeError(sol.message)
     return sol.y.T.reshape(t.size, batch, 2 * n).transpose(1, 0, 2)
@@ -356,26 +386,46 @@ def rmse_q(states_true, states, n_dof):
 def run_system(name, noise, n_traj, duration, log):
     system = PAPER_SYSTEMS[name]()
     lib = system.paper_library()
-    x0 = system.sample_initial_states(N_TEST, random_state=TEST_SEED)
-    t = np.arange(int(round(HORIZON * 100)) + 1) / 100.0
+    n_test, horizon = (2, 2.0) if tiny() else (N_TEST, HORIZON)
+    x0 = system.sample_initial_states(n_test, random_state=TEST_SEED)
+    t = np.arange(int(round(horizon * 100)) + 1) / 100.0
     truth = system.simulate(x0, t)
     rows = {}
     for sigma in noise:
-        data = make_dataset(system, n_trajectories=n_traj, duration=duration,
-                            excitation=None, protocol="paper", noise=sigma,
-                            random_state=SEED)
+        data = make_dataset(
+            system,
+            n_trajectories=n_traj,
+            duration=duration,
+            excitation=None,
+            protocol="paper",
+            noise=sigma,
+            random_state=SEED,
+        )
         cells = {}
         for label, est in (
-            ("ours: case III (paper's fixed term and prior)",
-             LagrangianSINDy(lib, fixed_term=system.fixed_term,
-                             unpenalized=system.prior_terms, random_state=SEED)),
-            ("ours: automatic fixed-term search, no prior",
-             LagrangianSINDy(lib, random_state=SEED)),
+            (
+                "ours: case III (paper's fixed term and prior)",
+                LagrangianSINDy(
+                    lib,
+                    fixed_term=system.fixed_term,
+                    unpenalized=system.prior_terms,
+                    random_state=SEED,
+                ),
+            ),
+            (
+                "ours: automatic fixed-term search, no prior",
+                LagrangianSINDy(lib, random_state=SEED),
+            ),
         ):
             fitted, seconds, warns, error = timed_fit(est, data.X)
             if fitted is None:
-                cells[label] = {"correct": False, "time": seconds, "rmse": np.inf,
-                                "equation": error, "detail": [error]}
+                cells[label] = {
+                    "correct": False,
+                    "time": seconds,
+                    "rmse": np.inf,
+                    "equation": error,
+                    "detail": [error],
+                }
                 continue
             cmp = compare_structure(system, fitted, up_to_scale=True)
             roll = rollout_error(system, fitted.model_, x0, t)
@@ -386,10 +436,15 @@ def run_system(name, noise, n_traj, duration, log):
                 detail.append("missing: " + ", ".join(f"`{x}`" for x in cmp["missing"]))
             if "error" in roll:
                 detail.append("rollout failed: " + roll["error"].split(".")[0])
-            cells[label] = {"correct": cmp["correct"], "time": seconds,
-                            "rmse": roll["rmse_q"], "equation": fitted.equation(3)[4:],
-                            "detail": detail, "coef_error": cmp["coef_error"],
-                            "warnings": warns}
+            cells[label] = {
+                "correct": cmp["correct"],
+                "time": seconds,
+                "rmse": roll["rmse_q"],
+                "equation": fitted.equation(3)[4:],
+                "detail": detail,
+                "coef_error": cmp["coef_error"],
+                "warnings": warns,
+            }
         # SINDy-PI: 80 % of the trajectories fit, the rest select the model.
         n_fit = max(1, int(round(0.8 * n_traj)))
         fit_rows = data.groups < n_fit
@@ -404,7 +459,8 @@ def run_system(name, noise, n_traj, duration, log):
             states = None
             detail.append(f"rollout failed: {exc}")
         cells["SINDy-PI"] = {
-            "correct": struct["correct"], "time": seconds,
+            "correct": struct["correct"],
+            "time": seconds,
             "rmse": rmse_q(truth, states, system.n_dof),
             "equation": result.text() if result else "no model",
             "detail": detail,
@@ -413,8 +469,10 @@ def run_system(name, noise, n_traj, duration, log):
         }
         rows[sigma] = cells
         for label, c in cells.items():
-            log(f"{name} sigma={sigma:g} {label}: correct={c['correct']} "
-                f"rmse={c['rmse']:.3g} time={c['time']:.1f}s :: {c['equation'][:160]}")
+            log(
+                f"{name} sigma={sigma:g} {label}: correct={c['correct']} "
+                f"rmse={c['rmse']:.3g} time={c['time']:.1f}s :: {c['equation'][:160]}"
+            )
     return rows
 
 
@@ -429,8 +487,9 @@ def largest_correct(rows, label):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true",
-                        help="10 trajectories, sigma in {0, 2e-2}")
+    parser.add_argument(
+        "--quick", action="store_true", help="10 trajectories, sigma in {0, 2e-2}"
+    )
     parser.add_argument("--systems", nargs="+", choices=SYSTEMS, default=list(SYSTEMS))
     parser.add_argument("--noise", nargs="+", type=float, default=None)
     parser.add_argument("--trajectories", type=int, default=None)
@@ -440,44 +499,64 @@ def main(argv=None):
     quick = args.quick or tiny()
     n_traj = args.trajectories or (5 if tiny() else 10 if quick else 100)
     duration = 2.0 if tiny() else 5.0
-    noise = args.noise or ([2e-2] if tiny() else [0.0, 2e-2] if quick else list(NOISE_LEVELS))
+    noise = args.noise or (
+        [2e-2] if tiny() else [0.0, 2e-2] if quick else list(NOISE_LEVELS)
+    )
     start_all = time.perf_counter()
-    results = {name: run_system(name, noise, n_traj, duration, print) for name in args.systems}
+    results = {
+        name: run_system(name, noise, n_traj, duration, print) for name in args.systems
+    }
     total = time.perf_counter() - start_all
 
-    labels = ["ours: case III (paper's fixed term and prior)",
-              "ours: automatic fixed-term search, no prior", "SINDy-PI"]
-    text = header("xL-SINDy (lagsindy) vs SINDy-PI (PySINDy) on passive systems")
+    labels = [
+        "ours: case III (paper's fixed term and prior)",
+        "ours: automatic fixed-term search, no prior",
+        "SINDy-PI",
+    ]
+    text = header(
+        "xL-SINDy (lagsindy) vs SINDy-PI (PySINDy) on passive systems",
+        command("sindy_pi", argv),
+    )
     text += setup_text(n_traj, duration, noise, pysindy.__version__, total)
     text += "## Robustness ratio\n\n"
-    text += ("Largest sigma up to which every level from 0 gives the correct structure; "
-             "ratio = ours / SINDy-PI ('inf' when SINDy-PI is never correct but ours "
-             "is; the grid is coarse, so ratios are coarse too). The paper claims 8x "
-             "(cart), 10x (double), 20x (spherical).\n\n"
-             "| system | ours, case III | ours, automatic | SINDy-PI | ratio (case III) "
-             "| ratio (automatic) |\n|---|---|---|---|---|---|\n")
+    text += (
+        "Largest sigma up to which every level from 0 gives the correct structure; "
+        "ratio = ours / SINDy-PI ('inf' when SINDy-PI is never correct but ours "
+        "is; the grid is coarse, so ratios are coarse too). The paper claims 8x "
+        "(cart), 10x (double), 20x (spherical).\n\n"
+        "| system | ours, case III | ours, automatic | SINDy-PI | ratio (case III) "
+        "| ratio (automatic) |\n|---|---|---|---|---|---|\n"
+    )
     for name, rows in results.items():
         best = {lab: largest_correct(rows, lab) for lab in labels}
-        text += (f"| {name.replace('_', ' ')} | {_s(best[labels[0]])} | "
-                 f"{_s(best[labels[1]])} | {_s(best[labels[2]])} | "
-                 f"{_ratio(best[labels[0]], best[labels[2]])} | "
-                 f"{_ratio(best[labels[1]], best[labels[2]])} |\n")
+        text += (
+            f"| {name.replace('_', ' ')} | {_s(best[labels[0]])} | "
+            f"{_s(best[labels[1]])} | {_s(best[labels[2]])} | "
+            f"{_ratio(best[labels[0]], best[labels[2]])} | "
+            f"{_ratio(best[labels[1]], best[labels[2]])} |\n"
+        )
     for name, rows in results.items():
         text += f"\n## {name.replace('_', ' ')}\n\n"
-        text += ("| sigma | method | correct structure | 10 s rollout RMSE of q (rad or m) "
-                 "| fit time | model | notes |\n|---|---|---|---|---|---|---|\n")
+        text += (
+            "| sigma | method | correct structure | 10 s rollout RMSE of q (rad or m) "
+            "| fit time | model | notes |\n|---|---|---|---|---|---|---|\n"
+        )
         for sigma, cells in rows.items():
             for label in labels:
                 c = cells[label]
                 note = "; ".join(c["detail"])
                 if label == "SINDy-PI" and c.get("lam") is not None:
-                    note = (f"lambda/row {c['lam']:g}, validation R2 {c['val_r2']:.4f}"
-                            + ("; " + note if note else ""))
-                text += (f"| {fmt_sigma(sigma)} | {label} | "
-                         f"{'yes' if c['correct'] else 'no'} | "
-                         f"{_err(c['rmse'])} | "
-                         f"{c['time']:.1f} s | `{short(c['equation'], 300)}` | "
-                         f"{short(note, 300)} |\n")
+                    note = (
+                        f"lambda/row {c['lam']:g}, validation R2 {c['val_r2']:.4f}"
+                        + ("; " + note if note else "")
+                    )
+                text += (
+                    f"| {fmt_sigma(sigma)} | {label} | "
+                    f"{'yes' if c['correct'] else 'no'} | "
+                    f"{_err(c['rmse'])} | "
+                    f"{c['time']:.1f} s | `{short(c['equation'], 300)}` | "
+                    f"{short(note, 300)} |\n"
+                )
     write("vs_sindy_pi_quick.md" if quick else "vs_sindy_pi.md", text)
 
 
@@ -495,7 +574,11 @@ def _ratio(ours, theirs):
     if theirs is None:
         return "inf (SINDy-PI never correct)"
     if theirs == 0:
-        return "inf (SINDy-PI correct only at sigma = 0)" if ours > 0 else "1 (both only at 0)"
+        return (
+            "inf (SINDy-PI correct only at sigma = 0)"
+            if ours > 0
+            else "1 (both only at 0)"
+        )
     return f"{ours / theirs:.3g}"
 
 
@@ -504,7 +587,7 @@ def setup_text(n_traj, duration, noise, version, total):
     return (
         "## Setup\n\n"
         f"- Data: `make_dataset(system, n_trajectories={n_traj}, duration={duration:g}, "
-        "excitation=None, protocol=\"paper\", noise=sigma, random_state=0)`: passive, "
+        'excitation=None, protocol="paper", noise=sigma, random_state=0)`: passive, '
         "independent Gaussian noise on every entry of q, qdot, qddot (the authors "
         "compared SINDy-PI under this protocol). Noise levels: "
         f"{', '.join(fmt_sigma(s) for s in noise)}.\n"
