@@ -26,7 +26,8 @@ def machine() -> str:
         pass
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
     return (
-        f"{cpu}; {os.cpu_count()} CPU cores visible, torch threads {torch.get_num_threads()}; "
+        f"{cpu}; {os.cpu_count()} CPU cores visible, "
+        f"torch threads {torch.get_num_threads()}; "
         f"GPU: {gpu}; Python {platform.python_version()}, torch {torch.__version__}"
     )
 

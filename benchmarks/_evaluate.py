@@ -12,7 +12,7 @@ NOISE_LEVELS = (0.0, 1e-3, 2e-2, 6e-2, 1e-1)
 
 
 def tiny() -> bool:
-    """True when ``LAGSINDY_BENCH_TINY`` is set: the smallest sizes, for the test suite."""
+    """True when ``LAGSINDY_BENCH_TINY`` is set: the smallest sizes, for the tests."""
     return os.environ.get("LAGSINDY_BENCH_TINY", "") not in ("", "0")
 
 
@@ -64,7 +64,7 @@ def _fit_worker(est, X, tau, queue):
 
 
 def timed_fit(est, X, tau=None, *, time_limit=None):
-    """Fit ``est``; return ``(est or None, seconds, warning names, error text or None)``.
+    """Fit ``est``; return ``(est or None, seconds, warning names, error or None)``.
 
     With ``time_limit`` (seconds) the fit runs in a fresh (spawned) process that is
     stopped after that long; the error text then says so. The time reported is the
@@ -86,7 +86,8 @@ def timed_fit(est, X, tau=None, *, time_limit=None):
                 None,
                 float(time_limit),
                 [],
-                f"stopped: no result after {time_limit + 60:g} s (limit {time_limit:g} s "
+                f"stopped: no result after {time_limit + 60:g} s "
+                f"(limit {time_limit:g} s "
                 "plus 60 s for the process start)",
             )
         proc.join(timeout=5)

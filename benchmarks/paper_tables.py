@@ -36,7 +36,8 @@ from ._evaluate import (
 SEED = 0
 
 # The paper's Tables I and II, transcribed from its LaTeX source (variables renamed to
-# lagsindy's: theta_dot for \dot\theta, theta1 for \theta_1, ...). Coefficients as printed.
+# lagsindy's: theta_dot for \dot\theta, theta1 for \theta_1, ...). Coefficients as
+# printed.
 PAPER_TABLE_I = {
     "single_pendulum": {
         0.0: "0.5*theta_dot**2 + 9.78*cos(theta)",
@@ -195,7 +196,7 @@ def run_cell(system, data, est, *, passive: bool, time_limit=None) -> dict:
 
 
 def methods_for(name: str, system, passive: bool):
-    """``[(label, estimator factory)]`` for one cell; the defaults unless the paper says."""
+    """``[(label, estimator factory)]`` for one cell: defaults unless the paper says."""
     lib = system.paper_library()
     if not passive:
         return [("case I", lambda: LagrangianSINDy(lib, random_state=SEED))]
@@ -344,7 +345,8 @@ def main(argv=None):
 def notes(n_traj, duration, noise, protocols, total, case2_limit):
     return (
         "## Setup\n\n"
-        f"- Data: `make_dataset(system, n_trajectories={n_traj}, duration={duration:g}, "
+        f"- Data: `make_dataset(system, n_trajectories={n_traj}, "
+        f"duration={duration:g}, "
         "rate=100, excitation=..., protocol=..., noise=sigma, random_state=0)`: "
         f"{n_traj} initial conditions x {duration:g} s x 100 Hz "
         "(the paper: 100 x 5 s x 100 Hz). Accelerations are the exact right-hand side "
@@ -368,7 +370,8 @@ def notes(n_traj, duration, noise, protocols, total, case2_limit):
         "(`system.true_coefficients(est.library_)`); *correct* means exactly the "
         "true set of terms. Coefficient error: relative 2-norm error of the "
         "coefficient vector; for passive fits (any multiple of L is valid) the learned "
-        "coefficients are first divided by their least-squares scale against the truth. "
+        "coefficients are first divided by their least-squares scale against the "
+        "truth. "
         "The paper's entries are checked the same way from their printed terms.\n"
         "- The cart-pendulum's true Lagrangian is the tables' "
         "(0.75 xdot^2 + 0.5 xdot thetadot cos theta + 0.25 thetadot^2 + 4.905 cos "
@@ -385,7 +388,8 @@ def notes(n_traj, duration, noise, protocols, total, case2_limit):
         "- Fit times were measured on a machine shared with other jobs; they show "
         "orders of magnitude, see `speed.md` for timings on a quiet machine. Warnings "
         "raised by a fit are listed under the cell.\n"
-        f"- Case II (single pendulum, passive) is non-convex and slow: each of its fits "
+        f"- Case II (single pendulum, passive) is non-convex and slow: each of its "
+        "fits "
         f"runs in its own process and is stopped after {case2_limit:g} s (plus 60 s "
         "for the process start); a stopped fit is reported as such, not as a result.\n"
         f"- Total run time: {total / 60:.1f} min.\n\n"
@@ -397,7 +401,8 @@ def summary(results, labels, systems, protocols):
         "## Summary: largest sigma up to which the structure is correct\n\n"
         "Largest noise level such that every level from 0 up to it gives exactly the "
         "true terms ('none': already wrong at the smallest level run).\n\n"
-        "| table | protocol | system | method | ours | paper |\n|---|---|---|---|---|---|\n"
+        "| table | protocol | system | method | ours | paper |\n"
+        "|---|---|---|---|---|---|\n"
     )
     for (table, protocol, name, excitation), method_labels in labels.items():
         system = PAPER_SYSTEMS[name]()

@@ -121,7 +121,7 @@ def measure(spec):
 
 
 def run_measurement(spec, timeout=1800):
-    """Run :func:`measure` in a fresh interpreter and return its result (or an error)."""
+    """Run :func:`measure` in a fresh interpreter; its result (or an error)."""
     cmd = [sys.executable, "-m", "benchmarks.speed", "--_measure", json.dumps(spec)]
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     try:
@@ -141,7 +141,7 @@ def run_measurement(spec, timeout=1800):
 
 
 def scaling(quick):
-    """Fit time and memory against samples and library size, CPU (and CUDA if present)."""
+    """Fit time and memory against samples and library size (CPU, and CUDA)."""
     import torch
 
     if tiny():
@@ -171,7 +171,10 @@ def scaling(quick):
 
 def _row(res, key):
     if "error" in res:
-        return f"| {res[key]} | {res['device']} | - | - | - | - | - | error: {res['error']} |\n"
+        return (
+            f"| {res[key]} | {res['device']} | - | - | - | - | - | "
+            f"error: {res['error']} |\n"
+        )
     return (
         f"| {res[key] if key == 'n_rows' else res['n_terms']} | {res['device']} | "
         f"{res['time']:.3g} s | {res['threads']} | {res['rss_before_mib']:.0f} MiB | "
@@ -186,11 +189,13 @@ def scaling_text(rows_sweep, lib_sweep, devices, plot_name):
 
     head = (
         "| {} | device | median fit time | torch threads | RSS before the fits | "
-        "peak RSS | FISTA iterations | true structure |\n|---|---|---|---|---|---|---|---|\n"
+        "peak RSS | FISTA iterations | true structure |\n"
+        "|---|---|---|---|---|---|---|---|\n"
     )
     text = "\n## How the cost grows (case I, cart-pendulum)\n\n"
     text += (
-        "Each row is a fresh process (`python -m benchmarks.speed --_measure ...`): the "
+        "Each row is a fresh process (`python -m benchmarks.speed --_measure ...`): "
+        "the "
         "data are made, the library built and one small warm-up fit run, then the "
         "median of the timed fits is reported. Rows are random states with exact "
         "accelerations (see `random_rows`). Memory is the process's peak resident set "
@@ -210,7 +215,10 @@ def scaling_text(rows_sweep, lib_sweep, devices, plot_name):
     text += head.format("terms")
     text += "".join(_row(r, "degree") for r in lib_sweep)
     if "cuda" in devices:
-        text += "\n### GPU speed-up (CPU time / CUDA time)\n\n| sweep | size | speed-up |\n|---|---|---|\n"
+        text += (
+            "\n### GPU speed-up (CPU time / CUDA time)\n\n"
+            "| sweep | size | speed-up |\n|---|---|---|\n"
+        )
         for name, sweep, key in (
             ("rows", rows_sweep, "n_rows"),
             ("terms", lib_sweep, "degree"),
@@ -221,12 +229,16 @@ def scaling_text(rows_sweep, lib_sweep, devices, plot_name):
             for r in sweep:
                 if r["device"] == "cuda" and "error" not in r and r[key] in cpu:
                     text += (
-                        f"| {name} | {r['n_rows'] if key == 'n_rows' else r['n_terms']} | "
+                        f"| {name} | "
+                        f"{r['n_rows'] if key == 'n_rows' else r['n_terms']} | "
                         f"{cpu[r[key]]['time'] / r['time']:.2f}x |\n"
                     )
         text += f"\nGPU: {torch.cuda.get_device_name(0)}.\n"
     else:
-        text += "\nGPU: no GPU (`torch.cuda.is_available()` is False), so no CUDA timings.\n"
+        text += (
+            "\nGPU: no GPU (`torch.cuda.is_available()` is False), "
+            "so no CUDA timings.\n"
+        )
     text += f"\n![fit time]({plot_name})\n"
     return text
 
@@ -291,7 +303,8 @@ def main(argv=None):
     median = statistics.median(times)
     text = header("Fit time: cart-pendulum, case I", command("speed", argv))
     text += (
-        f"Data: {n_traj} trajectories x 500 samples ({data.X.shape[0]} rows), noise-free, "
+        f"Data: {n_traj} trajectories x 500 samples ({data.X.shape[0]} rows), "
+        "noise-free, "
         f"tau = a sin(wt) + b cos(wt) on the cart. Library: {len(library.candidates_)} "
         f"candidates ({len(library)} after removing trivial and dependent terms).\n\n"
         f"| quantity | value |\n|---|---|\n"

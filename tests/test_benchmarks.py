@@ -48,12 +48,16 @@ def test_runner_passes_quick_and_reports_failures(monkeypatch, capsys):
         calls.append(("bad", list(argv), common.RUNNER_COMMAND))
         raise RuntimeError("boom")
 
-    fake = {"aa": types.SimpleNamespace(main=ok_main, __doc__="A."),
-            "bb": types.SimpleNamespace(main=bad_main, __doc__="B.")}
+    fake = {
+        "aa": types.SimpleNamespace(main=ok_main, __doc__="A."),
+        "bb": types.SimpleNamespace(main=bad_main, __doc__="B."),
+    }
     monkeypatch.setattr(runner, "discover", lambda: fake)
     assert runner.main(["--quick"]) == 1
-    assert calls == [("ok", ["--quick"], "python -m benchmarks --quick aa"),
-                     ("bad", ["--quick"], "python -m benchmarks --quick bb")]
+    assert calls == [
+        ("ok", ["--quick"], "python -m benchmarks --quick aa"),
+        ("bad", ["--quick"], "python -m benchmarks --quick bb"),
+    ]
     assert common.RUNNER_COMMAND is None
     assert "FAILED: ['bb']" in capsys.readouterr().out
     calls.clear()
@@ -67,10 +71,15 @@ def test_compare_structure_up_to_scale():
     system = single_pendulum()
     lib = system.paper_library().build()
     true = system.true_coefficients(lib)
-    est = types.SimpleNamespace(library_=lib, coef_=2.0 * true,
-                                term_names_=lib.get_feature_names_out())
+    est = types.SimpleNamespace(
+        library_=lib, coef_=2.0 * true, term_names_=lib.get_feature_names_out()
+    )
     res = _evaluate.compare_structure(system, est, up_to_scale=True)
-    assert res["correct"] and res["coef_error"] < 1e-12 and res["scale"] == pytest.approx(2)
+    assert (
+        res["correct"]
+        and res["coef_error"] < 1e-12
+        and res["scale"] == pytest.approx(2)
+    )
     # Not up to scale, twice the Lagrangian is 100 % off.
     res = _evaluate.compare_structure(system, est, up_to_scale=False)
     assert res["correct"] and res["coef_error"] == pytest.approx(1.0)
@@ -90,12 +99,17 @@ def test_paper_entries_parse_and_mark_their_extra_terms():
     from lagsindy.systems import PAPER_SYSTEMS
 
     single = PAPER_SYSTEMS["single_pendulum"]()
-    res = paper_tables.paper_structure(single, paper_tables.PAPER_TABLE_II["single_pendulum"][1e-1])
+    res = paper_tables.paper_structure(
+        single, paper_tables.PAPER_TABLE_II["single_pendulum"][1e-1]
+    )
     assert res["extra"] == sorted(["theta_dot*sin(theta)", "sin(theta)**2", "theta**2"])
     assert paper_tables.paper_structure(
-        single, paper_tables.PAPER_TABLE_II["single_pendulum"][6e-2])["correct"]
+        single, paper_tables.PAPER_TABLE_II["single_pendulum"][6e-2]
+    )["correct"]
     sph = PAPER_SYSTEMS["spherical_pendulum"]()
-    res = paper_tables.paper_structure(sph, paper_tables.PAPER_TABLE_II["spherical_pendulum"][1e-1])
+    res = paper_tables.paper_structure(
+        sph, paper_tables.PAPER_TABLE_II["spherical_pendulum"][1e-1]
+    )
     # sin(2 theta) is 2 sin cos after expansion.
     assert "phi_dot**2*sin(theta)*cos(theta)" in res["extra"]
 
@@ -112,7 +126,8 @@ def test_paper_tables_tiny(tiny_results):
 
 
 needs_pysindy = pytest.mark.skipif(
-    importlib.util.find_spec("pysindy") is None or importlib.util.find_spec("cvxpy") is None,
+    importlib.util.find_spec("pysindy") is None
+    or importlib.util.find_spec("cvxpy") is None,
     reason="pysindy[cvxpy] not installed (pip install -e .[bench])",
 )
 
@@ -125,8 +140,9 @@ def test_sindy_pi_structure_criterion():
     terms, acc, symbols = sindy_pi.sindy_pi_library(system)
     assert len(terms) == 60 and sum(a >= 0 for a in acc) == 10
     names = [str(t) for t in terms]
-    data = make_dataset(system, n_trajectories=3, duration=2.0, excitation=None,
-                        random_state=0)
+    data = make_dataset(
+        system, n_trajectories=3, duration=2.0, excitation=None, random_state=0
+    )
 
     def equation(pairs):
         e = np.zeros(len(terms))
@@ -134,11 +150,23 @@ def test_sindy_pi_structure_criterion():
             e[names.index(name)] = value
         return e
 
-    x_eq = {"x_ddot": 1.0, "theta_ddot*cos(theta)": 1 / 3, "theta_dot**2*sin(theta)": -1 / 3}
+    x_eq = {
+        "x_ddot": 1.0,
+        "theta_ddot*cos(theta)": 1 / 3,
+        "theta_dot**2*sin(theta)": -1 / 3,
+    }
     th_eq = {"theta_ddot": 1.0, "x_ddot*cos(theta)": 1.0, "sin(theta)": 9.81}
-    good = sindy_pi.SINDyPIResult(terms, acc, symbols,
-                                  [(names.index("x_ddot"), equation(x_eq)),
-                                   (names.index("theta_ddot"), equation(th_eq))], 0.0, 1.0)
+    good = sindy_pi.SINDyPIResult(
+        terms,
+        acc,
+        symbols,
+        [
+            (names.index("x_ddot"), equation(x_eq)),
+            (names.index("theta_ddot"), equation(th_eq)),
+        ],
+        0.0,
+        1.0,
+    )
     assert sindy_pi.sindy_pi_structure(good, system, data.X_clean)["correct"]
     # The true model integrates like the truth.
     x0 = system.sample_initial_states(2, random_state=1)
@@ -146,16 +174,26 @@ def test_sindy_pi_structure_criterion():
     states = sindy_pi.simulate_sindy_pi(good, system, x0, t)
     assert sindy_pi.rmse_q(system.simulate(x0, t), states, 2) < 1e-6
     # An extra term, or a missing one, is not the correct structure.
-    extra = sindy_pi.SINDyPIResult(terms, acc, symbols,
-                                   [(names.index("x_ddot"), equation({**x_eq, "x": 0.01})),
-                                    good.equations[1]], 0.0, 1.0)
+    extra = sindy_pi.SINDyPIResult(
+        terms,
+        acc,
+        symbols,
+        [(names.index("x_ddot"), equation({**x_eq, "x": 0.01})), good.equations[1]],
+        0.0,
+        1.0,
+    )
     res = sindy_pi.sindy_pi_structure(extra, system, data.X_clean)
     assert not res["correct"] and "superfluous" in res["detail"][0]
     missing = dict(th_eq)
     del missing["sin(theta)"]
-    bad = sindy_pi.SINDyPIResult(terms, acc, symbols,
-                                 [good.equations[0], (names.index("theta_ddot"),
-                                                      equation(missing))], 0.0, 1.0)
+    bad = sindy_pi.SINDyPIResult(
+        terms,
+        acc,
+        symbols,
+        [good.equations[0], (names.index("theta_ddot"), equation(missing))],
+        0.0,
+        1.0,
+    )
     res = sindy_pi.sindy_pi_structure(bad, system, data.X_clean)
     assert not res["correct"] and "missing" in res["detail"][0]
 
