@@ -257,12 +257,14 @@ def main(argv=None):
     parser.add_argument(
         "--case2-limit",
         type=float,
-        default=240.0,
+        default=None,
         help="seconds after which a case II fit is stopped (it is "
-        "non-convex and can take many minutes)",
+        "non-convex and can take many minutes); default 240, 60 with --quick",
     )
     args = parser.parse_args(argv)
     quick = args.quick or tiny()
+    if args.case2_limit is None:
+        args.case2_limit = 20.0 if tiny() else 60.0 if quick else 240.0
     n_traj = args.trajectories or (3 if tiny() else 10 if quick else 100)
     duration = 2.0 if tiny() else 5.0
     noise = args.noise or (
