@@ -92,6 +92,7 @@ def measure(spec):
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats()
     rss_before = _rss_kib()
+    peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     times, est = [], None
     for _ in range(spec["repeats"]):
         est = LagrangianSINDy(library, device=device)
@@ -109,6 +110,7 @@ def measure(spec):
         "threads": torch.get_num_threads(),
         "rss_before_mib": rss_before / 1024,
         "peak_rss_mib": peak / 1024,
+        "peak_before_mib": peak_before / 1024,
         "cuda_peak_mib": (
             torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else None
         ),
@@ -177,7 +179,8 @@ def _row(res, key):
         )
     return (
         f"| {res[key] if key == 'n_rows' else res['n_terms']} | {res['device']} | "
-        f"{res['time']:.3g} s | {res['threads']} | {res['rss_before_mib']:.0f} MiB | "
+        f"{res['time']:.3g} s | {res['threads']} | {res['rss_before_mib']:.0f} MiB "
+        f"(peak so far {res['peak_before_mib']:.0f} MiB) | "
         f"{res['peak_rss_mib']:.0f} MiB"
         + (f" (GPU {res['cuda_peak_mib']:.0f} MiB)" if res.get("cuda_peak_mib") else "")
         + f" | {res['n_iter']} | {'yes' if res['correct'] else 'no'} |\n"
@@ -202,7 +205,9 @@ def scaling_text(rows_sweep, lib_sweep, devices, plot_name):
         "size from `resource.getrusage(RUSAGE_SELF).ru_maxrss` (psutil is not used; "
         "tracemalloc does not see torch's allocations); it includes Python, torch and "
         "the data, so compare it with the resident size measured just before the "
-        "fits.\n\n"
+        "fits (and with the process's peak up to then: imports, data and the "
+        "warm-up fit; when the final peak equals it, the timed fits did not raise "
+        "it).\n\n"
     )
     text += "### Against the number of samples (library of degree 3: 39 terms)\n\n"
     text += head.format("rows")
