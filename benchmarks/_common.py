@@ -26,14 +26,36 @@ def machine() -> str:
         pass
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "none"
     return (
-        f"{cpu}; {os.cpu_count()} CPU cores visible, torch threads {torch.get_num_threads()}; "
+        f"{cpu}; {os.cpu_count()} CPU cores visible, "
+        f"torch threads {torch.get_num_threads()}; "
         f"GPU: {gpu}; Python {platform.python_version()}, torch {torch.__version__}"
     )
 
 
-def command() -> str:
-    return "python -m benchmarks." + Path(sys.argv[0]).stem + (
-        " " + " ".join(shlex.quote(a) for a in sys.argv[1:]) if len(sys.argv) > 1 else ""
+# Set by ``python -m benchmarks`` so results say which command made them.
+RUNNER_COMMAND: str | None = None
+
+
+def command(module: str | None = None, argv=None) -> str:
+    """The command line that reproduces a result file.
+
+    ``module`` is the script's name (``"paper_tables"``) and ``argv`` the arguments
+    its ``main`` received (``None``: the process's own ``sys.argv``).
+    """
+    env = (
+        "LAGSINDY_BENCH_TINY=1 "
+        if os.environ.get("LAGSINDY_BENCH_TINY", "") not in ("", "0")
+        else ""
+    )
+    if RUNNER_COMMAND is not None:
+        return env + RUNNER_COMMAND
+    if module is None:
+        module = Path(sys.argv[0]).stem
+    args = sys.argv[1:] if argv is None else list(argv)
+    return (
+        env
+        + f"python -m benchmarks.{module}"
+        + (" " + " ".join(shlex.quote(a) for a in args) if args else "")
     )
 
 

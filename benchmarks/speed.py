@@ -4,6 +4,13 @@ Default: the cart-pendulum, 100 trajectories x 500 samples, the paper's 55-term
 library, active (forced) data; the median of 5 fits after one warm-up fit (the first
 fit in a process also pays torch's lazy imports, reported separately).
 
+Then how the cost grows: fit time and peak memory against the number of samples
+(1e3 .. 1e6 rows, the paper's cart library) and against the library size (cart
+polynomial libraries of degree 2 .. 5: 14 .. 169 terms), each measurement in its own
+process so that its peak resident memory (``resource.getrusage`` ``ru_maxrss``) is its
+own; a plot in ``results/speed.png``. On a machine with CUDA the same fits also run
+with ``device="cuda"`` and the speed-up is reported.
+
     python -m benchmarks.speed            # writes benchmarks/results/speed.md
     python -m benchmarks.speed --quick    # smaller, for a smoke check
 """
@@ -11,13 +18,22 @@ fit in a process also pays torch's lazy imports, reported separately).
 from __future__ import annotations
 
 import argparse
+import json
+import math
+import os
 import statistics
+import subprocess
+import sys
 import time
 
-from lagsindy import LagrangianSINDy
+import numpy as np
+
+from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy.systems import cart_pendulum, make_dataset
 
-from ._common import header, write
+from . import _common
+from ._common import command, header, write
+from ._evaluate import tiny
 
 
 def time_fits(X, tau, library, repeats):
@@ -31,24 +47,269 @@ def time_fits(X, tau, library, repeats):
     return times, est
 
 
+def random_rows(system, n_rows, seed=0):
+    """Case I rows at random states: ``[q, qdot, qddot]`` and ``tau``.
+
+    Case I treats rows as independent samples, so for the scaling study the rows are
+    drawn at random (x ~ U(-1, 1), theta ~ U(-pi, pi), velocities ~ U(-2, 2), force
+    on the cart ~ U(-1, 1)) with exact accelerations from the equations of motion,
+    rather than integrated as trajectories (the fit cost does not depend on how the
+    rows were made; the simulation of 2,000 trajectories would).
+    """
+    rng = np.random.default_rng(seed)
+    n = system.n_dof
+    q = np.column_stack(
+        [rng.uniform(-1, 1, n_rows), rng.uniform(-math.pi, math.pi, n_rows)]
+    )
+    qd = rng.uniform(-2, 2, (n_rows, n))
+    u = rng.uniform(-1, 1, (n_rows, system.n_inputs))
+    tau = u @ system.input_matrix.T
+    X = system.trajectory_to_X(np.concatenate([q, qd], axis=1), tau)
+    return X, tau
+
+
+def _rss_kib():
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") // 1024
+
+
+def measure(spec):
+    """One measurement (run in a fresh process): median fit time and memory."""
+    import resource
+
+    import torch
+
+    system = cart_pendulum()
+    library = CandidateLibrary.polynomial(
+        ["x", "theta"], angles=["theta"], degree=spec["degree"]
+    )
+    library.build()
+    X, tau = random_rows(system, spec["n_rows"])
+    device = spec["device"]
+    # Warm-up on a small slice: torch's lazy imports and kernel set-up are not the fit.
+    LagrangianSINDy(library, device=device).fit(X[:2000], tau[:2000])
+    if device == "cuda":
+        torch.cuda.synchronize()
+        torch.cuda.reset_peak_memory_stats()
+    rss_before = _rss_kib()
+    peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    times, est = [], None
+    for _ in range(spec["repeats"]):
+        est = LagrangianSINDy(library, device=device)
+        start = time.perf_counter()
+        est.fit(X, tau)
+        if device == "cuda":
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - start)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    return {
+        **spec,
+        "n_terms": len(library),
+        "time": statistics.median(times),
+        "times": times,
+        "threads": torch.get_num_threads(),
+        "rss_before_mib": rss_before / 1024,
+        "peak_rss_mib": peak / 1024,
+        "peak_before_mib": peak_before / 1024,
+        "cuda_peak_mib": (
+            torch.cuda.max_memory_allocated() / 2**20 if device == "cuda" else None
+        ),
+        "n_iter": est.n_iter_,
+        "correct": sorted(est.term_names_[est.support_].tolist())
+        == sorted(
+            ["theta_dot**2", "theta_dot*x_dot*cos(theta)", "x_dot**2", "cos(theta)"]
+        ),
+    }
+
+
+def run_measurement(spec, timeout=1800):
+    """Run :func:`measure` in a fresh interpreter; its result (or an error)."""
+    cmd = [sys.executable, "-m", "benchmarks.speed", "--_measure", json.dumps(spec)]
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        out = subprocess.run(
+            cmd, capture_output=True, text=True, timeout=timeout, cwd=root
+        )
+    except subprocess.TimeoutExpired:
+        return {**spec, "error": f"no result within {timeout} s"}
+    if out.returncode != 0:
+        return {
+            **spec,
+            "error": out.stderr.strip().splitlines()[-1]
+            if out.stderr
+            else f"exit {out.returncode}",
+        }
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def scaling(quick):
+    """Fit time and memory against samples and library size (CPU, and CUDA)."""
+    import torch
+
+    if tiny():
+        sizes, degrees, repeats = [1000], [2], 1
+    elif quick:
+        sizes, degrees, repeats = [1000, 10_000], [2, 3], 1
+    else:
+        sizes, degrees, repeats = [1000, 10_000, 100_000, 1_000_000], [2, 3, 4, 5], 3
+    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    rows_sweep, lib_sweep = [], []
+    for device in devices:
+        for n in sizes:
+            res = run_measurement(
+                {"n_rows": n, "degree": 3, "device": device, "repeats": repeats}
+            )
+            rows_sweep.append(res)
+            print("samples", res, flush=True)
+        lib_rows = sizes[1] if len(sizes) > 1 else sizes[0]
+        for d in degrees:
+            res = run_measurement(
+                {"n_rows": lib_rows, "degree": d, "device": device, "repeats": repeats}
+            )
+            lib_sweep.append(res)
+            print("library", res, flush=True)
+    return rows_sweep, lib_sweep, devices
+
+
+def _row(res, key):
+    if "error" in res:
+        return (
+            f"| {res[key]} | {res['device']} | - | - | - | - | - | "
+            f"error: {res['error']} |\n"
+        )
+    return (
+        f"| {res[key] if key == 'n_rows' else res['n_terms']} | {res['device']} | "
+        f"{res['time']:.3g} s | {res['threads']} | {res['rss_before_mib']:.0f} MiB "
+        f"(peak so far {res['peak_before_mib']:.0f} MiB) | "
+        f"{res['peak_rss_mib']:.0f} MiB"
+        + (f" (GPU {res['cuda_peak_mib']:.0f} MiB)" if res.get("cuda_peak_mib") else "")
+        + f" | {res['n_iter']} | {'yes' if res['correct'] else 'no'} |\n"
+    )
+
+
+def scaling_text(rows_sweep, lib_sweep, devices, plot_name):
+    import torch
+
+    head = (
+        "| {} | device | median fit time | torch threads | RSS before the fits | "
+        "peak RSS | FISTA iterations | true structure |\n"
+        "|---|---|---|---|---|---|---|---|\n"
+    )
+    text = "\n## How the cost grows (case I, cart-pendulum)\n\n"
+    text += (
+        "Each row is a fresh process (`python -m benchmarks.speed --_measure ...`): "
+        "the "
+        "data are made, the library built and one small warm-up fit run, then the "
+        "median of the timed fits is reported. Rows are random states with exact "
+        "accelerations (see `random_rows`). Memory is the process's peak resident set "
+        "size from `resource.getrusage(RUSAGE_SELF).ru_maxrss` (psutil is not used; "
+        "tracemalloc does not see torch's allocations); it includes Python, torch and "
+        "the data, so compare it with the resident size measured just before the "
+        "fits (and with the process's peak up to then: imports, data and the "
+        "warm-up fit; when the final peak equals it, the timed fits did not raise "
+        "it).\n\n"
+    )
+    text += "### Against the number of samples (library of degree 3: 39 terms)\n\n"
+    text += head.format("rows")
+    text += "".join(_row(r, "n_rows") for r in rows_sweep)
+    lib_rows = lib_sweep[0]["n_rows"] if lib_sweep else 0
+    text += (
+        f"\n### Against the library size ({lib_rows} rows; cart polynomial "
+        "libraries of increasing degree)\n\n"
+    )
+    text += head.format("terms")
+    text += "".join(_row(r, "degree") for r in lib_sweep)
+    if "cuda" in devices:
+        text += (
+            "\n### GPU speed-up (CPU time / CUDA time)\n\n"
+            "| sweep | size | speed-up |\n|---|---|---|\n"
+        )
+        for name, sweep, key in (
+            ("rows", rows_sweep, "n_rows"),
+            ("terms", lib_sweep, "degree"),
+        ):
+            cpu = {
+                r[key]: r for r in sweep if r["device"] == "cpu" and "error" not in r
+            }
+            for r in sweep:
+                if r["device"] == "cuda" and "error" not in r and r[key] in cpu:
+                    text += (
+                        f"| {name} | "
+                        f"{r['n_rows'] if key == 'n_rows' else r['n_terms']} | "
+                        f"{cpu[r[key]]['time'] / r['time']:.2f}x |\n"
+                    )
+        text += f"\nGPU: {torch.cuda.get_device_name(0)}.\n"
+    else:
+        text += (
+            "\nGPU: no GPU (`torch.cuda.is_available()` is False), "
+            "so no CUDA timings.\n"
+        )
+    text += f"\n![fit time]({plot_name})\n"
+    return text
+
+
+def plot(rows_sweep, lib_sweep, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, sweep, key, label in (
+        (axes[0], rows_sweep, "n_rows", "rows (samples)"),
+        (axes[1], lib_sweep, "n_terms", "library terms"),
+    ):
+        for device in sorted({r["device"] for r in sweep}):
+            pts = [
+                (r[key], r["time"])
+                for r in sweep
+                if r["device"] == device and "error" not in r
+            ]
+            if pts:
+                xs, ys = zip(*pts)
+                ax.loglog(xs, ys, "o-", label=device)
+        ax.set_xlabel(label)
+        ax.set_ylabel("median fit time (s)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    axes[0].set_title("case I, cart-pendulum, 39 terms")
+    axes[1].set_title("case I, cart-pendulum")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument(
+        "--no-scaling",
+        action="store_true",
+        help="only the default cart-pendulum timing",
+    )
+    parser.add_argument("--_measure", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    n_traj = 10 if args.quick else 100
-    repeats = 2 if args.quick else args.repeats
+    if args._measure is not None:
+        print(json.dumps(measure(json.loads(args._measure))))
+        return
+    quick = args.quick or tiny()
+    n_traj = 3 if tiny() else 10 if quick else 100
+    repeats = 2 if quick else args.repeats
     system = cart_pendulum()
-    data = make_dataset(system, n_trajectories=n_traj, excitation="sincos", random_state=0)
+    data = make_dataset(
+        system, n_trajectories=n_traj, excitation="sincos", random_state=0
+    )
     library = system.paper_library()
     start = time.perf_counter()
     LagrangianSINDy(library).fit(data.X, data.tau)
     first = time.perf_counter() - start
     times, est = time_fits(data.X, data.tau, library, repeats)
     median = statistics.median(times)
-    text = header("Fit time: cart-pendulum, case I")
+    text = header("Fit time: cart-pendulum, case I", command("speed", argv))
     text += (
-        f"Data: {n_traj} trajectories x 500 samples ({data.X.shape[0]} rows), noise-free, "
+        f"Data: {n_traj} trajectories x 500 samples ({data.X.shape[0]} rows), "
+        "noise-free, "
         f"tau = a sin(wt) + b cos(wt) on the cart. Library: {len(library.candidates_)} "
         f"candidates ({len(library)} after removing trivial and dependent terms).\n\n"
         f"| quantity | value |\n|---|---|\n"
@@ -61,7 +322,13 @@ def main(argv=None):
         f"Target (core issue): under 1 s per fit: "
         f"{'met' if median < 1.0 else 'NOT met'}.\n"
     )
-    write("speed_quick.md" if args.quick else "speed.md", text)
+    if not args.no_scaling:
+        rows_sweep, lib_sweep, devices = scaling(quick)
+        plot_name = "speed_quick.png" if quick else "speed.png"
+        _common.RESULTS.mkdir(parents=True, exist_ok=True)
+        plot(rows_sweep, lib_sweep, _common.RESULTS / plot_name)
+        text += scaling_text(rows_sweep, lib_sweep, devices, plot_name)
+    write("speed_quick.md" if quick else "speed.md", text)
     print(text)
 
 

@@ -1,0 +1,236 @@
+"""The benchmark scripts run end to end (at tiny sizes) and their helpers are right.
+
+The scripts' full-size results are in ``benchmarks/results``; these tests only make
+sure the code paths cannot rot: each script's ``main`` runs with ``--quick`` and
+``LAGSINDY_BENCH_TINY=1`` (a few short trajectories) into a temporary results folder.
+"""
+
+import importlib.util
+import types
+
+import numpy as np
+import pytest
+
+import benchmarks._common as common
+from benchmarks import __main__ as runner
+from benchmarks import _evaluate, paper_tables
+from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
+
+
+@pytest.fixture
+def tiny_results(tmp_path, monkeypatch):
+    """Tiny sizes, and results written to a temporary folder instead of the repo's."""
+    monkeypatch.setenv("LAGSINDY_BENCH_TINY", "1")
+    monkeypatch.setattr(common, "RESULTS", tmp_path)
+    return tmp_path
+
+
+def _check_header(text):
+    assert "- command: `LAGSINDY_BENCH_TINY=1 python -m benchmarks." in text
+    assert "- date: " in text
+    assert "- machine: " in text and "torch threads" in text
+
+
+def test_runner_discovers_every_public_main():
+    found = runner.discover()
+    assert {"paper_tables", "sindy_pi", "speed"} <= set(found)
+    assert not any(name.startswith("_") for name in found)
+    assert all(callable(module.main) for module in found.values())
+
+
+def test_runner_passes_quick_and_reports_failures(monkeypatch, capsys):
+    calls = []
+
+    def ok_main(argv):
+        calls.append(("ok", list(argv), common.RUNNER_COMMAND))
+
+    def bad_main(argv):
+        calls.append(("bad", list(argv), common.RUNNER_COMMAND))
+        raise RuntimeError("boom")
+
+    fake = {
+        "aa": types.SimpleNamespace(main=ok_main, __doc__="A."),
+        "bb": types.SimpleNamespace(main=bad_main, __doc__="B."),
+    }
+    monkeypatch.setattr(runner, "discover", lambda: fake)
+    assert runner.main(["--quick"]) == 1
+    assert calls == [
+        ("ok", ["--quick"], "python -m benchmarks --quick aa"),
+        ("bad", ["--quick"], "python -m benchmarks --quick bb"),
+    ]
+    assert common.RUNNER_COMMAND is None
+    assert "FAILED: ['bb']" in capsys.readouterr().out
+    calls.clear()
+    assert runner.main(["aa"]) == 0
+    assert calls == [("ok", [], "python -m benchmarks aa")]
+    with pytest.raises(SystemExit):
+        runner.main(["nope"])
+
+
+def test_compare_structure_up_to_scale():
+    system = single_pendulum()
+    lib = system.paper_library().build()
+    true = system.true_coefficients(lib)
+    est = types.SimpleNamespace(
+        library_=lib, coef_=2.0 * true, term_names_=lib.get_feature_names_out()
+    )
+    res = _evaluate.compare_structure(system, est, up_to_scale=True)
+    assert (
+        res["correct"]
+        and res["coef_error"] < 1e-12
+        and res["scale"] == pytest.approx(2)
+    )
+    # Not up to scale, twice the Lagrangian is 100 % off.
+    res = _evaluate.compare_structure(system, est, up_to_scale=False)
+    assert res["correct"] and res["coef_error"] == pytest.approx(1.0)
+    coef = true.copy()
+    coef[lib.index("theta**2")] = 0.1
+    coef[lib.index("cos(theta)")] = 0.0
+    est.coef_ = coef
+    res = _evaluate.compare_structure(system, est, up_to_scale=True)
+    assert not res["correct"]
+    assert res["extra"] == ["theta**2"] and res["missing"] == ["cos(theta)"]
+
+
+def test_paper_entries_parse_and_mark_their_extra_terms():
+    for table in (paper_tables.PAPER_TABLE_I, paper_tables.PAPER_TABLE_II):
+        for name, rows in table.items():
+            assert sorted(rows) == sorted(_evaluate.NOISE_LEVELS)
+    from lagsindy.systems import PAPER_SYSTEMS
+
+    single = PAPER_SYSTEMS["single_pendulum"]()
+    res = paper_tables.paper_structure(
+        single, paper_tables.PAPER_TABLE_II["single_pendulum"][1e-1]
+    )
+    assert res["extra"] == sorted(["theta_dot*sin(theta)", "sin(theta)**2", "theta**2"])
+    assert paper_tables.paper_structure(
+        single, paper_tables.PAPER_TABLE_II["single_pendulum"][6e-2]
+    )["correct"]
+    sph = PAPER_SYSTEMS["spherical_pendulum"]()
+    res = paper_tables.paper_structure(
+        sph, paper_tables.PAPER_TABLE_II["spherical_pendulum"][1e-1]
+    )
+    # sin(2 theta) is 2 sin cos after expansion.
+    assert "phi_dot**2*sin(theta)*cos(theta)" in res["extra"]
+
+
+def test_paper_tables_tiny(tiny_results):
+    paper_tables.main(["--quick", "--systems", "cart_pendulum"])
+    text = (tiny_results / "paper_tables_quick.md").read_text()
+    _check_header(text)
+    assert "### cart-pendulum" in text
+    assert "automatic fixed-term search" in text
+    # The paper's entry is shown beside ours.
+    assert paper_tables.PAPER_TABLE_I["cart_pendulum"][2e-2] in text
+    assert not (tiny_results / "paper_tables.md").exists()
+
+
+needs_pysindy = pytest.mark.skipif(
+    importlib.util.find_spec("pysindy") is None
+    or importlib.util.find_spec("cvxpy") is None,
+    reason="pysindy[cvxpy] not installed (pip install -e .[bench])",
+)
+
+
+@needs_pysindy
+def test_sindy_pi_structure_criterion():
+    from benchmarks import sindy_pi
+
+    system = cart_pendulum()
+    terms, acc, symbols = sindy_pi.sindy_pi_library(system)
+    assert len(terms) == 60 and sum(a >= 0 for a in acc) == 10
+    names = [str(t) for t in terms]
+    data = make_dataset(
+        system, n_trajectories=3, duration=2.0, excitation=None, random_state=0
+    )
+
+    def equation(pairs):
+        e = np.zeros(len(terms))
+        for name, value in pairs.items():
+            e[names.index(name)] = value
+        return e
+
+    x_eq = {
+        "x_ddot": 1.0,
+        "theta_ddot*cos(theta)": 1 / 3,
+        "theta_dot**2*sin(theta)": -1 / 3,
+    }
+    th_eq = {"theta_ddot": 1.0, "x_ddot*cos(theta)": 1.0, "sin(theta)": 9.81}
+    good = sindy_pi.SINDyPIResult(
+        terms,
+        acc,
+        symbols,
+        [
+            (names.index("x_ddot"), equation(x_eq)),
+            (names.index("theta_ddot"), equation(th_eq)),
+        ],
+        0.0,
+        1.0,
+    )
+    assert sindy_pi.sindy_pi_structure(good, system, data.X_clean)["correct"]
+    # The true model integrates like the truth.
+    x0 = system.sample_initial_states(2, random_state=1)
+    t = np.linspace(0, 1, 51)
+    states = sindy_pi.simulate_sindy_pi(good, system, x0, t)
+    assert sindy_pi.rmse_q(system.simulate(x0, t), states, 2) < 1e-6
+    # An extra term, or a missing one, is not the correct structure.
+    extra = sindy_pi.SINDyPIResult(
+        terms,
+        acc,
+        symbols,
+        [(names.index("x_ddot"), equation({**x_eq, "x": 0.01})), good.equations[1]],
+        0.0,
+        1.0,
+    )
+    res = sindy_pi.sindy_pi_structure(extra, system, data.X_clean)
+    assert not res["correct"] and "superfluous" in res["detail"][0]
+    missing = dict(th_eq)
+    del missing["sin(theta)"]
+    bad = sindy_pi.SINDyPIResult(
+        terms,
+        acc,
+        symbols,
+        [good.equations[0], (names.index("theta_ddot"), equation(missing))],
+        0.0,
+        1.0,
+    )
+    res = sindy_pi.sindy_pi_structure(bad, system, data.X_clean)
+    assert not res["correct"] and "missing" in res["detail"][0]
+
+
+@needs_pysindy
+def test_sindy_pi_tiny(tiny_results):
+    from benchmarks import sindy_pi
+
+    sindy_pi.main(["--quick", "--systems", "cart_pendulum"])
+    text = (tiny_results / "vs_sindy_pi_quick.md").read_text()
+    _check_header(text)
+    assert "## Robustness ratio" in text and "| cart pendulum |" in text
+    assert text.count("| 0.02 | SINDy-PI |") == 1
+
+
+def test_speed_default_section_and_one_measurement(tiny_results):
+    from benchmarks import speed
+
+    speed.main(["--quick", "--no-scaling"])
+    text = (tiny_results / "speed_quick.md").read_text()
+    _check_header(text)
+    assert "median fit time" in text and "How the cost grows" not in text
+    res = speed.measure({"n_rows": 1000, "degree": 3, "device": "cpu", "repeats": 1})
+    assert res["n_terms"] == 39 and res["correct"]
+    assert res["time"] > 0 and res["threads"] >= 1
+    assert res["peak_rss_mib"] >= res["rss_before_mib"] > 0
+
+
+@pytest.mark.slow
+def test_speed_tiny(tiny_results):
+    """The whole script, scaling study in subprocesses included (about a minute)."""
+    from benchmarks import speed
+
+    speed.main(["--quick"])
+    text = (tiny_results / "speed_quick.md").read_text()
+    _check_header(text)
+    assert "median fit time" in text
+    assert "Against the number of samples" in text and "| 1000 | cpu |" in text
+    assert "error:" not in text
+    assert (tiny_results / "speed_quick.png").stat().st_size > 1000
