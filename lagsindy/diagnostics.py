@@ -534,16 +534,16 @@ def _heldout_error(est, X, tau, groups, folds):
     n = est.n_dof_
     num = den = 0.0
     for test in folds:
-        train = np.setdiff1d(np.arange(X.shape[0]), test)
+        train = np.setdiff1d(np.arange(len(X)), test)
         model = clone(est)
         if est.case_ == "fixed":
             model.set_params(fixed_term=est.fixed_term_)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            model.fit(X[train], None if tau is None else tau[train],
+            model.fit(_take(X, train), None if tau is None else tau[train],
                       groups=None if groups is None else groups[train])
-            pred = model.predict_acceleration(X[test], None if tau is None else tau[test])
-        true = X[test, 2 * n : 3 * n]
+            pred = model.predict_acceleration(_take(X, test), None if tau is None else tau[test])
+        true = np.asarray(X)[test, 2 * n : 3 * n]
         num += float(np.sum((np.asarray(pred) - true) ** 2))
         den += float(np.sum((true - true.mean(axis=0)) ** 2))
     return float(np.sqrt(num / max(den, 1e-300)))
@@ -560,9 +560,13 @@ def _force_scale(est, Xt):
     return np.sqrt(np.mean(to_numpy(size) ** 2, axis=0))
 
 
+def _take(X, rows):
+    return X.iloc[rows] if isinstance(X, pd.DataFrame) else X[rows]
+
+
 def _residual(est, X, tau):
     """Euler-Lagrange (force) residual per sample: tau - Theta c (or -Theta c)."""
-    pred = np.asarray(est.predict(X), dtype=float).reshape(X.shape[0], -1)
+    pred = np.asarray(est.predict(X), dtype=float).reshape(len(X), -1)
     return (np.zeros_like(pred) if tau is None else tau) - pred
 
 
@@ -660,11 +664,15 @@ def diagnose(
         angles = est.coordinates_ if lib_angles == "all" else list(lib_angles or [])
     folds = _folds(Xa.shape[0], groups, n_splits)
     Xt = to_tensor(Xa, dtype=torch.float64, device="cpu")
+    # Refits and predictions see X as the estimator was fitted on it (named columns
+    # for a DataFrame-fitted model), so scikit-learn's feature-name checks hold.
+    names = getattr(est, "feature_names_in_", None)
+    Xf = Xa if names is None else pd.DataFrame(Xa, columns=list(names))
     passive = tau_a is None
 
-    before_residual = _residual(est, Xa, tau_a)
+    before_residual = _residual(est, Xf, tau_a)
     force_scale = _force_scale(est, Xt)
-    before_err = _heldout_error(est, Xa, tau_a, groups, folds)
+    before_err = _heldout_error(est, Xf, tau_a, groups, folds)
     if verbose:
         print(f"[lagsindy] before: held-out acceleration error {before_err:.3g}")
 
@@ -696,8 +704,8 @@ def diagnose(
         else:
             trial_effects.append(best)
         tau_now = _adjusted_tau(tau_a, trial_gains)
-        trial = _refit(est, trial_effects, Xa, tau_now, groups)
-        err = _heldout_error(trial, Xa, tau_now, groups, folds)
+        trial = _refit(est, trial_effects, Xf, tau_now, groups)
+        err = _heldout_error(trial, Xf, tau_now, groups, folds)
         previous = steps[-1].heldout_error if steps else before_err
         if not err < (1 - min_improvement) * previous:
             # It explains residual but does not predict held-out motion better: noise.
@@ -709,7 +717,7 @@ def diagnose(
             break
         current, gains, effects = trial, trial_gains, trial_effects
         coefficient = _effect_coefficient(current, best, gains)
-        residual = _residual(current, Xa, tau_now)
+        residual = _residual(current, Xf, tau_now)
         residuals.append(residual)
         steps.append(Step(
             candidate=best,

@@ -72,7 +72,8 @@ def test_missing_conservative_term():
     system.__dict__.pop("_compiled", None)
     lib = CandidateLibrary.from_terms(
         ["x", "theta"],
-        ["x_dot**2", "theta_dot**2", "x_dot*theta_dot*cos(theta)", "cos(theta)", "x_dot*x"],
+        ["x_dot**2", "theta_dot**2", "x_dot*theta_dot*cos(theta)", "cos(theta)",
+         "theta_dot**2*cos(theta)", "x_dot**2*cos(theta)"],
     )
     report, _ = _fit_and_diagnose(system, library=lib)
     assert report.effects[0] == "x**2"

@@ -106,7 +106,7 @@ def test_converged_fit_does_not_warn(pend, library):
 # ----------------------------------------------------------------- empty support
 @pytest.fixture(scope="module")
 def empty(pend, library):
-    with pytest.warns(UserWarning, match="every term was thresholded away"):
+    with pytest.warns(UserWarning, match="every Lagrangian term was thresholded away"):
         return LagrangianSINDy(library, lam=10.0, max_stages=1, debias=False).fit(
             pend.X, pend.tau
         )
