@@ -101,7 +101,9 @@ def measure(spec):
         if device == "cuda":
             torch.cuda.synchronize()
         times.append(time.perf_counter() - start)
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux
+    # KiB on Linux. The kernel updates ru_maxrss lazily, so it can trail the current
+    # size read from /proc by a few pages: the peak is at least either reading.
+    peak = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, rss_before, _rss_kib())
     return {
         **spec,
         "n_terms": len(library),

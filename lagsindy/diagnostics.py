@@ -498,11 +498,16 @@ def _refit(est, effects, X, tau, groups):
         unpenalized += [c.name for c in diss]
     new.set_params(library=library, unpenalized=unpenalized or None)
     if est.case_ == "fixed":
-        new.set_params(fixed_term=est.fixed_term_)
+        new.set_params(fixed_term=_normalization(est))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         new.fit(X, tau, groups=groups)
     return new
+
+
+def _normalization(est):
+    """The case III scale the fitted estimator chose, to keep it in refits."""
+    return "mass" if getattr(est, "normalization_", None) == "mass" else est.fixed_term_
 
 
 def _eps(cands):
@@ -537,7 +542,7 @@ def _heldout_error(est, X, tau, groups, folds):
         train = np.setdiff1d(np.arange(len(X)), test)
         model = clone(est)
         if est.case_ == "fixed":
-            model.set_params(fixed_term=est.fixed_term_)
+            model.set_params(fixed_term=_normalization(est))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             model.fit(_take(X, train), None if tau is None else tau[train],

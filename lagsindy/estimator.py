@@ -32,7 +32,13 @@ from .euler_lagrange import (
     trajectory_segments,
 )
 from .library import CandidateLibrary
-from .solvers import AccelerationDatafit, BalancedGram, staged_fista, warn_not_converged
+from .solvers import (
+    AccelerationDatafit,
+    BalancedGram,
+    GramQuadratic,
+    staged_fista,
+    warn_not_converged,
+)
 
 _CASES = {"auto", "forces", "fixed", "acceleration"}
 # Eigenvalue ratio of the scaled Gram matrix below which a combination of terms is
@@ -45,6 +51,9 @@ class IdentifiabilityWarning(UserWarning):
 # Rows used to rank the candidate fixed terms of case III (a random subsample).
 _SELECTION_ROWS = 4000
 _SELECTION_TOP = 12
+# Candidate models within this factor of the best unexplained acceleration variance
+# count as ties, resolved towards the sparsest.
+_SELECTION_TIE = 1.1
 # Rows used by case II (each iteration costs O(rows * terms * n_dof^2)).
 _CASE_II_ROWS = 20_000
 
@@ -118,9 +127,15 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         :math:`\|y - \Theta w\|^2 / \|y\|^2` is at most ``tol``.
     solver_tol : float, default=1e-7
         KKT tolerance of each FISTA stage (scaled problem).
-    fixed_term : str or sympy.Expr, default=None
-        Case III: a term known to be in the Lagrangian, whose coefficient is fixed to 1
-        (e.g. ``"theta_dot**2"``).
+    fixed_term : str, sympy.Expr, "mass" or None, default=None
+        How passive data (case III) fix the Lagrangian's arbitrary scale. A term
+        known to be in the Lagrangian (e.g. ``"theta_dot**2"``): its coefficient is
+        fixed to 1, as in the paper. ``"mass"``: the data mean of the trace of the
+        learned mass matrix is fixed instead (one convex problem, no prior
+        knowledge; it cannot collapse to a Lagrangian that vanishes where the data
+        lie, which fixing one coefficient can). ``None``: try the mass normalization
+        and every candidate term, keep the model that best predicts the measured
+        accelerations (``fixed_term_``, ``normalization_``).
     unpenalized : list of str, default=None
         Terms known to be present (Lagrangian terms, or dissipation names such as
         ``"viscous(theta)"``): they are not shrunk and never thresholded.
@@ -183,6 +198,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
     n_dof_ : int
     term_names_ : ndarray of str
     fixed_term_ : str or None
+        The term whose coefficient is 1 in the reported scale (passive data).
+    normalization_ : {"term", "mass"} or None
+        How the scale was fixed in case III.
     case_ : str
         ``"forces"`` (I), ``"fixed"`` (III) or ``"acceleration"`` (II).
     n_iter_ : int
@@ -429,7 +447,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                     f"{why}: drop fixed_term (unpenalized=[...] keeps a known term "
                     "without fixing its value)."
                 )
-            self._term_index(library, "fixed_term", self.fixed_term)
+            if not (isinstance(self.fixed_term, str) and self.fixed_term == "mass"):
+                self._term_index(library, "fixed_term", self.fixed_term)
         for term in self.unpenalized if self.unpenalized is not None else []:
             try:
                 self._feature_index(term)
@@ -504,7 +523,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         )
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
-        self.dt_, self.noise_cov_ = None, None
+        self.dt_, self.noise_cov_, self.normalization_ = None, None, None
         if self.formulation == "weak":
             if case == "acceleration":
                 raise ValueError(
@@ -750,52 +769,176 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         return coef, result
 
     def _fit_fixed(self, balanced, identifiable, penalty, Xt):
+        """Case III: fix the scale, by one known term or by the mass matrix, and fit.
+
+        Returns the coefficients, the solver result and the index of the term whose
+        coefficient is 1 in the returned scale; sets ``normalization_``.
+        """
         library = self.library_
         n_terms = len(library.terms_)
-        if self.fixed_term is not None:
+        with_mass = self.fixed_term is None or (
+            isinstance(self.fixed_term, str) and self.fixed_term == "mass"
+        )
+        if self.fixed_term is not None and not with_mass:
             candidates = [library.index(self.fixed_term)]
             if not identifiable[candidates[0]]:
                 raise ValueError(
                     f"the fixed term {self.fixed_term!r} has a zero Euler-Lagrange column "
                     "on this data, so it cannot set the scale; choose another term"
                 )
-        else:
+        elif self.fixed_term is None:
             candidates = [k for k in np.flatnonzero(identifiable) if k < n_terms]
+        else:
+            candidates = []
         fits = []
+        single = len(candidates) + int(with_mass) == 1
+        if with_mass:
+            with warnings.catch_warnings():
+                if not single:
+                    warnings.simplefilter("ignore")
+                coef, result, r = self._solve_mass(
+                    balanced, identifiable, penalty, Xt, self.verbose if single else 0
+                )
+            fits.append(("mass", r, coef, result))
         for r in candidates:
             free = np.array([k for k in np.flatnonzero(identifiable) if k != r])
-            verbose = self.verbose if len(candidates) == 1 else 0
             with warnings.catch_warnings():
                 # Warnings of candidates that lose are noise; the winner's are re-raised.
-                warnings.simplefilter("ignore")
-                coef, result = self._solve(balanced, free, r, -1.0, penalty, 1.0, verbose)
+                if not single:
+                    warnings.simplefilter("ignore")
+                coef, result = self._solve(
+                    balanced, free, r, -1.0, penalty, 1.0, self.verbose if single else 0
+                )
             coef[r] = 1.0
-            fits.append((r, coef, result))
-        if len(fits) == 1:
-            return fits[0][1], fits[0][2], fits[0][0]
-        # Rank by relative residual, then score the best few on accelerations.
-        fits.sort(key=lambda f: f[2].cost)
-        shortlist = fits[:_SELECTION_TOP]
+            fits.append(("term", r, coef, result))
+        if single:
+            kind, r, coef, result = fits[0]
+            self.normalization_ = kind
+            return coef, result, r
+        # Rank the term candidates by relative residual, then score the best few (and
+        # the mass normalization) on accelerations.
+        term_fits = sorted((f for f in fits if f[0] == "term"), key=lambda f: f[3].cost)
+        shortlist = [f for f in fits if f[0] == "mass"] + term_fits[:_SELECTION_TOP]
         rows = self._subsample_rows(Xt.shape[0], _SELECTION_ROWS)
         Xs = Xt[torch.as_tensor(rows, device=Xt.device)]
-        best, best_score = None, -np.inf
-        for r, coef, result in shortlist:
+        scored = []
+        for kind, r, coef, result in shortlist:
             score = self._acceleration_r2(coef, Xs, None)
             if self.verbose:
+                label = "mass normalization" if kind == "mass" else f"fixed term {library.terms_[r]}"
                 print(
-                    f"[lagsindy] fixed term {library.terms_[r]}: {int((coef != 0).sum())} "
-                    f"terms, relative residual {result.cost:.3g}, acceleration R2 {score:.4f}"
+                    f"[lagsindy] {label}: {int((coef != 0).sum())} terms, relative "
+                    f"residual {result.cost:.3g}, acceleration R2 {score:.4f}"
                 )
-            # Prefer the higher score; among (near) ties the sparser model, then the
-            # earlier library term, so that rounding (e.g. the order of the rows)
-            # cannot pick between equivalent models.
-            if best is None or score > best_score + 1e-9 or (
-                abs(score - best_score) <= 1e-9
-                and ((coef != 0).sum(), r) < ((best[1] != 0).sum(), best[0])
-            ):
-                best, best_score = (r, coef, result), score
-        r, coef, result = best
+            scored.append((score if np.isfinite(score) else -np.inf, kind, r, coef, result))
+        # Models whose unexplained acceleration variance is within 10 % of the best are
+        # equally good (with noise, extra terms buy a little in-sample R^2): take the
+        # sparsest of them, then the mass normalization, then the earlier library term,
+        # so that rounding (e.g. the order of the rows) cannot pick between them.
+        top = max(s_[0] for s_ in scored)
+        near = [s_ for s_ in scored if 1 - s_[0] <= _SELECTION_TIE * (1 - top) + 1e-9]
+        _, kind, r, coef, result = min(
+            near, key=lambda s_: (int((s_[3] != 0).sum()), -1 if s_[1] == "mass" else s_[2])
+        )
+        best = (kind, r, coef, result)
+        kind, r, coef, result = best
+        self.normalization_ = kind
         return coef, result, r
+
+    def _mass_traces(self, Xt, n_features):
+        """Mean over (a subsample of) the data of tr(M_k) for every feature."""
+        rows = self._subsample_rows(Xt.shape[0], _SELECTION_ROWS)
+        Xs = Xt[torch.as_tensor(rows, device=Xt.device)]
+        d = self.n_dof_
+        op = EulerLagrangeOperator(self.coordinates_, self.library_.terms_,
+                                   dtype=Xt.dtype, device=Xt.device)
+        mass = op.mass_matrices(Xs[:, :d], Xs[:, d : 2 * d])
+        traces = np.zeros(n_features)
+        traces[: op.n_terms] = to_numpy(torch.diagonal(mass, dim1=2, dim2=3).sum(2).mean(0))
+        return traces
+
+    def _solve_mass(self, balanced, identifiable, penalty, Xt, verbose):
+        r"""Case III with the scale fixed by the mass matrix: mean tr(M(c)) = 1.
+
+        Passive data fix the Lagrangian only up to a factor. Fixing one coefficient
+        to 1 lets a combination of other terms cancel it where the data lie (on a
+        pendulum swinging by +-1 rad, ``theta_dot**2 * (1 - cos(theta) -
+        sin(theta)**2 / 2)`` nearly vanishes), giving a Lagrangian that is almost zero
+        on the data and fits the residual trivially. Fixing instead the data mean of
+        the trace of the learned mass matrix, :math:`\sum_k c_k \overline{\mathrm{tr}
+        M_k} = 1` (scaled units), rules such models out. The constraint is eliminated
+        through a pivot term (the largest contributor to the trace, found in two
+        passes), and the sparse problem is solved as in case III.
+        """
+        n_features = balanced.n_features
+        traces = self._mass_traces(Xt, n_features)
+        free = np.flatnonzero(identifiable)
+        scale = to_numpy(balanced.col_scale)
+        t_scaled = np.where(scale > 0, traces / np.where(scale > 0, scale, 1.0), 0.0)
+        if not np.any(t_scaled[free] != 0):
+            raise ValueError(
+                "no candidate term has a kinetic (velocity-squared) part on this data, "
+                "so the mass matrix cannot fix the scale; give a fixed_term"
+            )
+        pivot = int(free[np.argmax(np.abs(t_scaled[free]))])
+        for _ in range(3):
+            coef, result = self._solve_pivot(balanced, free, pivot, t_scaled, penalty, verbose)
+            share = np.abs(traces * coef)
+            new = int(np.argmax(share))
+            if new == pivot:
+                break
+            pivot = new
+        # Report in the scale where the largest kinetic contributor has coefficient 1.
+        coef = coef / coef[pivot]
+        for st in result.stages:
+            if st.coef[pivot] != 0:
+                st.coef = st.coef / st.coef[pivot]
+        return coef, result, pivot
+
+    def _solve_pivot(self, balanced, free, pivot, t_scaled, penalty, verbose):
+        """Minimise the EL residual subject to sum_k t_k w_k = 1, pivot eliminated."""
+        dtype, device = balanced.gram.dtype, balanced.gram.device
+        f = np.asarray(free)
+        j = int(np.flatnonzero(f == pivot)[0])
+        others = np.delete(np.arange(len(f)), j)
+        s = balanced.col_scale[torch.as_tensor(f, device=device)]
+        s = torch.where(s > 0, s, torch.ones_like(s))
+        idx = torch.as_tensor(f, device=device)
+        g = balanced.gram[idx][:, idx] / (s[:, None] * s[None, :])
+        t = torch.as_tensor(t_scaled[f], dtype=dtype, device=device)
+        # w = T u + y0 with u the other coefficients: the constraint holds for any u.
+        T = torch.eye(len(f), dtype=dtype, device=device)[:, torch.as_tensor(others, device=device)]
+        T[j, :] = -t[torch.as_tensor(others, device=device)] / t[j]
+        y0 = torch.zeros(len(f), dtype=dtype, device=device)
+        y0[j] = 1.0 / t[j]
+        gq = T.T @ g @ T
+        bq = -(T.T @ g @ y0)
+        c0 = float(y0 @ g @ y0)
+        if c0 <= 0:
+            raise ValueError("the pivot term's Euler-Lagrange column is zero on the data")
+        dq = torch.sqrt(torch.clamp(torch.diagonal(gq), min=0))
+        dq = torch.where(dq > 0, dq, torch.ones_like(dq))
+        datafit = GramQuadratic(gq / (dq[:, None] * dq[None, :]), bq / (dq * c0**0.5), 1.0)
+        weights = torch.as_tensor(penalty[f[others]], dtype=dtype, device=device)
+        result = staged_fista(
+            datafit, lam=self.lam, penalty_weights=weights,
+            threshold=torch.as_tensor(self._thresholds(f[others]), dtype=dtype, device=device),
+            reference=1.0, lam_decay=self.lam_decay, step_growth=self.step_growth,
+            alpha=self.alpha, max_stages=self.max_stages, max_iter=self.max_iter,
+            tol=self.tol, solver_tol=self.solver_tol, debias=self.debias, verbose=verbose,
+        )
+
+        def to_coef(u_scaled):
+            w = T @ (u_scaled * c0**0.5 / dq) + y0
+            full = np.zeros(balanced.n_features)
+            full[f] = to_numpy(w / s)
+            return full
+
+        coef = to_coef(result.coef)
+        for st in result.stages:
+            st.coef = to_coef(torch.as_tensor(st.coef, dtype=dtype, device=device))
+            st.support = np.concatenate([[pivot], f[others][st.support]])
+        return coef, result
 
     def _subsample_rows(self, n, size):
         """Sorted row indices of a subsample of at most ``size`` of ``n`` rows.

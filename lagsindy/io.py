@@ -27,8 +27,13 @@ Document layout (``schema_version`` 1)::
       "tau_1d": false,                       # true: fit with a 1-D tau
       "n_iter": 812,
       "residual": 2.1e-05,
-      "dissipation": []                      # see below
+      "dissipation": [],                     # see below
+      "normalization": null                  # case III: "term" or "mass"
     }
+
+``normalization`` (optional, added in 0.1.0) says how a case III fit fixed the
+Lagrangian's scale: by the coefficient of ``fixed_term`` or by the mean trace of
+the mass matrix (``fixed_term`` is then the term whose coefficient is 1).
 
 ``dissipation`` lists the candidate non-conservative terms of the fit (see
 :mod:`lagsindy.dissipation`), each ``{"name": "viscous(theta)", "kind": "viscous",
@@ -90,7 +95,11 @@ _FIELDS = {
     "n_iter": ((int,), "an integer"),
     "residual": ((int, float, type(None)), "a number or null"),
     "dissipation": ((list,), "a list of objects"),
+    "normalization": ((str, type(None)), "a string or null"),
 }
+#: Fields added after schema version 1 was published: absent in older files.
+_OPTIONAL = {"normalization": None}
+_NORMALIZATIONS = ("term", "mass")
 _CASES = ("forces", "fixed", "acceleration")
 
 
@@ -222,6 +231,7 @@ def model_to_dict(est) -> dict:
         "n_iter": int(getattr(est, "n_iter_", 0)),
         "residual": residual,
         "dissipation": dissipation,
+        "normalization": getattr(est, "normalization_", None),
     }
 
 
@@ -276,6 +286,8 @@ def _is_number(value) -> bool:
 
 
 def _check_field(doc, name):
+    if name not in doc and name in _OPTIONAL:
+        return _OPTIONAL[name]
     if name not in doc:
         raise ValueError(f"the model file lacks the field {name!r}")
     types, desc = _FIELDS[name]
@@ -462,7 +474,16 @@ def model_from_dict(doc: dict):
         if text not in named:  # a dissipation name, or else a term
             _parse(text, allowed, "term")
     hyper = _hyperparameters(values["hyperparameters"])
-    for text in [hyper.get("fixed_term")] + list(hyper.get("unpenalized") or []):
+    normalization = values["normalization"]
+    if normalization is not None and normalization not in _NORMALIZATIONS:
+        raise ValueError(
+            f"field 'normalization' of the model file must be one of {_NORMALIZATIONS} "
+            f"or null, got {normalization[:40]!r}"
+        )
+    fixed_hyper = hyper.get("fixed_term")
+    for text in [fixed_hyper] + list(hyper.get("unpenalized") or []):
+        if text == "mass" and text is fixed_hyper:
+            continue
         if isinstance(text, str) and text not in named:
             _parse(text, allowed, "hyperparameter term")
 
@@ -517,6 +538,7 @@ def model_from_dict(doc: dict):
     est.fixed_term_ = (
         None if fixed is None else str(fitted.terms_[_index(fitted, fixed)])
     )
+    est.normalization_ = normalization if case == "fixed" else None
     for text in unpenalized:
         if text not in {t.name for t in dissipation_terms}:
             _index(fitted, text)

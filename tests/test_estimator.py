@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -72,6 +74,33 @@ def test_case_III_chooses_fixed_term_automatically():
     for term, value in want.items():
         assert learned[term] / scale == pytest.approx(value, rel=1e-3)
     assert est.score(data.X) > 0.9999
+
+
+def test_mass_normalization_avoids_the_near_null_lagrangian():
+    """Fixing theta_dot**2 = 1 lets theta_dot**2 * (cos, sin**2, theta**2) cancel it.
+
+    With noisy passive data the fixed-term fit then prefers a Lagrangian that nearly
+    vanishes on the data; fixing the mean trace of the mass matrix rules it out.
+    """
+    data = make_dataset(single_pendulum(), n_trajectories=10, excitation=None, noise=0.05,
+                        random_state=0)
+    terms = ["theta_dot**2", "theta_dot**2*cos(theta)", "theta_dot**2*sin(theta)**2",
+             "cos(theta)", "theta_dot**2*theta**2", "theta_dot**2*cos(theta)**2"]
+    lib = CandidateLibrary.from_terms(["theta"], terms)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pinned = LagrangianSINDy(lib, fixed_term="theta_dot**2").fit(data.X)
+    mass = LagrangianSINDy(lib, fixed_term="mass").fit(data.X)
+    learned = _learned(mass)
+    assert mass.normalization_ == "mass" and mass.fixed_term_ == "theta_dot**2"
+    assert set(learned) == {"theta_dot**2", "cos(theta)"}
+    assert learned["theta_dot**2"] == 1.0
+    assert learned["cos(theta)"] == pytest.approx(19.62, rel=0.02)
+    assert mass.score(data.X) > 0.99 > pinned.score(data.X)
+    # The automatic search considers the mass normalization too and picks it here.
+    auto = LagrangianSINDy(lib).fit(data.X)
+    assert auto.normalization_ == "mass"
+    np.testing.assert_allclose(auto.coef_, mass.coef_)
 
 
 def test_spherical_passive_needs_the_right_fixed_term():
