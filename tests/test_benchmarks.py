@@ -234,3 +234,30 @@ def test_speed_tiny(tiny_results):
     assert "Against the number of samples" in text and "| 1000 | cpu |" in text
     assert "error:" not in text
     assert (tiny_results / "speed_quick.png").stat().st_size > 1000
+
+
+def _has_multiarm():
+    from lagsindy.io import find_multiarm_pendulum
+
+    try:
+        find_multiarm_pendulum()
+    except FileNotFoundError:
+        return False
+    return True
+
+
+@pytest.mark.skipif(not _has_multiarm(), reason="MultiArm-Pendulum data not found")
+def test_measured_tiny(tiny_results):
+    from benchmarks import measured
+
+    measured.main(["--quick"])
+    text = (tiny_results / "measured_quick.md").read_text()
+    _check_header(text)
+    assert "## Single pendulum" in text and "authors' model" in text
+    # The recovered pendulum ratio is within 1 % of the authors' 2 m g a / J.
+    _, truth = measured.authors_model("single")
+    row = next(line for line in text.splitlines() if line.startswith("| `cos(phi)` |"))
+    learned = float(row.split("|")[3])
+    assert learned == pytest.approx(truth["cos(phi)"], rel=0.01)
+    assert (tiny_results / "measured_single_rollout_quick.png").stat().st_size > 1000
+    assert (tiny_results / "measured_single_diagnosis_quick.png").stat().st_size > 1000
