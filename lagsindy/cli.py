@@ -639,7 +639,8 @@ def _add_fit_options(p, *, required):
         "--fixed-term",
         default=None,
         help="passive data: the term whose coefficient is fixed to 1, e.g. "
-        "theta_dot**2 (default: try every term)",
+        "theta_dot**2, or 'mass' to fix the mean trace of the mass matrix "
+        "(default: try both and every term)",
     )
     p.add_argument("--unpenalized", default="", help="terms known to be present")
     p.add_argument(
