@@ -261,3 +261,13 @@ def test_measured_tiny(tiny_results):
     assert learned == pytest.approx(truth["cos(phi)"], rel=0.01)
     assert (tiny_results / "measured_single_rollout_quick.png").stat().st_size > 1000
     assert (tiny_results / "measured_single_diagnosis_quick.png").stat().st_size > 1000
+
+
+def test_case2_tiny(tiny_results):
+    from benchmarks import case2
+
+    case2.main(["--quick"])
+    text = (tiny_results / "case2_quick.md").read_text()
+    _check_header(text)
+    row = next(line for line in text.splitlines() if line.startswith("| single pendulum"))
+    assert "| yes |" in row  # noise-free single pendulum: case II finds the structure
