@@ -40,7 +40,8 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from ._common import RESULTS, header, write
+from . import _common
+from ._common import header, write
 
 G_NOTE = "g as fitted by the authors"
 
@@ -68,7 +69,9 @@ def authors_parameters(which: str) -> dict:
     from lagsindy.io import find_multiarm_pendulum
 
     name = "Single" if which == "single" else "Double"
-    values = loadmat(find_multiarm_pendulum() / f"EstimatedParameters_{name}Pendulum.mat")
+    values = loadmat(
+        find_multiarm_pendulum() / f"EstimatedParameters_{name}Pendulum.mat"
+    )
     values = np.asarray(values["EstimatedParameters"], dtype=float).ravel()
     keys = (
         ["a1", "m1", "I1", "k1", "g"]
@@ -96,8 +99,11 @@ def authors_model(which: str):
         s = 2.0 / J
         lag = phid**2 + s * p["m1"] * p["g"] * p["a1"] * sp.cos(phi)
         diss = s * p["k1"] * phid**2 / 2
-        ratios = {"phi_dot**2": 1.0, "cos(phi)": s * p["m1"] * p["g"] * p["a1"],
-                  "viscous(phi)": s * p["k1"]}
+        ratios = {
+            "phi_dot**2": 1.0,
+            "cos(phi)": s * p["m1"] * p["g"] * p["a1"],
+            "viscous(phi)": s * p["k1"],
+        }
         return MechanicalModel(lag, ["phi"], dissipation=diss, name="authors"), ratios
     p1, p2, d1, d2 = sp.symbols("phi1 phi2 phi1_dot phi2_dot")
     J1 = p["I1"] + p["m1"] * p["a1"] ** 2 + p["m2"] * p["L1"] ** 2
@@ -113,9 +119,11 @@ def authors_model(which: str):
         "cos(phi2)": s * p["m2"] * p["a2"] * p["g"],
     }
     lag = (
-        d1**2 + ratios["phi2_dot**2"] * d2**2
+        d1**2
+        + ratios["phi2_dot**2"] * d2**2
         + s * c12 * d1 * d2 * sp.cos(p1 - p2)
-        + ratios["cos(phi1)"] * sp.cos(p1) + ratios["cos(phi2)"] * sp.cos(p2)
+        + ratios["cos(phi1)"] * sp.cos(p1)
+        + ratios["cos(phi2)"] * sp.cos(p2)
     )
     diss = s * (p["k1"] * d1**2 + p["k2"] * (d2 - d1) ** 2) / 2
     ratios["viscous(phi1)"] = s * p["k1"]
@@ -184,21 +192,30 @@ def sampling_sensitivity(which, library, steps, truth) -> str:
     """The conservative fit at several thinnings of the 1 kHz record, both formulations."""
     from lagsindy import LagrangianSINDy
 
-    rows = ["| sampling | formulation | terms | normalization | authors' terms found "
-            "| validation R^2 | fit time |", "|---|---|---|---|---|---|---|"]
+    rows = [
+        "| sampling | formulation | terms | normalization | authors' terms found "
+        "| validation R^2 | fit time |",
+        "|---|---|---|---|---|---|---|",
+    ]
     physical = {k for k in truth if not k.startswith(("viscous(", "relative("))}
     for step in steps:
         X_id, g_id, _ = load(which, "id", step)
         X_vad, _, _ = load(which, "vad", step)
         for form in ("strong", "weak"):
-            est = LagrangianSINDy(library, formulation=form, dt=step / 1000, random_state=0)
+            est = LagrangianSINDy(
+                library, formulation=form, dt=step / 1000, random_state=0
+            )
             start = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 est.fit(X_id, groups=g_id)
             elapsed = time.perf_counter() - start
             found = set(_ratios(est))
-            exact = "exactly" if found == physical else f"{len(found & physical)}/{len(physical)}"
+            exact = (
+                "exactly"
+                if found == physical
+                else f"{len(found & physical)}/{len(physical)}"
+            )
             rows.append(
                 f"| {1000 // step} Hz | {form} | {len(found)} | {est.normalization_} | {exact} "
                 f"| {_fmt(_score(est, X_vad), 5)} | {elapsed:.1f} s |"
@@ -213,7 +230,9 @@ def study(which: str, step: int, max_effects: int, horizon: float, quick: bool):
     X_vad, g_vad, f_vad = load(which, "vad", step)
     coords = ["phi"] if which == "single" else ["phi1", "phi2"]
     if which == "single":
-        library = CandidateLibrary.polynomial(coords, angles=coords, degree=2, raw_angles=True)
+        library = CandidateLibrary.polynomial(
+            coords, angles=coords, degree=2, raw_angles=True
+        )
         pivot_term = "phi_dot**2"
     else:  # the paper's double-pendulum library, in phi1, phi2
         library = CandidateLibrary.separated(coords, angles="all", degree=2)
@@ -237,18 +256,20 @@ def study(which: str, step: int, max_effects: int, horizon: float, quick: bool):
         f"Identification: {len(np.unique(g_id))} segments, {len(X_id)} samples "
         f"(every {step}th of 1 kHz); validation: {len(np.unique(g_vad))} segments, "
         f"{len(X_vad)} samples. Largest |angle|: identification "
-        f"{np.abs(X_id.iloc[:, :len(coords)].to_numpy()).max(0).round(2).tolist()} rad, "
-        f"validation {np.abs(X_vad.iloc[:, :len(coords)].to_numpy()).max(0).round(2).tolist()}"
+        f"{np.abs(X_id.iloc[:, : len(coords)].to_numpy()).max(0).round(2).tolist()} rad, "
+        f"validation {np.abs(X_vad.iloc[:, : len(coords)].to_numpy()).max(0).round(2).tolist()}"
         " rad (the validation segments are the end of a decaying record, so they test "
         f"smaller motion). Library: {len(est.term_names_)} terms "
         f"({'degree 2 over {phi, phi_dot, cos phi, sin phi}' if which == 'single' else 'the paper double-pendulum library (separated, degree 2)'}).\n"
     )
     lines.append("#### Conservative fit (case III, `fixed_term=None`)\n")
-    lines.append(f"- chosen normalization: `{est.normalization_}` "
-                 f"(term with coefficient 1: `{est.fixed_term_}`); fit time {fit_time:.1f} s")
+    lines.append(
+        f"- chosen normalization: `{est.normalization_}` "
+        f"(term with coefficient 1: `{est.fixed_term_}`); fit time {fit_time:.1f} s"
+    )
     lines.append(f"- learned: `{est.equation()}`")
     lines.append(
-        f"- with the paper's normalization (`fixed_term=\"{pivot_term}\"`): "
+        f'- with the paper\'s normalization (`fixed_term="{pivot_term}"`): '
         f"{int(np.count_nonzero(pinned.coef_))} terms, validation R^2 "
         f"{_fmt(_score(pinned, X_vad))}: `{pinned.equation()}`\n"
     )
@@ -271,19 +292,28 @@ def study(which: str, step: int, max_effects: int, horizon: float, quick: bool):
         "in the same units (scaled by 2/J).\n"
     )
 
-    models = {"conservative fit": est, "after diagnosis": final, "authors' model": authors}
+    models = {
+        "conservative fit": est,
+        "after diagnosis": final,
+        "authors' model": authors,
+    }
     err_id, _ = rollouts(models, X_id, g_id, f_id, horizon)
     err_vad, curves = rollouts(models, X_vad, g_vad, f_vad, horizon)
-    lines.append(f"#### Prediction (validation segments unless noted; rollouts of {horizon:g} s)\n")
-    lines.append("| model | terms | R^2 accelerations (identification) | R^2 accelerations "
-                 "(validation) | rollout RMS angle error, median (identification) "
-                 "| rollout RMS angle error, median (validation) |")
+    lines.append(
+        f"#### Prediction (validation segments unless noted; rollouts of {horizon:g} s)\n"
+    )
+    lines.append(
+        "| model | terms | R^2 accelerations (identification) | R^2 accelerations "
+        "(validation) | rollout RMS angle error, median (identification) "
+        "| rollout RMS angle error, median (validation) |"
+    )
     lines.append("|---|---|---|---|---|---|")
     for name, model in models.items():
         n_terms = (
-            int(np.count_nonzero(model.coef_)) + int(np.count_nonzero(
-                getattr(model, "dissipation_coef_", [])))
-            if hasattr(model, "coef_") else len(truth)
+            int(np.count_nonzero(model.coef_))
+            + int(np.count_nonzero(getattr(model, "dissipation_coef_", [])))
+            if hasattr(model, "coef_")
+            else len(truth)
         )
         lines.append(
             f"| {name} | {n_terms} | {_fmt(_score(model, X_id))} | {_fmt(_score(model, X_vad))} "
@@ -293,23 +323,31 @@ def study(which: str, step: int, max_effects: int, horizon: float, quick: bool):
         f"\n({len(err_vad[next(iter(models))])} validation windows, "
         f"{len(err_id[next(iter(models))])} identification windows.)\n"
     )
-    steps = () if os.environ.get("LAGSINDY_BENCH_TINY", "") not in ("", "0") else (
-        (10, 20) if quick else (5, 10, 20))
+    steps = (
+        ()
+        if os.environ.get("LAGSINDY_BENCH_TINY", "") not in ("", "0")
+        else ((10, 20) if quick else (5, 10, 20))
+    )
     if steps:
         lines.append(
             "#### Sensitivity to the sampling rate and the formulation (conservative fit)\n\n"
-            "The weak form (`formulation=\"weak\"`, window 81 samples, noise correction "
-            "`noise_cov=\"auto\"`) is the one that removes the noise bias on synthetic "
+            'The weak form (`formulation="weak"`, window 81 samples, noise correction '
+            '`noise_cov="auto"`) is the one that removes the noise bias on synthetic '
             "data (`robustness.md`); its noise correction assumes white noise on q and "
             "q_dot, which spline-smoothed encoder data do not have.\n"
         )
         lines.append(sampling_sensitivity(which, library, steps, truth))
     summary = dict(
-        system=which, normalization=est.normalization_, equation=est.equation(),
+        system=which,
+        normalization=est.normalization_,
+        equation=est.equation(),
         effects=[s.candidate.name for s in report.steps],
         heldout_before=report.heldout_error_before,
-        heldout_after=report.steps[-1].heldout_error if report.steps else report.heldout_error_before,
-        r2_before=_score(est, X_vad), r2_after=_score(final, X_vad),
+        heldout_after=report.steps[-1].heldout_error
+        if report.steps
+        else report.heldout_error_before,
+        r2_before=_score(est, X_vad),
+        r2_after=_score(final, X_vad),
         r2_authors=_score(authors, X_vad),
         rollout_before=float(np.nanmedian(err_vad["conservative fit"])),
         rollout_after=float(np.nanmedian(err_vad["after diagnosis"])),
@@ -342,14 +380,20 @@ def plot_rollouts(curves, coords, path, title, n_windows=2):
 
     n = len(coords)
     shown = curves[:n_windows]
-    fig, axes = plt.subplots(n, len(shown), figsize=(5.5 * len(shown), 2.6 * n),
-                             squeeze=False)
-    styles = {"conservative fit": ("tab:red", "--"), "after diagnosis": ("tab:blue", "-"),
-              "authors' model": ("tab:green", ":")}
+    fig, axes = plt.subplots(
+        n, len(shown), figsize=(5.5 * len(shown), 2.6 * n), squeeze=False
+    )
+    styles = {
+        "conservative fit": ("tab:red", "--"),
+        "after diagnosis": ("tab:blue", "-"),
+        "authors' model": ("tab:green", ":"),
+    }
     for j, (tt, measured, sims) in enumerate(shown):
         for i in range(n):
             ax = axes[i, j]
-            ax.plot(tt, measured[:, i], color="black", lw=2.2, alpha=0.35, label="measured")
+            ax.plot(
+                tt, measured[:, i], color="black", lw=2.2, alpha=0.35, label="measured"
+            )
             for name, sim in sims.items():
                 if sim is not None:
                     color, ls = styles.get(name, (None, "-"))
@@ -369,7 +413,9 @@ def plot_rollouts(curves, coords, path, title, n_windows=2):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="reduced size")
-    parser.add_argument("--step", type=int, default=10, help="thinning of the 1 kHz record")
+    parser.add_argument(
+        "--step", type=int, default=10, help="thinning of the 1 kHz record"
+    )
     parser.add_argument("--systems", default="single,double")
     args = parser.parse_args(argv)
     tiny = os.environ.get("LAGSINDY_BENCH_TINY", "") not in ("", "0")
@@ -381,8 +427,11 @@ def main(argv=None):
         step, max_effects, systems = 20, 1, ["single"]
     suffix = "_quick" if (args.quick or tiny) else ""
     horizons = {"single": 5.0, "double": 0.5}
-    text = header("Measured pendulums: fit, diagnosis, prediction") + __doc__.split(
-        "\n\n", 1)[1].rsplit("\n\n    python", 1)[0] + "\n\n"
+    text = (
+        header("Measured pendulums: fit, diagnosis, prediction")
+        + __doc__.split("\n\n", 1)[1].rsplit("\n\n    python", 1)[0]
+        + "\n\n"
+    )
     summaries = []
     for which in systems:
         body, report, curves, coords, summary = study(
@@ -390,19 +439,26 @@ def main(argv=None):
         )
         summaries.append(summary)
         text += f"## {which.capitalize()} pendulum\n\n" + body + "\n"
-        RESULTS.mkdir(parents=True, exist_ok=True)
-        png = RESULTS / f"measured_{which}_rollout{suffix}.png"
-        plot_rollouts(curves, coords, png,
-                      f"measured {which} pendulum: rollouts from measured states")
+        _common.RESULTS.mkdir(parents=True, exist_ok=True)
+        png = _common.RESULTS / f"measured_{which}_rollout{suffix}.png"
+        plot_rollouts(
+            curves,
+            coords,
+            png,
+            f"measured {which} pendulum: rollouts from measured states",
+        )
         text += f"![rollouts]({png.name})\n\n"
         import matplotlib.pyplot as plt
 
-        diag = RESULTS / f"measured_{which}_diagnosis{suffix}.png"
+        diag = _common.RESULTS / f"measured_{which}_diagnosis{suffix}.png"
         plt.close(report.plot(diag))
         text += f"![diagnosis]({diag.name})\n\n"
-    rows = ["| system | normalization | effects found | held-out accel. error before -> after "
-            "| validation R^2 before -> after (authors) | rollout error before -> after "
-            "(authors) |", "|---|---|---|---|---|---|"]
+    rows = [
+        "| system | normalization | effects found | held-out accel. error before -> after "
+        "| validation R^2 before -> after (authors) | rollout error before -> after "
+        "(authors) |",
+        "|---|---|---|---|---|---|",
+    ]
     for s in summaries:
         rows.append(
             f"| {s['system']} | {s['normalization']} | {', '.join(s['effects']) or 'none'} "
@@ -411,9 +467,7 @@ def main(argv=None):
             f"| {_fmt(s['rollout_before'], 3)} -> {_fmt(s['rollout_after'], 3)} "
             f"({_fmt(s['rollout_authors'], 3)}) rad |"
         )
-    text = text.replace(
-        "\n## ", "\n## Summary\n\n" + "\n".join(rows) + "\n\n## ", 1
-    )
+    text = text.replace("\n## ", "\n## Summary\n\n" + "\n".join(rows) + "\n\n## ", 1)
     write(f"measured{suffix}.md", text)
     return 0
 

@@ -30,7 +30,8 @@ import warnings
 
 import numpy as np
 
-from ._common import RESULTS, header, write
+from . import _common
+from ._common import header, write
 
 SIGMAS = (0.0, 1e-3, 1e-2, 2e-2, 4e-2, 6e-2, 8e-2, 1e-1, 2e-1)
 PROTOCOLS = ("shared", "paper", "sensor")
@@ -38,10 +39,14 @@ SYSTEMS = ("single_pendulum", "cart_pendulum", "double_pendulum", "spherical_pen
 FORMULATIONS = ("strong", "weak")
 # The paper's "correct structure up to" (its tables, shared protocol).
 PAPER_LIMIT = {
-    ("single_pendulum", "active"): 1e-1, ("cart_pendulum", "active"): 1e-1,
-    ("double_pendulum", "active"): 1e-1, ("spherical_pendulum", "active"): 2e-2,
-    ("single_pendulum", "passive"): 6e-2, ("cart_pendulum", "passive"): 4e-2,
-    ("double_pendulum", "passive"): 1e-1, ("spherical_pendulum", "passive"): 2e-2,
+    ("single_pendulum", "active"): 1e-1,
+    ("cart_pendulum", "active"): 1e-1,
+    ("double_pendulum", "active"): 1e-1,
+    ("spherical_pendulum", "active"): 2e-2,
+    ("single_pendulum", "passive"): 6e-2,
+    ("cart_pendulum", "passive"): 4e-2,
+    ("double_pendulum", "passive"): 1e-1,
+    ("spherical_pendulum", "passive"): 2e-2,
 }
 
 
@@ -57,13 +62,25 @@ def _cell(task):
     name, mode, protocol, sigma, seed, n_traj, duration = task
     system = REGISTRY[name]()
     passive = mode == "passive"
-    excitation = None if passive else ("sincos" if name == "spherical_pendulum" else "paper")
-    data = make_dataset(system, n_trajectories=n_traj, duration=duration,
-                        excitation=excitation, noise=sigma, protocol=protocol,
-                        random_state=1000 * seed + 17)
+    excitation = (
+        None if passive else ("sincos" if name == "spherical_pendulum" else "paper")
+    )
+    data = make_dataset(
+        system,
+        n_trajectories=n_traj,
+        duration=duration,
+        excitation=excitation,
+        noise=sigma,
+        protocol=protocol,
+        random_state=1000 * seed + 17,
+    )
     out = []
     for form in FORMULATIONS:
-        kw = dict(fixed_term=system.fixed_term, unpenalized=system.prior_terms) if passive else {}
+        kw = (
+            dict(fixed_term=system.fixed_term, unpenalized=system.prior_terms)
+            if passive
+            else {}
+        )
         est = LagrangianSINDy(system.paper_library(), formulation=form, dt=0.01, **kw)
         start = time.perf_counter()
         error = None
@@ -84,9 +101,20 @@ def _cell(task):
             err = float(np.linalg.norm(coef - true) / np.linalg.norm(true))
         else:
             correct, err = False, np.inf
-        out.append({"system": name, "mode": mode, "protocol": protocol, "sigma": sigma,
-                    "seed": seed, "formulation": form, "correct": correct,
-                    "coef_error": err, "time": elapsed, "error": error})
+        out.append(
+            {
+                "system": name,
+                "mode": mode,
+                "protocol": protocol,
+                "sigma": sigma,
+                "seed": seed,
+                "formulation": form,
+                "correct": correct,
+                "coef_error": err,
+                "time": elapsed,
+                "error": error,
+            }
+        )
     return out
 
 
@@ -122,17 +150,23 @@ def report(rows, sigmas, seeds, n_traj, duration, elapsed):
         f"entry), `sensor` (noise on q only; q_dot, q_ddot by the default GCV P-spline of "
         f"`lagsindy.differentiation`). `strong`: the paper's pointwise residual; `weak`: "
         f"integral form over 81-sample windows with the errors-in-variables correction "
-        f"(`formulation=\"weak\"`, `noise_cov=\"auto\"`). Total run time {elapsed / 60:.1f} min."
+        f'(`formulation="weak"`, `noise_cov="auto"`). Total run time {elapsed / 60:.1f} min.'
         "\n\n"
     )
     # Summary: largest sigma with correct structure (all seeds), per formulation
     text += "## Largest sigma with exactly the true terms in every seed\n\n"
-    text += ("| system | data | protocol | paper (its tables, shared) | strong | weak |\n"
-             "|---|---|---|---|---|---|\n")
+    text += (
+        "| system | data | protocol | paper (its tables, shared) | strong | weak |\n"
+        "|---|---|---|---|---|---|\n"
+    )
     for name in SYSTEMS:
         for mode in ("active", "passive"):
             for protocol in PROTOCOLS:
-                sub = df[(df.system == name) & (df["mode"] == mode) & (df.protocol == protocol)]
+                sub = df[
+                    (df.system == name)
+                    & (df["mode"] == mode)
+                    & (df.protocol == protocol)
+                ]
                 if sub.empty:
                     continue
                 cells = []
@@ -148,7 +182,11 @@ def report(rows, sigmas, seeds, n_traj, duration, elapsed):
     for name in SYSTEMS:
         for mode in ("active", "passive"):
             for protocol in PROTOCOLS:
-                sub = df[(df.system == name) & (df["mode"] == mode) & (df.protocol == protocol)]
+                sub = df[
+                    (df.system == name)
+                    & (df["mode"] == mode)
+                    & (df.protocol == protocol)
+                ]
                 if sub.empty:
                     continue
                 vals = []
@@ -156,18 +194,28 @@ def report(rows, sigmas, seeds, n_traj, duration, elapsed):
                     for form in FORMULATIONS:
                         c = sub[(sub.sigma == s) & (sub.formulation == form)]
                         vals.append(f"{np.median(c.coef_error):.3g}" if len(c) else "")
-                text += (f"| {name} | {mode} | {protocol} | {vals[0]} | {vals[1]} | "
-                         f"{vals[2]} | {vals[3]} |\n")
+                text += (
+                    f"| {name} | {mode} | {protocol} | {vals[0]} | {vals[1]} | "
+                    f"{vals[2]} | {vals[3]} |\n"
+                )
     # Full tables
     for protocol in PROTOCOLS:
         text += f"\n## Protocol `{protocol}`: fraction correct / median coefficient error / median fit time\n"
         for mode in ("active", "passive"):
-            text += f"\n### {mode}\n\n| system | form | " + " | ".join(_fmt(s) for s in sigmas) + " |\n"
+            text += (
+                f"\n### {mode}\n\n| system | form | "
+                + " | ".join(_fmt(s) for s in sigmas)
+                + " |\n"
+            )
             text += "|---|---|" + "---|" * len(sigmas) + "\n"
             for name in SYSTEMS:
                 for form in FORMULATIONS:
-                    sub = df[(df.system == name) & (df["mode"] == mode) & (df.protocol == protocol)
-                             & (df.formulation == form)]
+                    sub = df[
+                        (df.system == name)
+                        & (df["mode"] == mode)
+                        & (df.protocol == protocol)
+                        & (df.formulation == form)
+                    ]
                     if sub.empty:
                         continue
                     cells = []
@@ -176,15 +224,19 @@ def report(rows, sigmas, seeds, n_traj, duration, elapsed):
                         if c.empty:
                             cells.append("")
                             continue
-                        cells.append(f"{c.correct.mean():.2g} / {np.median(c.coef_error):.2g} / "
-                                     f"{np.median(c.time):.2g}s")
+                        cells.append(
+                            f"{c.correct.mean():.2g} / {np.median(c.coef_error):.2g} / "
+                            f"{np.median(c.time):.2g}s"
+                        )
                     text += f"| {name} | {form} | " + " | ".join(cells) + " |\n"
     failures = df[df.error.notna()]
     if len(failures):
         text += "\n## Fits that raised\n\n"
         for _, r in failures.iterrows():
-            text += (f"- {r.system} {r['mode']} {r.protocol} sigma={_fmt(r.sigma)} seed {r.seed} "
-                     f"{r.formulation}: {r.error}\n")
+            text += (
+                f"- {r.system} {r['mode']} {r.protocol} sigma={_fmt(r.sigma)} seed {r.seed} "
+                f"{r.formulation}: {r.error}\n"
+            )
     return text, df
 
 
@@ -194,23 +246,30 @@ def plot(df, sigmas, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, len(PROTOCOLS) * 2, figsize=(4 * len(PROTOCOLS) * 2, 7),
-                             sharex=True)
+    fig, axes = plt.subplots(
+        2, len(PROTOCOLS) * 2, figsize=(4 * len(PROTOCOLS) * 2, 7), sharex=True
+    )
     x = np.array([s if s > 0 else 3e-4 for s in sigmas])
     for col, (protocol, mode) in enumerate(
         [(p, m) for p in PROTOCOLS for m in ("active", "passive")]
     ):
         for name in SYSTEMS:
             for form, style in zip(FORMULATIONS, ("--", "-")):
-                sub = df[(df.system == name) & (df["mode"] == mode) & (df.protocol == protocol)
-                         & (df.formulation == form)]
+                sub = df[
+                    (df.system == name)
+                    & (df["mode"] == mode)
+                    & (df.protocol == protocol)
+                    & (df.formulation == form)
+                ]
                 if sub.empty:
                     continue
                 frac = [sub[sub.sigma == s].correct.mean() for s in sigmas]
                 err = [np.median(sub[sub.sigma == s].coef_error) for s in sigmas]
                 label = f"{name.replace('_pendulum', '')} {form}"
                 axes[0, col].plot(x, frac, style, marker="o", ms=3, label=label)
-                axes[1, col].plot(x, np.minimum(err, 10), style, marker="o", ms=3, label=label)
+                axes[1, col].plot(
+                    x, np.minimum(err, 10), style, marker="o", ms=3, label=label
+                )
         axes[0, col].set_title(f"{protocol}, {mode}")
         axes[0, col].set_ylim(-0.05, 1.05)
         axes[1, col].set_yscale("log")
@@ -238,9 +297,14 @@ def main(argv=None):
         sigmas, seeds, n_traj, duration = (0.0, 2e-2, 1e-1), 1, 10, 3.0
     if tiny:
         sigmas, seeds, n_traj, duration, systems = (0.0, 1e-1), 1, 3, 2.0, SYSTEMS[:2]
-    tasks = [(name, mode, protocol, s, seed, n_traj, duration)
-             for name in systems for mode in ("active", "passive") for protocol in PROTOCOLS
-             for s in sigmas for seed in range(seeds)]
+    tasks = [
+        (name, mode, protocol, s, seed, n_traj, duration)
+        for name in systems
+        for mode in ("active", "passive")
+        for protocol in PROTOCOLS
+        for s in sigmas
+        for seed in range(seeds)
+    ]
     start = time.perf_counter()
     rows = []
     if args.workers > 1 and not tiny:
@@ -248,20 +312,23 @@ def main(argv=None):
             for k, res in enumerate(pool.imap_unordered(_cell, tasks), 1):
                 rows += res
                 if k % 20 == 0:
-                    print(f"[robustness] {k}/{len(tasks)} cells, "
-                          f"{(time.perf_counter() - start) / 60:.1f} min", flush=True)
+                    print(
+                        f"[robustness] {k}/{len(tasks)} cells, "
+                        f"{(time.perf_counter() - start) / 60:.1f} min",
+                        flush=True,
+                    )
     else:
         for task in tasks:
             rows += _cell(task)
     elapsed = time.perf_counter() - start
     text, df = report(rows, sigmas, seeds, n_traj, duration, elapsed)
     suffix = "_quick" if (args.quick or tiny) else ""
-    png = RESULTS / f"robustness{suffix}.png"
-    RESULTS.mkdir(parents=True, exist_ok=True)
+    png = _common.RESULTS / f"robustness{suffix}.png"
+    _common.RESULTS.mkdir(parents=True, exist_ok=True)
     plot(df, sigmas, png)
     text += f"\n![robustness]({png.name})\n"
     write(f"robustness{suffix}.md", text)
-    df.to_csv(RESULTS / f"robustness{suffix}.csv", index=False)
+    df.to_csv(_common.RESULTS / f"robustness{suffix}.csv", index=False)
     return 0
 
 

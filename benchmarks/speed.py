@@ -103,7 +103,9 @@ def measure(spec):
         times.append(time.perf_counter() - start)
     # KiB on Linux. The kernel updates ru_maxrss lazily, so it can trail the current
     # size read from /proc by a few pages: the peak is at least either reading.
-    peak = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, rss_before, _rss_kib())
+    peak = max(
+        resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, rss_before, _rss_kib()
+    )
     return {
         **spec,
         "n_terms": len(library),

@@ -192,7 +192,9 @@ class _Parser:
         kind, tok = self._next()
         if tok != value:
             found = "end of text" if tok is None else repr(tok)
-            raise ExpressionError(f"expected {value!r} but found {found} in {self.text!r}")
+            raise ExpressionError(
+                f"expected {value!r} but found {found} in {self.text!r}"
+            )
 
     def parse(self) -> sp.Expr:
         if not self.tokens:
@@ -237,8 +239,10 @@ class _Parser:
                     f"exponent {exponent} exceeds the limit of {MAX_EXPONENT} in "
                     f"{self.text!r}"
                 )
-            if base.is_number and exponent.is_number and _power_too_large(
-                base, exponent
+            if (
+                base.is_number
+                and exponent.is_number
+                and _power_too_large(base, exponent)
             ):
                 raise ExpressionError(
                     f"a numeric power in {self.text!r} exceeds "

@@ -529,8 +529,13 @@ def _diagnose(args) -> int:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="X has feature names")
         report = diagnose(
-            est, X, tau, groups=groups, min_explained=args.min_explained,
-            max_effects=args.max_effects, n_splits=args.splits,
+            est,
+            X,
+            tau,
+            groups=groups,
+            min_explained=args.min_explained,
+            max_effects=args.max_effects,
+            n_splits=args.splits,
         )
     print(report)
     if args.plot:
@@ -608,13 +613,15 @@ def _add_derivative_options(p):
 def _add_fit_options(p, *, required):
     """Options of a fit from a CSV (shared by ``fit`` and ``diagnose``)."""
     p.add_argument(
-        "--coordinates", required=required, default=None,
+        "--coordinates",
+        required=required,
+        default=None,
         help="position columns, e.g. x,theta",
     )
     p.add_argument(
         "--angles",
         default="",
-        help="coordinates that are angles (get sin/cos), " "e.g. theta, or 'all'",
+        help="coordinates that are angles (get sin/cos), e.g. theta, or 'all'",
     )
     p.add_argument(
         "--input",
@@ -632,9 +639,7 @@ def _add_fit_options(p, *, required):
         action="store_true",
         help="also use the angles themselves as polynomial variables",
     )
-    p.add_argument(
-        "--terms", default="", help="extra candidate terms, comma-separated"
-    )
+    p.add_argument("--terms", default="", help="extra candidate terms, comma-separated")
     p.add_argument(
         "--fixed-term",
         default=None,
@@ -658,7 +663,9 @@ def _add_fit_options(p, *, required):
         "--precision", type=int, default=4, help="digits in the printed Lagrangian"
     )
     p.add_argument(
-        "--formulation", default="strong", choices=["strong", "weak"],
+        "--formulation",
+        default="strong",
+        choices=["strong", "weak"],
         help="weak: integral Euler-Lagrange equations with a noise correction (needs "
         "time-ordered trajectories; see LagrangianSINDy)",
     )
@@ -828,11 +835,17 @@ def build_parser() -> argparse.ArgumentParser:
     diag.add_argument("data", help="CSV file")
     diag.add_argument("--model", default=None, help="a saved model (JSON) to diagnose")
     _add_fit_options(diag, required=False)
-    diag.add_argument("--min-explained", type=float, default=0.02,
-                      help="smallest held-out share of the residual an effect must "
-                      "explain (default 0.02)")
+    diag.add_argument(
+        "--min-explained",
+        type=float,
+        default=0.02,
+        help="smallest held-out share of the residual an effect must "
+        "explain (default 0.02)",
+    )
     diag.add_argument("--max-effects", type=int, default=3)
-    diag.add_argument("--splits", type=int, default=3, help="held-out folds of trajectories")
+    diag.add_argument(
+        "--splits", type=int, default=3, help="held-out folds of trajectories"
+    )
     diag.add_argument("--plot", default=None, help="save the residual figure (PNG)")
     diag.add_argument("--out-model", default=None, help="save the final model (JSON)")
     _add_derivative_options(diag)

@@ -41,7 +41,15 @@ from .dissipation import DEFAULT_EPS, DissipationLibrary, ForceTerm, make_term
 from .euler_lagrange import EulerLagrangeOperator, trajectory_segments
 from .solvers import BalancedGram
 
-DEFAULT_CATALOGUE = ("viscous", "relative", "drag", "coulomb", "bias", "gain", "conservative")
+DEFAULT_CATALOGUE = (
+    "viscous",
+    "relative",
+    "drag",
+    "coulomb",
+    "bias",
+    "gain",
+    "conservative",
+)
 _DISSIPATIVE = ("viscous", "relative", "drag", "coulomb", "bias")
 # Held-out residual below this fraction of the target's sum of squares is rounding
 # (the Gram-matrix arithmetic of the scores cannot resolve less).
@@ -135,22 +143,28 @@ class DiagnosisReport:
         """One row per step: effect, coefficient, units, shares, residual, error."""
         rows = []
         for k, s in enumerate(self.steps, 1):
-            rows.append({
-                "step": k,
-                "effect": s.candidate.description,
-                "term": s.candidate.name,
-                "coordinates": ",".join(s.candidate.coordinates),
-                "coefficient": s.coefficient,
-                "units": s.units,
-                "explained": s.explained,
-                "residual_rms": float(np.sqrt(np.mean(s.residual_rms**2))),
-                "heldout_error": s.heldout_error,
-            })
+            rows.append(
+                {
+                    "step": k,
+                    "effect": s.candidate.description,
+                    "term": s.candidate.name,
+                    "coordinates": ",".join(s.candidate.coordinates),
+                    "coefficient": s.coefficient,
+                    "units": s.units,
+                    "explained": s.explained,
+                    "residual_rms": float(np.sqrt(np.mean(s.residual_rms**2))),
+                    "heldout_error": s.heldout_error,
+                }
+            )
         return pd.DataFrame(rows)
 
     def __str__(self) -> str:
         lines = []
-        scale = "  (passive data: coefficients relative to the fixed term)" if self.passive else ""
+        scale = (
+            "  (passive data: coefficients relative to the fixed term)"
+            if self.passive
+            else ""
+        )
         lines.append(
             f"Residual diagnosis over {self.settings.get('n_splits')} held-out folds of "
             f"trajectories{scale}"
@@ -165,7 +179,9 @@ class DiagnosisReport:
             f"        held-out acceleration error {self.heldout_error_before:.3g} (relative RMS)"
         )
         if not self.steps:
-            lines.append("no candidate explains a significant share of the held-out residual")
+            lines.append(
+                "no candidate explains a significant share of the held-out residual"
+            )
         else:
             head = (
                 f"{'step':>4}  {'effect':<26} {'term':<24} {'coefficient':>13} "
@@ -192,7 +208,9 @@ class DiagnosisReport:
             )
         elif last is not None and not len(last):
             lines.append("stopped: the remaining residual is at rounding level")
-        elif last is not None and (not self.steps or len(self.rankings) > len(self.steps)):
+        elif last is not None and (
+            not self.steps or len(self.rankings) > len(self.steps)
+        ):
             top = last.iloc[0]
             lines.append(
                 f"stopped: the best remaining candidate, {top['term']}, explains "
@@ -229,7 +247,9 @@ class DiagnosisReport:
         n = len(self.coordinates)
         before = self._data["residual_before"]
         panels = self.steps or [None]
-        fig, axes = plt.subplots(1, len(panels), figsize=(4.5 * len(panels), 3.6), squeeze=False)
+        fig, axes = plt.subplots(
+            1, len(panels), figsize=(4.5 * len(panels), 3.6), squeeze=False
+        )
         rng = np.random.default_rng(0)
         idx = rng.choice(X.shape[0], size=min(X.shape[0], 4000), replace=False)
         for ax, step in zip(axes[0], panels):
@@ -273,7 +293,11 @@ def _units(est, cand, angles, passive):
     if cand.kind == "gain":
         return "(factor - 1)"
     if cand.kind == "conservative":
-        return "J" if not any(str(s).endswith("_dot") for s in cand.term.free_symbols) else "J*..."
+        return (
+            "J"
+            if not any(str(s).endswith("_dot") for s in cand.term.free_symbols)
+            else "J*..."
+        )
     return cand.term.units(unit)
 
 
@@ -288,10 +312,14 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps):
     for kind in kinds:
         if kind in _DISSIPATIVE:
             targets = (
-                [tuple(p) for p in _pairs(coords)] if kind == "relative" else [(c,) for c in coords]
+                [tuple(p) for p in _pairs(coords)]
+                if kind == "relative"
+                else [(c,) for c in coords]
             )
             for tgt in targets:
-                term = make_term(kind, tgt if kind == "relative" else tgt[0], coords, eps=eps)
+                term = make_term(
+                    kind, tgt if kind == "relative" else tgt[0], coords, eps=eps
+                )
                 if term.name not in present_forces:
                     out.append(Candidate(kind, term.name, tgt, term))
         elif kind == "gain":
@@ -316,20 +344,26 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps):
                 if str(t) not in present_terms:
                     names = tuple(sorted({str(s) for s in t.free_symbols}))
                     own = tuple(c for c in coords if c in names or f"{c}_dot" in names)
-                    out.append(Candidate("conservative", str(t), own or (coords[0],), t))
+                    out.append(
+                        Candidate("conservative", str(t), own or (coords[0],), t)
+                    )
         else:
-            raise ValueError(f"unknown candidate kind {kind!r}; use some of {DEFAULT_CATALOGUE}")
+            raise ValueError(
+                f"unknown candidate kind {kind!r}; use some of {DEFAULT_CATALOGUE}"
+            )
     return out
 
 
 def _pairs(coords):
-    return [(a, b) for k, a in enumerate(coords) for b in coords[k + 1:]]
+    return [(a, b) for k, a in enumerate(coords) for b in coords[k + 1 :]]
 
 
 def _folds(n, groups, n_splits):
     if groups is None:
         # No trajectory labels: contiguous blocks keep neighbouring samples together.
-        groups = np.repeat(np.arange(4 * n_splits), int(np.ceil(n / (4 * n_splits))))[:n]
+        groups = np.repeat(np.arange(4 * n_splits), int(np.ceil(n / (4 * n_splits))))[
+            :n
+        ]
     groups = np.asarray(groups)
     if len(np.unique(groups)) < n_splits:
         raise ValueError(
@@ -345,7 +379,9 @@ class _Problem:
     def __init__(self, est, Xt, tau_t, groups, folds, candidates):
         self.est = est
         lib_terms = [t for t, c in zip(est.library_.terms_, est.coef_) if c != 0]
-        base_forces = [t for t, d in zip(est.dissipation_terms_, est.dissipation_coef_) if d != 0]
+        base_forces = [
+            t for t, d in zip(est.dissipation_terms_, est.dissipation_coef_) if d != 0
+        ]
         cons = [c for c in candidates if c.kind == "conservative"]
         diss = [c for c in candidates if c.kind in _DISSIPATIVE]
         gain = [c for c in candidates if c.kind == "gain"]
@@ -392,12 +428,21 @@ class _Problem:
                     sub_x, d, None if groups is None else groups[rows], dt=est.dt_
                 )
                 segs = [s for s in segs if len(s) >= est.window]
-                cov = None if est.noise_cov_ is None else to_tensor(
-                    est.noise_cov_, dtype=Xt.dtype, device=Xt.device)
+                cov = (
+                    None
+                    if est.noise_cov_ is None
+                    else to_tensor(est.noise_cov_, dtype=Xt.dtype, device=Xt.device)
+                )
                 g, noise, _ = op.weak_gram(
-                    sub_x, sub_tau, segs, window=int(est.window),
-                    stride=max(1, int(est.window) // 4), dt=est.dt_, noise_cov=cov,
-                    extra=sub_extra, return_noise=True,
+                    sub_x,
+                    sub_tau,
+                    segs,
+                    window=int(est.window),
+                    stride=max(1, int(est.window) // 4),
+                    dt=est.dt_,
+                    noise_cov=cov,
+                    extra=sub_extra,
+                    return_noise=True,
                 )
             else:
                 g = op.gram(sub_x, sub_tau, extra=sub_extra)
@@ -410,9 +455,14 @@ class _Problem:
         scaler = BalancedGram(total, 1, n_feat, normalize=True)
         w = 1.0 / scaler.row_scale**2
         scale = torch.ones(total.shape[1], dtype=total.dtype, device=total.device)
-        scale[:n_feat] = torch.where(scaler.col_scale > 0, scaler.col_scale, torch.ones_like(scaler.col_scale))
+        scale[:n_feat] = torch.where(
+            scaler.col_scale > 0, scaler.col_scale, torch.ones_like(scaler.col_scale)
+        )
+
         def combine(g):
-            return to_numpy((g * w[:, None, None]).sum(0) / (scale[:, None] * scale[None, :]))
+            return to_numpy(
+                (g * w[:, None, None]).sum(0) / (scale[:, None] * scale[None, :])
+            )
 
         # Coefficients are fitted on noise-corrected statistics (unbiased), held-out
         # errors measured on the raw ones (the error the data really show).
@@ -451,7 +501,9 @@ def _score(problem, candidates):
     total = sum(g[t, t] for g in problem.grams)
     if base_sse.sum() <= _PRECISION * total:
         # The model already explains the data to rounding: nothing left to attribute.
-        return pd.DataFrame(columns=["kind", "term", "explained", "worst_fold", "coefficient"]), base_sse
+        return pd.DataFrame(
+            columns=["kind", "term", "explained", "worst_fold", "coefficient"]
+        ), base_sse
     rows = []
     for cand in candidates:
         j = problem.cand_index[cand.name]
@@ -460,16 +512,20 @@ def _score(problem, candidates):
         raw = coef[-1] / problem.scale[j]
         if problem.passive:
             raw = raw * problem.scale[problem.fixed_col]
-        rows.append({
-            "kind": cand.kind,
-            "term": cand.name,
-            "explained": float(np.mean(share)),
-            "worst_fold": float(np.min(share)),
-            "coefficient": float(raw),
-        })
+        rows.append(
+            {
+                "kind": cand.kind,
+                "term": cand.name,
+                "explained": float(np.mean(share)),
+                "worst_fold": float(np.min(share)),
+                "coefficient": float(raw),
+            }
+        )
     table = pd.DataFrame(rows)
     if len(table):
-        table = table.sort_values("explained", ascending=False, kind="stable").reset_index(drop=True)
+        table = table.sort_values(
+            "explained", ascending=False, kind="stable"
+        ).reset_index(drop=True)
     return table, base_sse
 
 
@@ -486,7 +542,9 @@ def _refit(est, effects, X, tau, groups):
     if diss:
         base = est.dissipation
         if base is None:
-            dlib = DissipationLibrary(kinds=(), coordinates=est.coordinates_, eps=_eps(diss))
+            dlib = DissipationLibrary(
+                kinds=(), coordinates=est.coordinates_, eps=_eps(diss)
+            )
         else:
             dlib = clone(base)
         specs = list(dlib.terms or [])
@@ -545,9 +603,14 @@ def _heldout_error(est, X, tau, groups, folds):
             model.set_params(fixed_term=_normalization(est))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            model.fit(_take(X, train), None if tau is None else tau[train],
-                      groups=None if groups is None else groups[train])
-            pred = model.predict_acceleration(_take(X, test), None if tau is None else tau[test])
+            model.fit(
+                _take(X, train),
+                None if tau is None else tau[train],
+                groups=None if groups is None else groups[train],
+            )
+            pred = model.predict_acceleration(
+                _take(X, test), None if tau is None else tau[test]
+            )
         true = np.asarray(X)[test, 2 * n : 3 * n]
         num += float(np.sum((np.asarray(pred) - true) ** 2))
         den += float(np.sum((true - true.mean(axis=0)) ** 2))
@@ -689,7 +752,11 @@ def diagnose(
         if not candidates:
             break
         tau_now = _adjusted_tau(tau_a, gains)
-        tau_t = None if tau_now is None else to_tensor(tau_now, dtype=Xt.dtype, device=Xt.device)
+        tau_t = (
+            None
+            if tau_now is None
+            else to_tensor(tau_now, dtype=Xt.dtype, device=Xt.device)
+        )
         problem = _Problem(current, Xt, tau_t, groups, folds, candidates)
         table, _ = _score(problem, candidates)
         rankings.append(table)
@@ -697,7 +764,9 @@ def diagnose(
             print(table.head(5).to_string())
         if not len(table):
             if verbose:
-                print("[lagsindy] the residual is at rounding level: nothing left to explain")
+                print(
+                    "[lagsindy] the residual is at rounding level: nothing left to explain"
+                )
             break
         top = table.iloc[0]
         if top["explained"] < min_explained or top["worst_fold"] <= 0:
@@ -705,7 +774,9 @@ def diagnose(
         best = next(c for c in candidates if c.name == top["term"])
         trial_gains, trial_effects = dict(gains), list(effects)
         if best.kind == "gain":
-            trial_gains[best.term] = trial_gains.get(best.term, 0.0) + float(top["coefficient"])
+            trial_gains[best.term] = trial_gains.get(best.term, 0.0) + float(
+                top["coefficient"]
+            )
         else:
             trial_effects.append(best)
         tau_now = _adjusted_tau(tau_a, trial_gains)
@@ -716,28 +787,34 @@ def diagnose(
             # It explains residual but does not predict held-out motion better: noise.
             rejected = top["term"]
             if verbose:
-                print(f"[lagsindy] {rejected} does not improve held-out predictions "
-                      f"({previous:.3g} -> {err:.3g}): stop")
+                print(
+                    f"[lagsindy] {rejected} does not improve held-out predictions "
+                    f"({previous:.3g} -> {err:.3g}): stop"
+                )
             table.attrs["rejected"] = (rejected, previous, err)
             break
         current, gains, effects = trial, trial_gains, trial_effects
         coefficient = _effect_coefficient(current, best, gains)
         residual = _residual(current, Xf, tau_now)
         residuals.append(residual)
-        steps.append(Step(
-            candidate=best,
-            coefficient=coefficient,
-            units=_units(current, best, angles, passive),
-            explained=float(top["explained"]),
-            fold_explained=[],
-            residual_rms=np.sqrt(np.mean(residual**2, axis=0)),
-            heldout_error=err,
-            equation=current.equation(4),
-            ranking=table,
-        ))
+        steps.append(
+            Step(
+                candidate=best,
+                coefficient=coefficient,
+                units=_units(current, best, angles, passive),
+                explained=float(top["explained"]),
+                fold_explained=[],
+                residual_rms=np.sqrt(np.mean(residual**2, axis=0)),
+                heldout_error=err,
+                equation=current.equation(4),
+                ranking=table,
+            )
+        )
         if verbose:
-            print(f"[lagsindy] added {best.name}: coefficient {coefficient:.5g}, "
-                  f"held-out error {err:.3g}")
+            print(
+                f"[lagsindy] added {best.name}: coefficient {coefficient:.5g}, "
+                f"held-out error {err:.3g}"
+            )
     return DiagnosisReport(
         initial=est,
         final=current,
@@ -748,10 +825,17 @@ def diagnose(
         rankings=rankings,
         coordinates=list(est.coordinates_),
         passive=passive,
-        settings={"n_splits": n_splits, "min_explained": min_explained,
-                  "catalogue": tuple(catalogue)},
-        _data={"X": Xa, "tau": tau_a, "residual_before": before_residual,
-               "residuals": residuals},
+        settings={
+            "n_splits": n_splits,
+            "min_explained": min_explained,
+            "catalogue": tuple(catalogue),
+        },
+        _data={
+            "X": Xa,
+            "tau": tau_a,
+            "residual_before": before_residual,
+            "residuals": residuals,
+        },
     )
 
 
@@ -760,7 +844,11 @@ def _effect_coefficient(est, cand, gains):
         return float(gains[cand.term])
     if cand.kind == "conservative":
         names = [str(t) for t in est.library_.terms_]
-        return float(est.coef_[names.index(str(cand.term))]) if str(cand.term) in names else 0.0
+        return (
+            float(est.coef_[names.index(str(cand.term))])
+            if str(cand.term) in names
+            else 0.0
+        )
     for t, d in zip(est.dissipation_terms_, est.dissipation_coef_):
         if t.name == cand.name:
             return float(d)

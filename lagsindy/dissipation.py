@@ -80,7 +80,9 @@ class ForceTerm:
         return "(force per unit coefficient)"
 
 
-def make_term(kind: str, coordinates, all_coordinates, *, eps: float = DEFAULT_EPS) -> ForceTerm:
+def make_term(
+    kind: str, coordinates, all_coordinates, *, eps: float = DEFAULT_EPS
+) -> ForceTerm:
     """Build one candidate of ``kind`` on ``coordinates`` (one name, or two for relative)."""
     names = list(all_coordinates)
     _, qd, _ = symbols_for(names)
@@ -92,7 +94,9 @@ def make_term(kind: str, coordinates, all_coordinates, *, eps: float = DEFAULT_E
     zero = [sp.Integer(0)] * len(names)
     if kind == "relative":
         if len(coords) != 2 or coords[0] == coords[1]:
-            raise ValueError(f"a relative term needs two different coordinates, got {coords}")
+            raise ValueError(
+                f"a relative term needs two different coordinates, got {coords}"
+            )
         rel = qd[idx[0]] - qd[idx[1]]
         rayleigh = rel**2 / 2
     elif len(coords) != 1:
@@ -153,8 +157,15 @@ class DissipationLibrary(BaseEstimator):
     ['viscous(x)', 'viscous(theta)', 'coulomb(x)', 'coulomb(theta)']
     """
 
-    def __init__(self, kinds=("viscous",), coordinates=None, *, terms=None, pairs=None,
-                 eps=DEFAULT_EPS):
+    def __init__(
+        self,
+        kinds=("viscous",),
+        coordinates=None,
+        *,
+        terms=None,
+        pairs=None,
+        eps=DEFAULT_EPS,
+    ):
         self.kinds = kinds
         self.coordinates = coordinates
         self.terms = terms
@@ -164,14 +175,20 @@ class DissipationLibrary(BaseEstimator):
     def build(self):
         """Create the candidate terms; returns ``self``."""
         if self.coordinates is None:
-            raise ValueError("the dissipation library has no coordinates; pass coordinates=[...]")
+            raise ValueError(
+                "the dissipation library has no coordinates; pass coordinates=[...]"
+            )
         names = check_coordinate_names(
-            [self.coordinates] if isinstance(self.coordinates, str) else self.coordinates
+            [self.coordinates]
+            if isinstance(self.coordinates, str)
+            else self.coordinates
         )
         kinds = [self.kinds] if isinstance(self.kinds, str) else list(self.kinds or [])
         unknown = [k for k in kinds if k not in KINDS]
         if unknown:
-            raise ValueError(f"unknown dissipation kinds {unknown}; use some of {KINDS}")
+            raise ValueError(
+                f"unknown dissipation kinds {unknown}; use some of {KINDS}"
+            )
         out = []
         for kind in kinds:
             if kind == "relative":
@@ -258,7 +275,9 @@ def reduce_forces(lagrangian_terms, force_terms, coordinates, *, tol: float = 1e
         ],
         axis=1,
     )
-    op = EulerLagrangeOperator(coordinates, lagrangian_terms, forces=[t.forces for t in force_terms])
+    op = EulerLagrangeOperator(
+        coordinates, lagrangian_terms, forces=[t.forces for t in force_terms]
+    )
     cols = op.columns(torch.as_tensor(X, dtype=torch.float64)).numpy()
     cols = cols.reshape(-1, cols.shape[2])  # (n_points * n_dof, p + f)
     n_l = len(lagrangian_terms)
@@ -277,8 +296,11 @@ def reduce_forces(lagrangian_terms, force_terms, coordinates, *, tol: float = 1e
         r = r - basis @ (basis.T @ r)
         if norm == 0 or np.linalg.norm(r) < tol:
             removed.append(
-                (term.name, "its regression column duplicates Lagrangian or earlier "
-                 "dissipation columns (e.g. a constant force equals a linear potential)")
+                (
+                    term.name,
+                    "its regression column duplicates Lagrangian or earlier "
+                    "dissipation columns (e.g. a constant force equals a linear potential)",
+                )
             )
             continue
         basis = np.concatenate([basis, (r / np.linalg.norm(r))[:, None]], axis=1)

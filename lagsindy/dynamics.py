@@ -109,7 +109,9 @@ class MechanicalModel:
         self.coordinates = check_coordinate_names(coordinates)
         self.lagrangian = canonical(lagrangian, self.coordinates)
         self.dissipation = (
-            sp.Integer(0) if dissipation is None else canonical(dissipation, self.coordinates)
+            sp.Integer(0)
+            if dissipation is None
+            else canonical(dissipation, self.coordinates)
         )
         n = len(self.coordinates)
         if forces is None:
@@ -157,7 +159,8 @@ class MechanicalModel:
         grad_qd = [sp.diff(L, v) for v in qd]
         mass = sp.Matrix([[sp.diff(g, v) for v in qd] for g in grad_qd])
         bias = [
-            sum(sp.diff(grad_qd[i], q[j]) * qd[j] for j in range(self.n_dof)) - sp.diff(L, q[i])
+            sum(sp.diff(grad_qd[i], q[j]) * qd[j] for j in range(self.n_dof))
+            - sp.diff(L, q[i])
             for i in range(self.n_dof)
         ]
         generalized = [
@@ -178,7 +181,10 @@ class MechanicalModel:
         eq = self._derive()
         _, _, qdd = self.symbols
         lhs = eq["mass"] * sp.Matrix(qdd)
-        return [sp.simplify(lhs[i] + eq["bias"][i] - eq["forces"][i]) for i in range(self.n_dof)]
+        return [
+            sp.simplify(lhs[i] + eq["bias"][i] - eq["forces"][i])
+            for i in range(self.n_dof)
+        ]
 
     def mass_matrix_expr(self) -> sp.Matrix:
         """Symbolic mass matrix ``d2L/dqdot2``."""
@@ -254,7 +260,11 @@ class MechanicalModel:
         """
         q, qd = self._split_state(q, qd)
         mass, rest = self._mass_and_rest(q, qd)
-        rhs = -rest if tau is None else np.asarray(tau, dtype=float).reshape(rest.shape) - rest
+        rhs = (
+            -rest
+            if tau is None
+            else np.asarray(tau, dtype=float).reshape(rest.shape) - rest
+        )
         self._check_mass(mass, q, qd, t)
         return np.linalg.solve(mass, rhs[..., None])[..., 0]
 
@@ -269,8 +279,10 @@ class MechanicalModel:
         if reference is not None:
             big = np.maximum(big, reference)
         bad = ~(
-            (np.all(eig > MASS_MATRIX_RCOND * big[:, None], axis=1)
-             | np.all(eig < -MASS_MATRIX_RCOND * big[:, None], axis=1))
+            (
+                np.all(eig > MASS_MATRIX_RCOND * big[:, None], axis=1)
+                | np.all(eig < -MASS_MATRIX_RCOND * big[:, None], axis=1)
+            )
             & (big > 0)
         )
         if np.any(bad):
@@ -280,7 +292,8 @@ class MechanicalModel:
                 tt = np.broadcast_to(np.asarray(t, dtype=float), (q.shape[0],))[i]
                 when = f" at t={tt:.6g}"
             state = ", ".join(
-                f"{n}={a:.6g}, {n}_dot={b:.6g}" for n, a, b in zip(self.coordinates, q[i], qd[i])
+                f"{n}={a:.6g}, {n}_dot={b:.6g}"
+                for n, a, b in zip(self.coordinates, q[i], qd[i])
             )
             raise SingularMassMatrixError(
                 f"the mass matrix of {self.name} is singular or indefinite{when} "
@@ -316,7 +329,9 @@ class MechanicalModel:
                 raise ValueError(
                     f"tau sampled at t must have shape ({t.shape[0]}, {m}), got {arr.shape}"
                 )
-            return lambda tt, _x: np.array([np.interp(tt, t, arr[:, j]) for j in range(m)])
+            return lambda tt, _x: np.array(
+                [np.interp(tt, t, arr[:, j]) for j in range(m)]
+            )
         if arr.shape != (batch, t.shape[0], m):
             raise ValueError(
                 f"tau for {batch} trajectories must have shape ({batch}, {t.shape[0]}, {m}), "
@@ -378,7 +393,9 @@ class MechanicalModel:
                 f"x0 must have shape ({2 * n},) or (n_trajectories, {2 * n}), got {x0.shape}"
             )
         if t.size < 1 or np.any(np.diff(t) <= 0):
-            raise ValueError("t must be a non-empty, strictly increasing array of times")
+            raise ValueError(
+                "t must be a non-empty, strictly increasing array of times"
+            )
         u_fn = self._input_function(tau, t, batch)
         b_mat = self.input_matrix
         rows = 1 if batch is None else batch
@@ -404,8 +421,14 @@ class MechanicalModel:
         if t.size == 1:
             return x0.copy()[None] if batch is None else x0.copy()[:, None]
         sol = solve_ivp(
-            rhs, (t[0], t[-1]), x0.ravel(), method=method, t_eval=t, rtol=rtol,
-            atol=atol, max_step=max_step,
+            rhs,
+            (t[0], t[-1]),
+            x0.ravel(),
+            method=method,
+            t_eval=t,
+            rtol=rtol,
+            atol=atol,
+            max_step=max_step,
         )
         if sol.status != 0:
             self._diagnose_failure(last, reference, sol.message)
@@ -418,7 +441,9 @@ class MechanicalModel:
         if "x" in last:
             x = last["x"]
             mass, _ = self._mass_and_rest(x[:, :n], x[:, n:])
-            small = np.abs(np.linalg.eigvalsh(mass)).min(axis=1) / np.maximum(reference, 1e-300)
+            small = np.abs(np.linalg.eigvalsh(mass)).min(axis=1) / np.maximum(
+                reference, 1e-300
+            )
             i = int(np.argmin(small))
             if small[i] < NEAR_SINGULAR:
                 state = ", ".join(
@@ -431,7 +456,9 @@ class MechanicalModel:
                     f"{small[i]:.2g} of its value at the start), so the accelerations blow "
                     f"up and the integrator stopped ({message}). The Lagrangian is not a "
                     "valid mechanical model there.",
-                    t=float(last["t"]), q=x[i, :n].copy(), qd=x[i, n:].copy(),
+                    t=float(last["t"]),
+                    q=x[i, :n].copy(),
+                    qd=x[i, n:].copy(),
                     eigenvalues=np.linalg.eigvalsh(mass[i]),
                 )
         raise RuntimeError(f"integration of {self.name} failed: {message}")
@@ -453,10 +480,13 @@ class MechanicalModel:
     # ------------------------------------------------------------------ display
     def equation(self, precision: int = 4) -> str:
         """Readable ``L = ...`` (and ``D = ...``, forces) with rounded numbers."""
+
         def fmt(e):
-            return str(sp.sympify(e).xreplace(
-                {f: sp.Float(f, precision) for f in sp.sympify(e).atoms(sp.Float)}
-            ))
+            return str(
+                sp.sympify(e).xreplace(
+                    {f: sp.Float(f, precision) for f in sp.sympify(e).atoms(sp.Float)}
+                )
+            )
 
         lines = [f"L = {fmt(self.lagrangian)}"]
         if self.dissipation != 0:
@@ -473,7 +503,9 @@ class MechanicalModel:
         return self.equation()
 
 
-def rollout_error(model_a: MechanicalModel, model_b: MechanicalModel, x0, t, tau=None) -> dict:
+def rollout_error(
+    model_a: MechanicalModel, model_b: MechanicalModel, x0, t, tau=None
+) -> dict:
     """Integrate two models from the same state and compare their trajectories.
 
     Used as the paper's validation metric: train on 5 s, integrate both the learned
@@ -489,8 +521,13 @@ def rollout_error(model_a: MechanicalModel, model_b: MechanicalModel, x0, t, tau
     try:
         sb = model_b.simulate(x0, t, tau)
     except (SingularMassMatrixError, RuntimeError, np.linalg.LinAlgError) as exc:
-        return {"max_abs_q": np.inf, "rmse_q": np.inf, "states_a": sa, "states_b": None,
-                "error": str(exc)}
+        return {
+            "max_abs_q": np.inf,
+            "rmse_q": np.inf,
+            "states_a": sa,
+            "states_b": None,
+            "error": str(exc),
+        }
     n = model_a.n_dof
     diff = sa[..., :n] - sb[..., :n]
     return {

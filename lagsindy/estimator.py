@@ -20,7 +20,7 @@ from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from . import _validation as val
-from ._expr import canonical, state_names
+from ._expr import state_names
 from ._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
 from .dynamics import MechanicalModel
 from .euler_lagrange import (
@@ -48,6 +48,8 @@ _NULL_RCOND = 1e-11
 
 class IdentifiabilityWarning(UserWarning):
     """The data leave a combination of candidate terms undetermined."""
+
+
 # Rows used to rank the candidate fixed terms of case III (a random subsample).
 _SELECTION_ROWS = 4000
 _SELECTION_TOP = 12
@@ -56,6 +58,8 @@ _SELECTION_TOP = 12
 _SELECTION_TIE = 1.1
 # Rows used by case II (each iteration costs O(rows * terms * n_dof^2)).
 _CASE_II_ROWS = 20_000
+# Eigenvectors tried as the start of case II.
+_CASE_II_STARTS = 10
 
 
 class LagrangianSINDy(RegressorMixin, BaseEstimator):
@@ -355,7 +359,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         if not reset and coordinates is not None and X.shape[1] != 3 * len(coordinates):
             raise ValueError(val.n_features_message(X.shape[1], len(coordinates)))
         Xa = validate_data(
-            self, X, dtype=np.float64, ensure_all_finite=False, reset=reset,
+            self,
+            X,
+            dtype=np.float64,
+            ensure_all_finite=False,
+            reset=reset,
             ensure_min_samples=2 if reset else 1,
         )
         if coordinates is None:
@@ -375,7 +383,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         if coordinates is None:
             coordinates = getattr(self, "coordinates_", None)
         names = (
-            [f"tau_{c}" for c in coordinates] if coordinates is not None
+            [f"tau_{c}" for c in coordinates]
+            if coordinates is not None
             else [f"tau[{i}]" for i in range(n_dof)]
         )
         if val.is_frame(tau):
@@ -438,8 +447,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         if self.fixed_term is not None:
             if case != "fixed":
                 why = (
-                    "with tau the forces set the scale" if case == "forces" else
-                    "case II fixes the scale by a unit norm instead"
+                    "with tau the forces set the scale"
+                    if case == "forces"
+                    else "case II fixes the scale by a unit norm instead"
                 )
                 raise ValueError(
                     f"fixed_term={self.fixed_term!r} is only used in case III (passive "
@@ -515,11 +525,15 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         self._check_known_terms(library, case)
         n_features = n_terms + len(self.dissipation_terms_)
         self.feature_names_ = np.asarray(
-            list(self.term_names_) + [t.name for t in self.dissipation_terms_], dtype=object
+            list(self.term_names_) + [t.name for t in self.dissipation_terms_],
+            dtype=object,
         )
         operator = EulerLagrangeOperator(
-            self.coordinates_, library.terms_,
-            forces=[t.forces for t in self.dissipation_terms_], dtype=dtype, device=device,
+            self.coordinates_,
+            library.terms_,
+            forces=[t.forces for t in self.dissipation_terms_],
+            dtype=dtype,
+            device=device,
         )
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
@@ -553,12 +567,15 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             if balanced.target_scale(n_features) <= 0:
                 raise ValueError(
                     "tau is identically zero: for passive data call fit(X) without tau "
-                    "(case III or case='acceleration')" if not np.any(tau) else
-                    "tau is too small to use (largest |tau| = "
+                    "(case III or case='acceleration')"
+                    if not np.any(tau)
+                    else "tau is too small to use (largest |tau| = "
                     f"{np.abs(tau).max():.3g}, its squares underflow): change its units"
                 )
             free = np.flatnonzero(identifiable)
-            coef, result = self._solve(balanced, free, n_features, 1.0, penalty, 0.0, self.verbose)
+            coef, result = self._solve(
+                balanced, free, n_features, 1.0, penalty, 0.0, self.verbose
+            )
             fixed = None
             _warn_if_not_identifiable(balanced, free, self.feature_names_, allowed=0)
         elif case == "fixed":
@@ -567,7 +584,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                 balanced, np.flatnonzero(identifiable), self.feature_names_, allowed=1
             )
         else:
-            coef, result = self._fit_acceleration(balanced, identifiable, penalty, Xt, operator)
+            coef, result = self._fit_acceleration(
+                balanced, identifiable, penalty, Xt, operator
+            )
             fixed = None
 
         self.case_ = case
@@ -638,8 +657,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         n_terms = len(self.library_.terms_)
         terms = [self.library_.terms_[k] for k in indices if k < n_terms]
         forces = [
-            self.dissipation_terms_[k - n_terms].forces
-            for k in indices if k >= n_terms
+            self.dissipation_terms_[k - n_terms].forces for k in indices if k >= n_terms
         ]
         return EulerLagrangeOperator(
             self.coordinates_, terms, forces=forces, dtype=dtype, device=device
@@ -648,13 +666,17 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
     def _warn_if_mass_singular(self, Xt):
         """Warn when the learned mass matrix is singular or indefinite on the data."""
         op, coef = self._support_operator(Xt.device, Xt.dtype)
-        rows = torch.linspace(0, Xt.shape[0] - 1, min(Xt.shape[0], 500), device=Xt.device).long()
+        rows = torch.linspace(
+            0, Xt.shape[0] - 1, min(Xt.shape[0], 500), device=Xt.device
+        ).long()
         d = self.n_dof_
         q, qd = Xt[rows, :d], Xt[rows, d : 2 * d]
         mass = torch.einsum("skij,k->sij", op.mass_matrices(q, qd), coef[: op.n_terms])
         eig = torch.linalg.eigvalsh(mass)
         big = eig.abs().max(dim=1).values.clamp(min=1e-300)
-        definite = (eig > 1e-10 * big[:, None]).all(dim=1) | (eig < -1e-10 * big[:, None]).all(dim=1)
+        definite = (eig > 1e-10 * big[:, None]).all(dim=1) | (
+            eig < -1e-10 * big[:, None]
+        ).all(dim=1)
         bad = 1.0 - float(definite.double().mean())
         if bad > 0.01:
             velocities = {str(v) for v in self.lagrangian_.free_symbols}
@@ -678,9 +700,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             )
         dt = self.dt
         if dt is None:
-            rough = trajectory_segments(Xt, d, groups, dt=0.0) if groups is not None else [
-                torch.arange(Xt.shape[0], device=Xt.device)
-            ]
+            rough = (
+                trajectory_segments(Xt, d, groups, dt=0.0)
+                if groups is not None
+                else [torch.arange(Xt.shape[0], device=Xt.device)]
+            )
             dt = estimate_sampling_interval(Xt, d, rough)
             if not dt > 0:
                 raise ValueError(
@@ -710,7 +734,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         self.dt_ = float(dt)
         self.noise_cov_ = None if cov is None else to_numpy(cov)
         gram, n_windows = operator.weak_gram(
-            Xt, tau_t, usable, window=window, stride=max(1, window // 4), dt=float(dt),
+            Xt,
+            tau_t,
+            usable,
+            window=window,
+            stride=max(1, window // 4),
+            dt=float(dt),
             noise_cov=cov,
         )
         if n_windows * d < len(self.library_.terms_):
@@ -735,17 +764,22 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
     def _thresholds(self, free):
         n_terms = len(self.library_.terms_)
-        return np.where(np.asarray(free) < n_terms, self.threshold, self.dissipation_threshold)
+        return np.where(
+            np.asarray(free) < n_terms, self.threshold, self.dissipation_threshold
+        )
 
     def _solve(self, balanced, free, target, sign, penalty, reference, verbose):
         datafit, to_coef = balanced.problem(free, target, sign)
-        weights = torch.as_tensor(penalty[free], dtype=datafit.rhs.dtype, device=datafit.rhs.device)
+        weights = torch.as_tensor(
+            penalty[free], dtype=datafit.rhs.dtype, device=datafit.rhs.device
+        )
         result = staged_fista(
             datafit,
             lam=self.lam,
             penalty_weights=weights,
-            threshold=torch.as_tensor(self._thresholds(free), dtype=weights.dtype,
-                                      device=weights.device),
+            threshold=torch.as_tensor(
+                self._thresholds(free), dtype=weights.dtype, device=weights.device
+            ),
             reference=reference,
             lam_decay=self.lam_decay,
             step_growth=self.step_growth,
@@ -825,12 +859,18 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         for kind, r, coef, result in shortlist:
             score = self._acceleration_r2(coef, Xs, None)
             if self.verbose:
-                label = "mass normalization" if kind == "mass" else f"fixed term {library.terms_[r]}"
+                label = (
+                    "mass normalization"
+                    if kind == "mass"
+                    else f"fixed term {library.terms_[r]}"
+                )
                 print(
                     f"[lagsindy] {label}: {int((coef != 0).sum())} terms, relative "
                     f"residual {result.cost:.3g}, acceleration R2 {score:.4f}"
                 )
-            scored.append((score if np.isfinite(score) else -np.inf, kind, r, coef, result))
+            scored.append(
+                (score if np.isfinite(score) else -np.inf, kind, r, coef, result)
+            )
         # Models whose unexplained acceleration variance is within 10 % of the best are
         # equally good (with noise, extra terms buy a little in-sample R^2): take the
         # sparsest of them, then the mass normalization, then the earlier library term,
@@ -838,10 +878,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         top = max(s_[0] for s_ in scored)
         near = [s_ for s_ in scored if 1 - s_[0] <= _SELECTION_TIE * (1 - top) + 1e-9]
         _, kind, r, coef, result = min(
-            near, key=lambda s_: (int((s_[3] != 0).sum()), -1 if s_[1] == "mass" else s_[2])
+            near,
+            key=lambda s_: (int((s_[3] != 0).sum()), -1 if s_[1] == "mass" else s_[2]),
         )
-        best = (kind, r, coef, result)
-        kind, r, coef, result = best
         self.normalization_ = kind
         return coef, result, r
 
@@ -850,11 +889,14 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         rows = self._subsample_rows(Xt.shape[0], _SELECTION_ROWS)
         Xs = Xt[torch.as_tensor(rows, device=Xt.device)]
         d = self.n_dof_
-        op = EulerLagrangeOperator(self.coordinates_, self.library_.terms_,
-                                   dtype=Xt.dtype, device=Xt.device)
+        op = EulerLagrangeOperator(
+            self.coordinates_, self.library_.terms_, dtype=Xt.dtype, device=Xt.device
+        )
         mass = op.mass_matrices(Xs[:, :d], Xs[:, d : 2 * d])
         traces = np.zeros(n_features)
-        traces[: op.n_terms] = to_numpy(torch.diagonal(mass, dim1=2, dim2=3).sum(2).mean(0))
+        traces[: op.n_terms] = to_numpy(
+            torch.diagonal(mass, dim1=2, dim2=3).sum(2).mean(0)
+        )
         return traces
 
     def _solve_mass(self, balanced, identifiable, penalty, Xt, verbose):
@@ -882,7 +924,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             )
         pivot = int(free[np.argmax(np.abs(t_scaled[free]))])
         for _ in range(3):
-            coef, result = self._solve_pivot(balanced, free, pivot, t_scaled, penalty, verbose)
+            coef, result = self._solve_pivot(
+                balanced, free, pivot, t_scaled, penalty, verbose
+            )
             share = np.abs(traces * coef)
             new = int(np.argmax(share))
             if new == pivot:
@@ -907,7 +951,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         g = balanced.gram[idx][:, idx] / (s[:, None] * s[None, :])
         t = torch.as_tensor(t_scaled[f], dtype=dtype, device=device)
         # w = T u + y0 with u the other coefficients: the constraint holds for any u.
-        T = torch.eye(len(f), dtype=dtype, device=device)[:, torch.as_tensor(others, device=device)]
+        T = torch.eye(len(f), dtype=dtype, device=device)[
+            :, torch.as_tensor(others, device=device)
+        ]
         T[j, :] = -t[torch.as_tensor(others, device=device)] / t[j]
         y0 = torch.zeros(len(f), dtype=dtype, device=device)
         y0[j] = 1.0 / t[j]
@@ -915,17 +961,32 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         bq = -(T.T @ g @ y0)
         c0 = float(y0 @ g @ y0)
         if c0 <= 0:
-            raise ValueError("the pivot term's Euler-Lagrange column is zero on the data")
+            raise ValueError(
+                "the pivot term's Euler-Lagrange column is zero on the data"
+            )
         dq = torch.sqrt(torch.clamp(torch.diagonal(gq), min=0))
         dq = torch.where(dq > 0, dq, torch.ones_like(dq))
-        datafit = GramQuadratic(gq / (dq[:, None] * dq[None, :]), bq / (dq * c0**0.5), 1.0)
+        datafit = GramQuadratic(
+            gq / (dq[:, None] * dq[None, :]), bq / (dq * c0**0.5), 1.0
+        )
         weights = torch.as_tensor(penalty[f[others]], dtype=dtype, device=device)
         result = staged_fista(
-            datafit, lam=self.lam, penalty_weights=weights,
-            threshold=torch.as_tensor(self._thresholds(f[others]), dtype=dtype, device=device),
-            reference=1.0, lam_decay=self.lam_decay, step_growth=self.step_growth,
-            alpha=self.alpha, max_stages=self.max_stages, max_iter=self.max_iter,
-            tol=self.tol, solver_tol=self.solver_tol, debias=self.debias, verbose=verbose,
+            datafit,
+            lam=self.lam,
+            penalty_weights=weights,
+            threshold=torch.as_tensor(
+                self._thresholds(f[others]), dtype=dtype, device=device
+            ),
+            reference=1.0,
+            lam_decay=self.lam_decay,
+            step_growth=self.step_growth,
+            alpha=self.alpha,
+            max_stages=self.max_stages,
+            max_iter=self.max_iter,
+            tol=self.tol,
+            solver_tol=self.solver_tol,
+            debias=self.debias,
+            verbose=verbose,
         )
 
         def to_coef(u_scaled):
@@ -967,25 +1028,41 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         bias = torch.einsum("skij,sj->ski", n_mat, qd) - o
         n_forces = int((free >= n_terms).sum())
         if n_forces:  # force features: no inertia, left-hand side -Q
-            mass = torch.cat([mass, mass.new_zeros((mass.shape[0], n_forces, d, d))], dim=1)
+            mass = torch.cat(
+                [mass, mass.new_zeros((mass.shape[0], n_forces, d, d))], dim=1
+            )
             bias = torch.cat([bias, -sub.force_values(q, qd).transpose(1, 2)], dim=1)
         scale = balanced.col_scale[torch.as_tensor(free, device=Xt.device)]
         datafit = AccelerationDatafit(mass, bias, qdd, scale)
-        # Spectral start (no prior knowledge): the unit vector that best satisfies the
-        # homogeneous Euler-Lagrange equations, i.e. the smallest eigenvector of the
-        # scaled Gram matrix (a dense estimate of the Lagrangian).
+        # Spectral start (no prior knowledge): unit vectors that nearly satisfy the
+        # homogeneous Euler-Lagrange equations are the eigenvectors of the scaled Gram
+        # matrix with the smallest eigenvalues (dense estimates of the Lagrangian). In
+        # a large library the very smallest can be a combination without kinetic
+        # energy (its mass matrix singular, so it predicts no accelerations): start
+        # from the one of the first few that best predicts the accelerations.
         idx = torch.as_tensor(free, device=Xt.device)
         g = balanced.gram[idx][:, idx] / (scale[:, None] * scale[None, :])
-        w0 = torch.linalg.eigh(g)[1][:, 0]
+        vecs = torch.linalg.eigh(g)[1][:, :_CASE_II_STARTS]
+        losses = [datafit.value(vecs[:, k]) for k in range(vecs.shape[1])]
+        w0 = vecs[:, int(np.argmin(losses))]
         weights = torch.as_tensor(penalty[free], dtype=Xt.dtype, device=Xt.device)
         try:
             result = staged_fista(
-                datafit, lam=self.lam, penalty_weights=weights,
-                threshold=torch.as_tensor(self._thresholds(free), dtype=weights.dtype,
-                                          device=weights.device),
-                lam_decay=self.lam_decay, step_growth=self.step_growth, alpha=self.alpha,
-                max_stages=self.max_stages, max_iter=self.max_iter, tol=self.tol,
-                solver_tol=self.solver_tol, debias=self.debias, verbose=self.verbose,
+                datafit,
+                lam=self.lam,
+                penalty_weights=weights,
+                threshold=torch.as_tensor(
+                    self._thresholds(free), dtype=weights.dtype, device=weights.device
+                ),
+                lam_decay=self.lam_decay,
+                step_growth=self.step_growth,
+                alpha=self.alpha,
+                max_stages=self.max_stages,
+                max_iter=self.max_iter,
+                tol=self.tol,
+                solver_tol=self.solver_tol,
+                debias=self.debias,
+                verbose=self.verbose,
                 w0=w0,
             )
         except FloatingPointError as exc:
@@ -1040,7 +1117,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         self.lagrangian_ = lag
         self.dissipation_ = {"D": rayleigh, "forces": forces}
         self.model_ = MechanicalModel(
-            lag, self.coordinates_, dissipation=rayleigh, forces=forces, name="learned model"
+            lag,
+            self.coordinates_,
+            dissipation=rayleigh,
+            forces=forces,
+            name="learned model",
         )
 
     # ------------------------------------------------------------------ predict
@@ -1068,7 +1149,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         op, coef = self._support_operator(Xt.device, Xt.dtype)
         if coef.numel() == 0:
             return np.zeros((Xt.shape[0], self.n_dof_))
-        tau_t = None if tau is None else to_tensor(tau, dtype=Xt.dtype, device=Xt.device)
+        tau_t = (
+            None if tau is None else to_tensor(tau, dtype=Xt.dtype, device=Xt.device)
+        )
         return to_numpy(forward_accelerations(op, coef, Xt, tau_t))
 
     def predict(self, X):
@@ -1145,12 +1228,20 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             n = self.n_dof_
             pred = self._accelerations(Xt, None)
             return float(
-                r2_score(Xa[:, 2 * n : 3 * n], pred, sample_weight=sample_weight,
-                         multioutput="variance_weighted")
+                r2_score(
+                    Xa[:, 2 * n : 3 * n],
+                    pred,
+                    sample_weight=sample_weight,
+                    multioutput="variance_weighted",
+                )
             )
         pred = self.predict(X)
         y = self._check_tau(y, np.shape(pred)[0], self.n_dof_).reshape(np.shape(pred))
-        return float(r2_score(y, pred, sample_weight=sample_weight, multioutput="variance_weighted"))
+        return float(
+            r2_score(
+                y, pred, sample_weight=sample_weight, multioutput="variance_weighted"
+            )
+        )
 
     # ------------------------------------------------------------------ model
     def simulate(self, x0, t, tau=None, **kwargs):
@@ -1204,7 +1295,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         return pd.DataFrame(
             {
                 "term": [str(t) for t in self.term_names_] + extra,
-                "kind": ["lagrangian"] * len(self.term_names_) + ["dissipation"] * len(extra),
+                "kind": ["lagrangian"] * len(self.term_names_)
+                + ["dissipation"] * len(extra),
                 "coefficient": np.asarray(coef, dtype=float),
                 "kept": coef != 0,
             }

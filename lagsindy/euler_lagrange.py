@@ -27,7 +27,6 @@ import warnings
 from collections.abc import Callable, Sequence
 
 import numpy as np
-
 import sympy as sp
 import torch
 from torch.func import jacfwd, jvp, vmap
@@ -93,7 +92,9 @@ def lagrangian_columns(
     """
     batched = vmap(_columns_one(fn))
     with _quiet_forward_ad():
-        parts = [batched(q[sl], qd[sl], qdd[sl]) for sl in _chunks(q.shape[0], chunk_size)]
+        parts = [
+            batched(q[sl], qd[sl], qdd[sl]) for sl in _chunks(q.shape[0], chunk_size)
+        ]
     return torch.cat(parts, dim=0)
 
 
@@ -200,7 +201,9 @@ class EulerLagrangeOperator:
         q, qd, qdd = self._split(X)
         parts = []
         if self._fn is not None:
-            parts.append(lagrangian_columns(self._fn, q, qd, qdd, chunk_size=self.chunk_size))
+            parts.append(
+                lagrangian_columns(self._fn, q, qd, qdd, chunk_size=self.chunk_size)
+            )
         if self._force_fn is not None:
             parts.append(-self.force_values(q, qd))
         if not parts:
@@ -351,7 +354,9 @@ class EulerLagrangeOperator:
             n = len(seg)
             sl = slice(start, start + n)
             start += n
-            cols = -dt * (_correlate(a_int[sl], dpsi, stride) + _correlate(b_int[sl], psi, stride))
+            cols = -dt * (
+                _correlate(a_int[sl], dpsi, stride) + _correlate(b_int[sl], psi, stride)
+            )
             n_windows += cols.shape[0]
             gram += torch.einsum("wip,wiq->ipq", cols, cols)
             if noise_cov is not None:
@@ -359,7 +364,9 @@ class EulerLagrangeOperator:
         noise = torch.zeros_like(gram)
         if noise_cov is not None:
             a2, ab, b2 = (torch.cat(w) for w in zip(*weights))
-            noise = self._weak_noise_gram(q, qd, (a2, ab, b2), noise_cov, width, noise_rows)
+            noise = self._weak_noise_gram(
+                q, qd, (a2, ab, b2), noise_cov, width, noise_rows
+            )
         if return_noise:
             return gram, noise, n_windows
         return gram - noise, n_windows
@@ -370,7 +377,9 @@ class EulerLagrangeOperator:
         n = q.shape[0]
         a2, ab, b2 = weights
         if n > noise_rows:
-            pick = np.sort(np.random.default_rng(0).choice(n, noise_rows, replace=False))
+            pick = np.sort(
+                np.random.default_rng(0).choice(n, noise_rows, replace=False)
+            )
             idx = torch.as_tensor(pick, device=q.device)
             q, qd, a2, ab, b2 = q[idx], qd[idx], a2[idx], ab[idx], b2[idx]
             factor = n / noise_rows
@@ -382,7 +391,9 @@ class EulerLagrangeOperator:
             fn = self._fn
 
             def grads(q1, qd1):
-                return torch.cat([jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1)
+                return torch.cat(
+                    [jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1
+                )
 
             with _quiet_forward_ad():
                 jq, jqd = vmap(jacfwd(grads, argnums=(0, 1)))(q, qd)
@@ -448,12 +459,18 @@ def forward_accelerations(
 
 # ----------------------------------------------------------------------------- weak form
 def lagrangian_gradients(
-    fn: TermFunction, q: torch.Tensor, qd: torch.Tensor, *, chunk_size: int = DEFAULT_CHUNK_SIZE
+    fn: TermFunction,
+    q: torch.Tensor,
+    qd: torch.Tensor,
+    *,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> torch.Tensor:
     """``[d phi_k / dq, d phi_k / dqd]`` per sample, shape (n_samples, n_terms, 2 * n_dof)."""
 
     def one(q1, qd1):
-        return torch.cat([jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1)
+        return torch.cat(
+            [jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1
+        )
 
     batched = vmap(one)
     with _quiet_forward_ad():
@@ -510,7 +527,9 @@ def _correlate(signal: torch.Tensor, kernel: torch.Tensor, stride: int) -> torch
     """Sliding sums ``sum_j kernel[j] signal[start + j]`` along dim 0, every ``stride``."""
     n = signal.shape[0]
     flat = signal.reshape(n, -1).T.unsqueeze(1)  # (channels, 1, n)
-    out = torch.nn.functional.conv1d(flat, kernel.view(1, 1, -1).to(signal), stride=stride)
+    out = torch.nn.functional.conv1d(
+        flat, kernel.view(1, 1, -1).to(signal), stride=stride
+    )
     return out.squeeze(1).T.reshape(-1, *signal.shape[1:])
 
 
@@ -523,7 +542,9 @@ def _window_weights(n: int, kernel_a, kernel_b, stride: int):
     out = []
     for kern in (kernel_a * kernel_a, kernel_a * kernel_b, kernel_b * kernel_b):
         # scatter each window's kernel onto its samples: a transposed correlation
-        full = torch.nn.functional.conv_transpose1d(starts, kern.view(1, 1, -1), stride=stride)
+        full = torch.nn.functional.conv_transpose1d(
+            starts, kern.view(1, 1, -1), stride=stride
+        )
         res = kernel_a.new_zeros(n)
         res[: full.shape[-1]] = full.flatten()[:n]
         out.append(res)
@@ -557,10 +578,16 @@ def trajectory_segments(X: torch.Tensor, n_dof: int, groups=None, dt=None):
     q, qd = X[:, :n_dof], X[:, n_dof : 2 * n_dof]
     step = q[1:] - q[:-1]
     mismatch = (step - dt * (qd[1:] + qd[:-1]) / 2).abs()
-    spread = 1.4826 * (mismatch - mismatch.median(dim=0).values).abs().median(dim=0).values
+    spread = (
+        1.4826 * (mismatch - mismatch.median(dim=0).values).abs().median(dim=0).values
+    )
     jump = (mismatch > torch.clamp(8 * spread, min=0.1)).any(dim=1)
     cuts = [0] + (torch.nonzero(jump).flatten() + 1).tolist() + [n]
-    return [torch.arange(a, b, device=X.device) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+    return [
+        torch.arange(a, b, device=X.device)
+        for a, b in zip(cuts[:-1], cuts[1:])
+        if b > a
+    ]
 
 
 def estimate_sampling_interval(X: torch.Tensor, n_dof: int, segments) -> float:

@@ -59,7 +59,6 @@ import sympy as sp
 import torch
 from sympy.printing.str import StrPrinter
 
-from .dissipation import DEFAULT_EPS, DissipationLibrary
 from ._expr import (
     MAX_EXPRESSION_LENGTH,
     ExpressionError,
@@ -67,6 +66,7 @@ from ._expr import (
     parse_expression,
     state_names,
 )
+from .dissipation import DEFAULT_EPS, DissipationLibrary
 
 FORMAT = "lagsindy-model"
 SCHEMA_VERSION = 1
@@ -185,7 +185,9 @@ def model_to_dict(est) -> dict:
     hyper = {k: _plain(v) for k, v in sorted(params.items())}
     dissipation_names = {t.name for t in getattr(est, "dissipation_terms_", [])}
     unpenalized = [
-        t if isinstance(t, str) and t in dissipation_names else _to_text(
+        t
+        if isinstance(t, str) and t in dissipation_names
+        else _to_text(
             est.library_.terms_[est.library_.index(t)], allowed, "unpenalized term"
         )
         for t in (est.unpenalized if est.unpenalized is not None else [])
@@ -201,16 +203,20 @@ def model_to_dict(est) -> dict:
         None if residual is None or not math.isfinite(residual) else float(residual)
     )
     dissipation = []
-    for term, d in zip(getattr(est, "dissipation_terms_", []),
-                       getattr(est, "dissipation_coef_", [])):
+    for term, d in zip(
+        getattr(est, "dissipation_terms_", []), getattr(est, "dissipation_coef_", [])
+    ):
         dissipation.append(
             {
                 "name": term.name,
                 "kind": term.kind,
                 "coordinates": list(term.coordinates),
-                "forces": [_to_text(f, allowed, "dissipation force") for f in term.forces],
-                "rayleigh": None if term.rayleigh is None else _to_text(
-                    term.rayleigh, allowed, "Rayleigh function"),
+                "forces": [
+                    _to_text(f, allowed, "dissipation force") for f in term.forces
+                ],
+                "rayleigh": None
+                if term.rayleigh is None
+                else _to_text(term.rayleigh, allowed, "Rayleigh function"),
                 "coefficient": float(d),
             }
         )
@@ -554,11 +560,20 @@ def model_from_dict(doc: dict):
     est.dissipation_removed_ = []
     if dissipation_terms:
         eps = [_coulomb_eps(t) for t in dissipation_terms if t.kind == "coulomb"]
-        est.set_params(dissipation=DissipationLibrary(
-            kinds=(), coordinates=coords, eps=eps[0] if eps else DEFAULT_EPS,
-            terms=[(t.kind, t.coordinates if t.kind == "relative" else t.coordinates[0])
-                   for t in dissipation_terms],
-        ))
+        est.set_params(
+            dissipation=DissipationLibrary(
+                kinds=(),
+                coordinates=coords,
+                eps=eps[0] if eps else DEFAULT_EPS,
+                terms=[
+                    (
+                        t.kind,
+                        t.coordinates if t.kind == "relative" else t.coordinates[0],
+                    )
+                    for t in dissipation_terms
+                ],
+            )
+        )
     est._set_model()
     return est
 
@@ -587,11 +602,16 @@ def _dissipation_entries(entries, coords, allowed):
             )
         kind = entry["kind"]
         if kind not in KINDS:
-            raise ValueError(f"{where}['kind'] must be one of {KINDS}, got {str(kind)[:40]!r}")
-        on = _check_strings(entry["coordinates"], f"{where}['coordinates']",
-                            limit=_MAX_NAME_LENGTH)
+            raise ValueError(
+                f"{where}['kind'] must be one of {KINDS}, got {str(kind)[:40]!r}"
+            )
+        on = _check_strings(
+            entry["coordinates"], f"{where}['coordinates']", limit=_MAX_NAME_LENGTH
+        )
         if not on or any(c not in coords for c in on):
-            raise ValueError(f"{where}['coordinates'] must name coordinates of the model")
+            raise ValueError(
+                f"{where}['coordinates'] must name coordinates of the model"
+            )
         forces = entry["forces"]
         if not isinstance(forces, list) or len(forces) != len(coords):
             raise ValueError(
@@ -603,19 +623,25 @@ def _dissipation_entries(entries, coords, allowed):
         rayleigh = entry["rayleigh"]
         if rayleigh is not None and not isinstance(rayleigh, str):
             raise ValueError(f"{where}['rayleigh'] must be a string or null")
-        (coefficient,) = _check_numbers([entry["coefficient"]], f"{where}['coefficient']")
+        (coefficient,) = _check_numbers(
+            [entry["coefficient"]], f"{where}['coefficient']"
+        )
         eps = DEFAULT_EPS
         if kind == "coulomb":
             tanhs = [a for f in parsed for a in f.atoms(sp.tanh)]
             if len(tanhs) != 1:
-                raise ValueError(f"{where} is a Coulomb term without one tanh(qdot/eps)")
+                raise ValueError(
+                    f"{where} is a Coulomb term without one tanh(qdot/eps)"
+                )
             eps = float(1 / tanhs[0].args[0].as_coeff_Mul()[0])
             if not (math.isfinite(eps) and eps > 0):
                 raise ValueError(f"{where} has an invalid Coulomb smoothing velocity")
         try:
             term = make_term(kind, on if kind == "relative" else on[0], coords, eps=eps)
         except ValueError as exc:
-            raise ValueError(f"{where} is not a valid dissipation term: {exc}") from None
+            raise ValueError(
+                f"{where} is not a valid dissipation term: {exc}"
+            ) from None
         same = all(sp.simplify(a - b) == 0 for a, b in zip(term.forces, parsed))
         if not same or entry["name"] != term.name:
             raise ValueError(

@@ -40,7 +40,10 @@ def euler_lagrange_expressions(term: sp.Expr, coordinates: Sequence[str]) -> lis
     out = []
     for i in range(len(q)):
         p_i = sp.diff(term, qd[i])
-        dt = sum(sp.diff(p_i, q[j]) * qd[j] + sp.diff(p_i, qd[j]) * qdd[j] for j in range(len(q)))
+        dt = sum(
+            sp.diff(p_i, q[j]) * qd[j] + sp.diff(p_i, qd[j]) * qdd[j]
+            for j in range(len(q))
+        )
         out.append(sp.expand(dt - sp.diff(term, q[i])))
     return out
 
@@ -133,7 +136,9 @@ class CandidateLibrary(BaseEstimator):
 
     # ------------------------------------------------------------------ builders
     @classmethod
-    def polynomial(cls, coordinates=None, angles=None, degree=2, *, raw_angles=False, **kwargs):
+    def polynomial(
+        cls, coordinates=None, angles=None, degree=2, *, raw_angles=False, **kwargs
+    ):
         """All monomials of degree 1..``degree`` over ``{q, qdot, sin q, cos q}``.
 
         Angles contribute ``sin``/``cos`` (and themselves only if ``raw_angles``);
@@ -144,11 +149,19 @@ class CandidateLibrary(BaseEstimator):
         ``theta*theta_dot``), its cart-pendulum library
         ``polynomial(["x", "theta"], angles=["theta"], degree=3)`` (55 monomials).
         """
-        return cls(coordinates, kind="polynomial", degree=degree, angles=angles,
-                   raw_angles=raw_angles, **kwargs)
+        return cls(
+            coordinates,
+            kind="polynomial",
+            degree=degree,
+            angles=angles,
+            raw_angles=raw_angles,
+            **kwargs,
+        )
 
     @classmethod
-    def separated(cls, coordinates=None, angles=None, degree=2, *, raw_angles=False, **kwargs):
+    def separated(
+        cls, coordinates=None, angles=None, degree=2, *, raw_angles=False, **kwargs
+    ):
         """Trigonometric and non-trigonometric sets expanded separately, plus cross terms.
 
         The paper's double pendulum library is
@@ -156,8 +169,14 @@ class CandidateLibrary(BaseEstimator):
         candidates), its spherical pendulum library
         ``separated(["theta", "phi"], angles=["theta"], degree=2)`` (5 + 9 + 45 = 59).
         """
-        return cls(coordinates, kind="separated", degree=degree, angles=angles,
-                   raw_angles=raw_angles, **kwargs)
+        return cls(
+            coordinates,
+            kind="separated",
+            degree=degree,
+            angles=angles,
+            raw_angles=raw_angles,
+            **kwargs,
+        )
 
     @classmethod
     def from_terms(cls, coordinates, terms, **kwargs):
@@ -192,7 +211,12 @@ class CandidateLibrary(BaseEstimator):
         angles = self._angle_names(names)
         q, qd, _ = symbols_for(names)
         raw = [q[i] for i, n in enumerate(names) if n not in angles or self.raw_angles]
-        trig = [f(q[i]) for i, n in enumerate(names) if n in angles for f in (sp.sin, sp.cos)]
+        trig = [
+            f(q[i])
+            for i, n in enumerate(names)
+            if n in angles
+            for f in (sp.sin, sp.cos)
+        ]
         if self.kind == "polynomial":
             base = []
             for i, n in enumerate(names):
@@ -218,7 +242,9 @@ class CandidateLibrary(BaseEstimator):
                 "LagrangianSINDy fill them in from the data"
             )
         names = check_coordinate_names(
-            [self.coordinates] if isinstance(self.coordinates, str) else self.coordinates
+            [self.coordinates]
+            if isinstance(self.coordinates, str)
+            else self.coordinates
         )
         candidates = self._generate(names)
         for term in self.terms or []:
@@ -232,8 +258,12 @@ class CandidateLibrary(BaseEstimator):
                 seen.add(c)
                 unique.append(c)
         if not unique:
-            raise ValueError("the library is empty: give kind='polynomial' or terms=[...]")
-        kept, removed = _reduce(unique, names, self.remove_trivial, self.remove_dependent)
+            raise ValueError(
+                "the library is empty: give kind='polynomial' or terms=[...]"
+            )
+        kept, removed = _reduce(
+            unique, names, self.remove_trivial, self.remove_dependent
+        )
         kept, removed = list(kept), list(removed)
         if not kept:
             raise ValueError(
@@ -258,7 +288,9 @@ class CandidateLibrary(BaseEstimator):
         if name in ("terms_", "candidates_", "removed_", "coordinates_"):
             self.build()
             return self.__dict__[name]
-        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        raise AttributeError(
+            f"{type(self).__name__!r} object has no attribute {name!r}"
+        )
 
     def __len__(self) -> int:
         return len(self._ensure_built().terms_)
@@ -317,10 +349,33 @@ class CandidateLibrary(BaseEstimator):
         expr = canonical(lagrangian, self.coordinates_)
         rng = np.random.default_rng(12345)
         a = _el_matrix(self.terms_ + [expr], self.coordinates_, rng, n_points=None)
-        coef, *_ = np.linalg.lstsq(a[:, :-1], a[:, -1], rcond=None)
-        resid = np.linalg.norm(a[:, :-1] @ coef - a[:, -1]) / max(np.linalg.norm(a[:, -1]), 1e-300)
-        coef[np.abs(coef) < 1e-10 * max(1.0, np.abs(coef).max(initial=0))] = 0.0
+        coef = self._match_terms(expr)
+        if coef is None:
+            coef, *_ = np.linalg.lstsq(a[:, :-1], a[:, -1], rcond=None)
+            coef[np.abs(coef) < 1e-10 * max(1.0, np.abs(coef).max(initial=0))] = 0.0
+        resid = np.linalg.norm(a[:, :-1] @ coef - a[:, -1]) / max(
+            np.linalg.norm(a[:, -1]), 1e-300
+        )
         return coef, float(resid)
+
+    def _match_terms(self, expr):
+        """Coefficients when every non-constant term of ``expr`` is a library term.
+
+        The common case (a true Lagrangian written in the library's own terms) needs
+        no numerical solve: in a wide, ill-conditioned library (theta**3 * sin(theta)
+        beside theta on [-pi, pi]) least squares leaves round-off on terms the
+        Lagrangian lacks. ``None`` when some term is not in the library.
+        """
+        coef = np.zeros(len(self.terms_))
+        for term in sp.Add.make_args(sp.expand(expr)):
+            c, rest = term.as_coeff_Mul()
+            if rest.is_number:
+                continue  # constants do not change the equations of motion
+            try:
+                coef[self.index(rest)] += float(c)
+            except (ValueError, TypeError):
+                return None
+        return coef
 
     def __getstate__(self):
         state = self.__dict__.copy()
@@ -354,13 +409,21 @@ def _el_matrix(terms, coordinates, rng, n_points=None, expressions=None):
     cols = np.stack(
         [np.broadcast_to(np.asarray(v, dtype=float), (n_points,)) for v in out], axis=1
     )  # (n_points, n_terms * n_dof)
-    return cols.reshape(n_points, len(terms), n_dof).transpose(0, 2, 1).reshape(-1, len(terms))
+    return (
+        cols.reshape(n_points, len(terms), n_dof)
+        .transpose(0, 2, 1)
+        .reshape(-1, len(terms))
+    )
 
 
 def _reduce(candidates, coordinates, remove_trivial, remove_dependent):
     """Remove trivial and linearly dependent candidates (in order)."""
-    return _reduce_cached(tuple(candidates), tuple(coordinates), bool(remove_trivial),
-                          bool(remove_dependent))
+    return _reduce_cached(
+        tuple(candidates),
+        tuple(coordinates),
+        bool(remove_trivial),
+        bool(remove_dependent),
+    )
 
 
 @functools.lru_cache(maxsize=64)
@@ -370,7 +433,9 @@ def _reduce_cached(candidates, coordinates, remove_trivial, remove_dependent):
         return list(candidates), []
     expressions = [euler_lagrange_expressions(t, coordinates) for t in candidates]
     symbolic_zero = [all(e == 0 for e in exprs) for exprs in expressions]
-    a = _el_matrix(candidates, coordinates, np.random.default_rng(0), expressions=expressions)
+    a = _el_matrix(
+        candidates, coordinates, np.random.default_rng(0), expressions=expressions
+    )
     a = a[np.all(np.isfinite(a), axis=1)]
     norms = np.linalg.norm(a, axis=0)
     zero_tol = 1e-12 * max(norms.max(initial=0.0), 1e-300)
@@ -397,7 +462,10 @@ def _reduce_cached(candidates, coordinates, remove_trivial, remove_dependent):
                 if abs(c) > 1e-8 * big
             ]
             removed.append(
-                (str(term), "dependent: its Euler-Lagrange column equals " + " ".join(parts))
+                (
+                    str(term),
+                    "dependent: its Euler-Lagrange column equals " + " ".join(parts),
+                )
             )
             continue
         if rn > 1e-12:

@@ -26,7 +26,14 @@ import torch
 from sklearn.exceptions import ConvergenceWarning
 
 _REQUIRED = {
-    "datafit": ("value", "gradient", "lipschitz", "restrict", "relative_residual", "zeros"),
+    "datafit": (
+        "value",
+        "gradient",
+        "lipschitz",
+        "restrict",
+        "relative_residual",
+        "zeros",
+    ),
     "penalty": ("value", "prox", "subdiff_distance", "restrict"),
 }
 
@@ -79,7 +86,9 @@ class GramQuadratic:
             if self.n_features == 0:
                 self._lipschitz = 0.0
             else:
-                self._lipschitz = float(torch.linalg.eigvalsh(self.gram)[-1].clamp(min=0))
+                self._lipschitz = float(
+                    torch.linalg.eigvalsh(self.gram)[-1].clamp(min=0)
+                )
         return self._lipschitz
 
     def relative_residual(self, w: torch.Tensor) -> float:
@@ -101,7 +110,9 @@ class GramQuadratic:
             return self.rhs.clone()
         evals, evecs = torch.linalg.eigh(self.gram)
         keep = evals > rtol * evals[-1].clamp(min=1e-300)
-        inv = torch.where(keep, 1.0 / torch.where(keep, evals, torch.ones_like(evals)), 0.0)
+        inv = torch.where(
+            keep, 1.0 / torch.where(keep, evals, torch.ones_like(evals)), 0.0
+        )
         return evecs @ (inv * (evecs.T @ self.rhs))
 
 
@@ -186,7 +197,9 @@ class AccelerationDatafit:
 
     def restrict(self, idx):
         idx = torch.as_tensor(idx, dtype=torch.long, device=self.scale.device)
-        return AccelerationDatafit(self.mass[:, idx], self.bias[:, idx], self.qdd, self.scale[idx])
+        return AccelerationDatafit(
+            self.mass[:, idx], self.bias[:, idx], self.qdd, self.scale[idx]
+        )
 
     def least_squares(self, w0=None, max_iter: int = 2000, tol: float = 1e-10):
         """Unpenalised minimiser from ``w0`` (local: the problem is not convex)."""
@@ -344,7 +357,9 @@ def fista(
         if it % check_every == 0 or it == max_iter:
             obj = datafit.value(w) + penalty.value(w)
             history.append(obj)
-            if not math.isfinite(obj) or obj > best_obj + 1e-10 * max(1.0, abs(best_obj)):
+            if not math.isfinite(obj) or obj > best_obj + 1e-10 * max(
+                1.0, abs(best_obj)
+            ):
                 rises += 1
                 if not math.isfinite(obj) or rises >= 2:
                     if guard >= max_step_reductions:
@@ -407,7 +422,9 @@ def proximal_gradient(
             w_new = project(penalty.prox(w - step * grad, step))
             obj_new = datafit.value(w_new) + penalty.value(w_new)
             decrease = float(((w_new - w) ** 2).sum()) / (2 * step)
-            if math.isfinite(obj_new) and obj_new <= obj - 0.5 * decrease + 1e-15 * abs(obj):
+            if math.isfinite(obj_new) and obj_new <= obj - 0.5 * decrease + 1e-15 * abs(
+                obj
+            ):
                 break
             step *= 0.5
             reductions += 1
@@ -517,7 +534,9 @@ def staged_fista(
     weights = torch.ones_like(template) if penalty_weights is None else penalty_weights
     support = np.arange(p)
     thresholds = (
-        torch.as_tensor(threshold, dtype=template.dtype, device=device).expand(p).clone()
+        torch.as_tensor(threshold, dtype=template.dtype, device=device)
+        .expand(p)
+        .clone()
     )
     w_full = template.clone() if w0 is None else w0.clone()
     stages, total_iter, reductions = [], 0, 0
@@ -529,8 +548,14 @@ def staged_fista(
         pen = L1(cur_lam, weights[torch.as_tensor(support, device=device)])
         step = None if alpha is None else float(alpha) * step_growth**s
         solver = fista if sub.lipschitz() is not None else proximal_gradient
-        res = solver(sub, pen, w_full[torch.as_tensor(support, device=device)],
-                     step=step, max_iter=max_iter, tol=solver_tol)
+        res = solver(
+            sub,
+            pen,
+            w_full[torch.as_tensor(support, device=device)],
+            step=step,
+            max_iter=max_iter,
+            tol=solver_tol,
+        )
         total_iter += res.n_iter
         reductions += res.step_reductions
         converged = converged and res.converged
@@ -549,8 +574,16 @@ def staged_fista(
         cost = datafit.relative_residual(w_full)
         new_support = support[keep.cpu().numpy()]
         stages.append(
-            Stage(cur_lam, res.step, res.n_iter, res.converged, res.stop_crit,
-                  w_full.detach().cpu().numpy().copy(), new_support.copy(), cost)
+            Stage(
+                cur_lam,
+                res.step,
+                res.n_iter,
+                res.converged,
+                res.stop_crit,
+                w_full.detach().cpu().numpy().copy(),
+                new_support.copy(),
+                cost,
+            )
         )
         if verbose:
             print(
@@ -563,9 +596,13 @@ def staged_fista(
             break
         cur_lam /= lam_decay
     if debias and len(support):
-        w_full, support = _debias(datafit, support, weights, thresholds, reference, w_full)
+        w_full, support = _debias(
+            datafit, support, weights, thresholds, reference, w_full
+        )
         cost = datafit.relative_residual(w_full)
-    return StagedResult(w_full, support, stages, total_iter, converged, cost, reductions)
+    return StagedResult(
+        w_full, support, stages, total_iter, converged, cost, reductions
+    )
 
 
 def _debias(datafit, support, weights, thresholds, reference, w_start):
@@ -626,6 +663,8 @@ def warn_not_converged(stages, max_iter):
 # rtol 1e-10 on the paper's systems); the fit is invariant to units only at its fixed
 # point, so the cap must not cut it short (100 did, shifting noisy fits by ~1e-7).
 _BALANCE_MAX_ITER = 2000
+
+
 class BalancedGram:
     r"""Scaled least-squares problems from per-coordinate Gram statistics.
 
@@ -673,7 +712,9 @@ class BalancedGram:
                     break
                 ratio = mean_sq[:, active] / cols[active] ** 2
                 new_rows = torch.sqrt(ratio.mean(dim=1))
-                new_rows = torch.where(new_rows > 0, new_rows, torch.ones_like(new_rows))
+                new_rows = torch.where(
+                    new_rows > 0, new_rows, torch.ones_like(new_rows)
+                )
                 new_rows = new_rows / torch.exp(torch.log(new_rows).mean())
                 if torch.allclose(new_rows, rows, rtol=1e-10, atol=0):
                     rows = new_rows
@@ -687,7 +728,9 @@ class BalancedGram:
             # negative eigenvalues; use the nearest positive semi-definite matrix.
             evals, evecs = torch.linalg.eigh((self.gram + self.gram.T) / 2)
             self.gram = (evecs * torch.clamp(evals, min=0)) @ evecs.T
-        col = torch.sqrt(torch.clamp(torch.diagonal(self.gram)[: self.n_features], min=0))
+        col = torch.sqrt(
+            torch.clamp(torch.diagonal(self.gram)[: self.n_features], min=0)
+        )
         if normalize:
             self.col_scale = col
         else:

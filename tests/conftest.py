@@ -21,9 +21,13 @@ def cart_active():
 
 @pytest.fixture(scope="session")
 def single_active():
-    return make_dataset(single_pendulum(), n_trajectories=40, excitation="paper", random_state=1)
+    return make_dataset(
+        single_pendulum(), n_trajectories=40, excitation="paper", random_state=1
+    )
 
 
 @pytest.fixture(scope="session")
 def single_passive():
-    return make_dataset(single_pendulum(), n_trajectories=40, excitation=None, random_state=2)
+    return make_dataset(
+        single_pendulum(), n_trajectories=40, excitation=None, random_state=2
+    )

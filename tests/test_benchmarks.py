@@ -269,5 +269,7 @@ def test_case2_tiny(tiny_results):
     case2.main(["--quick"])
     text = (tiny_results / "case2_quick.md").read_text()
     _check_header(text)
-    row = next(line for line in text.splitlines() if line.startswith("| single pendulum"))
+    row = next(
+        line for line in text.splitlines() if line.startswith("| single pendulum")
+    )
     assert "| yes |" in row  # noise-free single pendulum: case II finds the structure

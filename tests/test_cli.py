@@ -563,14 +563,29 @@ def test_diagnose_command_finds_damping(tmp_path, capsys):
     from lagsindy.systems import make_dataset, single_pendulum
 
     system = single_pendulum().with_damping(viscous={"theta": 0.2})
-    data = make_dataset(system, n_trajectories=9, duration=3.0, excitation="sincos",
-                        random_state=0)
+    data = make_dataset(
+        system, n_trajectories=9, duration=3.0, excitation="sincos", random_state=0
+    )
     csv = tmp_path / "damped.csv"
     data.to_frame().to_csv(csv, index=False)
     plot = tmp_path / "diag.png"
     final = tmp_path / "final.json"
-    rc = main(["diagnose", str(csv), "--coordinates", "theta", "--angles", "theta",
-               "--raw-angles", "--plot", str(plot), "--out-model", str(final), "--quiet"])
+    rc = main(
+        [
+            "diagnose",
+            str(csv),
+            "--coordinates",
+            "theta",
+            "--angles",
+            "theta",
+            "--raw-angles",
+            "--plot",
+            str(plot),
+            "--out-model",
+            str(final),
+            "--quiet",
+        ]
+    )
     out = capsys.readouterr().out
     assert rc == 0
     assert "viscous(theta)" in out and "viscous damping" in out and "D = " in out
@@ -581,8 +596,22 @@ def test_diagnose_command_finds_damping(tmp_path, capsys):
     assert loaded.dissipation_coef_ == pytest.approx([0.2], rel=1e-3)
     # and from the saved model of the first fit, with a bad pairing: one-line error
     first = tmp_path / "first.json"
-    assert main(["fit", str(csv), "--coordinates", "theta", "--angles", "theta",
-                 "--out", str(first), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                str(csv),
+                "--coordinates",
+                "theta",
+                "--angles",
+                "theta",
+                "--out",
+                str(first),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert main(["diagnose", str(csv), "--model", str(first), "--passive"]) == 2
     err = capsys.readouterr().err
     assert "error:" in err and len(err.strip().splitlines()) == 1

@@ -1,11 +1,15 @@
 """Close the loop: residual diagnosis finds undeclared effects (issue 5 acceptance)."""
 
-import numpy as np
 import pytest
 import sympy as sp
 
 from lagsindy import CandidateLibrary, LagrangianSINDy, diagnose
-from lagsindy.systems import cart_pendulum, double_pendulum, make_dataset, single_pendulum
+from lagsindy.systems import (
+    cart_pendulum,
+    double_pendulum,
+    make_dataset,
+    single_pendulum,
+)
 
 
 def _drag_pendulum(c):
@@ -17,8 +21,15 @@ def _drag_pendulum(c):
 
 
 def _fit_and_diagnose(system, *, n=20, duration=4.0, noise=0.0, library=None, **fit_kw):
-    data = make_dataset(system, n_trajectories=n, duration=duration, excitation="sincos",
-                        noise=noise, protocol="paper", random_state=0)
+    data = make_dataset(
+        system,
+        n_trajectories=n,
+        duration=duration,
+        excitation="sincos",
+        noise=noise,
+        protocol="paper",
+        random_state=0,
+    )
     est = LagrangianSINDy(library or system.paper_library(), **fit_kw)
     est.fit(data.X, data.tau, groups=data.groups)
     return diagnose(est, data.X, data.tau, groups=data.groups), data
@@ -27,7 +38,11 @@ def _fit_and_diagnose(system, *, n=20, duration=4.0, noise=0.0, library=None, **
 @pytest.mark.parametrize(
     "system, effect, value",
     [
-        (double_pendulum().with_damping(viscous={"theta1": 0.3}), "viscous(theta1)", 0.3),
+        (
+            double_pendulum().with_damping(viscous={"theta1": 0.3}),
+            "viscous(theta1)",
+            0.3,
+        ),
         (cart_pendulum().with_damping(coulomb={"x": 0.2}), "coulomb(x)", 0.2),
         (_drag_pendulum(0.1), "drag(theta)", 0.1),
     ],
@@ -44,7 +59,9 @@ def test_diagnosis_names_the_effect_and_fixes_the_model(system, effect, value):
 
 
 @pytest.mark.parametrize("noise", [0.0, 0.01])
-@pytest.mark.parametrize("factory", [single_pendulum, cart_pendulum], ids=["single", "cart"])
+@pytest.mark.parametrize(
+    "factory", [single_pendulum, cart_pendulum], ids=["single", "cart"]
+)
 def test_no_false_positive_without_an_undeclared_effect(factory, noise):
     report, _ = _fit_and_diagnose(factory(), noise=noise)
     assert report.steps == []
@@ -52,7 +69,9 @@ def test_no_false_positive_without_an_undeclared_effect(factory, noise):
 
 
 def test_no_false_positive_weak_form_double_pendulum():
-    report, _ = _fit_and_diagnose(double_pendulum(), noise=0.01, formulation="weak", dt=0.01)
+    report, _ = _fit_and_diagnose(
+        double_pendulum(), noise=0.01, formulation="weak", dt=0.01
+    )
     assert report.steps == []
 
 
@@ -72,8 +91,14 @@ def test_missing_conservative_term():
     system.__dict__.pop("_compiled", None)
     lib = CandidateLibrary.from_terms(
         ["x", "theta"],
-        ["x_dot**2", "theta_dot**2", "x_dot*theta_dot*cos(theta)", "cos(theta)",
-         "theta_dot**2*cos(theta)", "x_dot**2*cos(theta)"],
+        [
+            "x_dot**2",
+            "theta_dot**2",
+            "x_dot*theta_dot*cos(theta)",
+            "cos(theta)",
+            "theta_dot**2*cos(theta)",
+            "x_dot**2*cos(theta)",
+        ],
     )
     report, _ = _fit_and_diagnose(system, library=lib)
     assert report.effects[0] == "x**2"
@@ -83,8 +108,9 @@ def test_missing_conservative_term():
 
 def test_input_gain_error_on_one_of_two_inputs():
     system = double_pendulum()
-    data = make_dataset(system, n_trajectories=20, duration=4.0, excitation="sincos",
-                        random_state=3)
+    data = make_dataset(
+        system, n_trajectories=20, duration=4.0, excitation="sincos", random_state=3
+    )
     measured = data.tau.copy()
     measured[:, 1] /= 0.8  # the second actuator delivers 80 % of the recorded torque
     est = LagrangianSINDy(system.paper_library()).fit(data.X, measured)
@@ -95,8 +121,9 @@ def test_input_gain_error_on_one_of_two_inputs():
 
 def test_passive_diagnosis_in_case_III():
     system = single_pendulum().with_damping(viscous={"theta": 0.2})
-    data = make_dataset(system, n_trajectories=20, duration=4.0, excitation=None,
-                        random_state=4)
+    data = make_dataset(
+        system, n_trajectories=20, duration=4.0, excitation=None, random_state=4
+    )
     est = LagrangianSINDy(system.paper_library(), fixed_term="theta_dot**2").fit(data.X)
     report = diagnose(est, data.X, groups=data.groups)
     assert report.passive and report.effects == ["viscous(theta)"]
@@ -119,7 +146,9 @@ def test_report_text_table_and_plot(tmp_path):
 
 
 def test_diagnose_errors(single_active):
-    est = LagrangianSINDy(single_pendulum().paper_library()).fit(single_active.X, single_active.tau)
+    est = LagrangianSINDy(single_pendulum().paper_library()).fit(
+        single_active.X, single_active.tau
+    )
     with pytest.raises(ValueError, match="kind of data"):
         diagnose(est, single_active.X)
     with pytest.raises(ValueError, match="min_explained"):
@@ -127,5 +156,10 @@ def test_diagnose_errors(single_active):
     with pytest.raises(ValueError, match="groups"):
         diagnose(est, single_active.X, single_active.tau, groups=[0, 1])
     with pytest.raises(ValueError, match="unknown candidate kind"):
-        diagnose(est, single_active.X, single_active.tau, groups=single_active.groups,
-                 catalogue=("magic",))
+        diagnose(
+            est,
+            single_active.X,
+            single_active.tau,
+            groups=single_active.groups,
+            catalogue=("magic",),
+        )

@@ -4,7 +4,12 @@ import sympy as sp
 
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy
 from lagsindy.dissipation import make_term, reduce_forces
-from lagsindy.systems import cart_pendulum, double_pendulum, make_dataset, single_pendulum
+from lagsindy.systems import (
+    cart_pendulum,
+    double_pendulum,
+    make_dataset,
+    single_pendulum,
+)
 
 
 def test_terms_have_the_documented_forces():
@@ -23,17 +28,25 @@ def test_terms_have_the_documented_forces():
         for v in (0.7, -1.3):
             for i, s in enumerate((xd, yd)):
                 want = -sp.diff(term.rayleigh, s).subs({xd: v, yd: -0.4})
-                assert float(term.forces[i].subs({xd: v, yd: -0.4})) == pytest.approx(float(want))
+                assert float(term.forces[i].subs({xd: v, yd: -0.4})) == pytest.approx(
+                    float(want)
+                )
     coulomb = make_term("coulomb", "x", coords, eps=0.05)
     assert sp.simplify(coulomb.forces[0] + sp.tanh(xd / 0.05)) == 0
     assert make_term("bias", "y", coords).forces == (0, 1)
 
 
 def test_library_builds_names_and_rejects_bad_specs():
-    lib = DissipationLibrary(["viscous", "relative"], coordinates=["a", "b", "c"]).build()
+    lib = DissipationLibrary(
+        ["viscous", "relative"], coordinates=["a", "b", "c"]
+    ).build()
     assert list(lib.get_feature_names_out()) == [
-        "viscous(a)", "viscous(b)", "viscous(c)",
-        "relative(a,b)", "relative(a,c)", "relative(b,c)",
+        "viscous(a)",
+        "viscous(b)",
+        "viscous(c)",
+        "relative(a,b)",
+        "relative(a,c)",
+        "relative(b,c)",
     ]
     extra = DissipationLibrary((), coordinates=["a"], terms=[("drag", "a")]).build()
     assert [t.name for t in extra.terms_] == ["drag(a)"]
@@ -42,7 +55,9 @@ def test_library_builds_names_and_rejects_bad_specs():
     with pytest.raises(ValueError, match="not one of the coordinates"):
         DissipationLibrary((), coordinates=["a"], terms=[("viscous", "z")]).build()
     with pytest.raises(ValueError, match="two different coordinates"):
-        DissipationLibrary((), coordinates=["a"], terms=[("relative", ("a", "a"))]).build()
+        DissipationLibrary(
+            (), coordinates=["a"], terms=[("relative", ("a", "a"))]
+        ).build()
 
 
 def test_constant_force_duplicating_a_linear_potential_is_removed():
@@ -56,14 +71,19 @@ def test_constant_force_duplicating_a_linear_potential_is_removed():
 @pytest.mark.parametrize(
     "system, effect, value",
     [
-        (double_pendulum().with_damping(viscous={"theta1": 0.3}), "viscous(theta1)", 0.3),
+        (
+            double_pendulum().with_damping(viscous={"theta1": 0.3}),
+            "viscous(theta1)",
+            0.3,
+        ),
         (cart_pendulum().with_damping(coulomb={"x": 0.2}), "coulomb(x)", 0.2),
     ],
 )
 def test_joint_fit_recovers_dissipation(system, effect, value):
     data = make_dataset(system, n_trajectories=20, excitation="sincos", random_state=0)
     est = LagrangianSINDy(
-        system.paper_library(), dissipation=DissipationLibrary(["viscous", "coulomb", "drag"])
+        system.paper_library(),
+        dissipation=DissipationLibrary(["viscous", "coulomb", "drag"]),
     ).fit(data.X, data.tau)
     table = est.coef_table()
     found = table[(table.kind == "dissipation") & table.kept]
@@ -79,20 +99,35 @@ def test_joint_fit_recovers_dissipation(system, effect, value):
 
 def test_no_dissipation_found_in_undamped_data():
     system = single_pendulum()
-    data = make_dataset(system, n_trajectories=20, excitation="sincos", noise=0.01,
-                        protocol="paper", random_state=1)
-    est = LagrangianSINDy(system.paper_library(), formulation="weak", dt=0.01,
-                          dissipation=DissipationLibrary(["viscous", "coulomb", "drag"]))
+    data = make_dataset(
+        system,
+        n_trajectories=20,
+        excitation="sincos",
+        noise=0.01,
+        protocol="paper",
+        random_state=1,
+    )
+    est = LagrangianSINDy(
+        system.paper_library(),
+        formulation="weak",
+        dt=0.01,
+        dissipation=DissipationLibrary(["viscous", "coulomb", "drag"]),
+    )
     est.fit(data.X, data.tau, groups=data.groups)
     assert not np.any(est.dissipation_coef_)
-    assert est.dissipation_["D"] == 0 and all(f == 0 for f in est.dissipation_["forces"])
+    assert est.dissipation_["D"] == 0 and all(
+        f == 0 for f in est.dissipation_["forces"]
+    )
 
 
 def test_passive_case_III_with_damping():
     system = single_pendulum().with_damping(viscous={"theta": 0.2})
     data = make_dataset(system, n_trajectories=20, excitation=None, random_state=2)
-    est = LagrangianSINDy(system.paper_library(), fixed_term="theta_dot**2",
-                          dissipation=DissipationLibrary(["viscous"])).fit(data.X)
+    est = LagrangianSINDy(
+        system.paper_library(),
+        fixed_term="theta_dot**2",
+        dissipation=DissipationLibrary(["viscous"]),
+    ).fit(data.X)
     # L / 0.5 = theta_dot**2 + 19.62 cos(theta), D / 0.5 = 0.4 * theta_dot**2 / 2
     assert est.dissipation_coef_[0] == pytest.approx(0.4, rel=1e-6)
     assert est.score(data.X) > 0.999999
@@ -100,12 +135,17 @@ def test_passive_case_III_with_damping():
 
 def test_unpenalized_dissipation_names_and_errors(single_active):
     lib = single_pendulum().paper_library()
-    est = LagrangianSINDy(lib, dissipation=DissipationLibrary(["viscous"]),
-                          unpenalized=["viscous(theta)"]).fit(single_active.X, single_active.tau)
+    est = LagrangianSINDy(
+        lib, dissipation=DissipationLibrary(["viscous"]), unpenalized=["viscous(theta)"]
+    ).fit(single_active.X, single_active.tau)
     assert est.dissipation_coef_[0] == pytest.approx(0.0, abs=1e-8)  # kept, near zero
     with pytest.raises(ValueError, match="unpenalized"):
-        LagrangianSINDy(lib, dissipation=DissipationLibrary(["viscous"]),
-                        unpenalized=["drag(theta)"]).fit(single_active.X, single_active.tau)
+        LagrangianSINDy(
+            lib,
+            dissipation=DissipationLibrary(["viscous"]),
+            unpenalized=["drag(theta)"],
+        ).fit(single_active.X, single_active.tau)
     with pytest.raises(ValueError, match="coordinates"):
-        LagrangianSINDy(lib, dissipation=DissipationLibrary(["viscous"], coordinates=["x"])).fit(
-            single_active.X, single_active.tau)
+        LagrangianSINDy(
+            lib, dissipation=DissipationLibrary(["viscous"], coordinates=["x"])
+        ).fit(single_active.X, single_active.tau)

@@ -11,7 +11,9 @@ def test_small_angle_pendulum_matches_cosine():
     t = np.linspace(0, 5, 501)
     states = model.simulate([1e-3, 0.0], t)
     # the linearised solution; the nonlinear correction is ~ 1e-3 * (1e-3)**2 / 16 * w t
-    np.testing.assert_allclose(states[:, 0], 1e-3 * np.cos(np.sqrt(9.81) * t), atol=1e-8)
+    np.testing.assert_allclose(
+        states[:, 0], 1e-3 * np.cos(np.sqrt(9.81) * t), atol=1e-8
+    )
 
 
 def test_inverse_and_forward_dynamics_are_consistent():
@@ -32,7 +34,9 @@ def test_indefinite_mass_matrix_raises_clear_error():
         ["x", "theta"],
         name="learned model",
     )
-    with pytest.raises(SingularMassMatrixError, match=r"indefinite at t=0 .*theta=0\.3") as info:
+    with pytest.raises(
+        SingularMassMatrixError, match=r"indefinite at t=0 .*theta=0\.3"
+    ) as info:
         model.simulate([0.0, 0.3, 0.0, 0.0], np.linspace(0, 1, 5))
     assert info.value.t == 0.0
     np.testing.assert_allclose(info.value.q, [0.0, 0.3])
@@ -54,13 +58,16 @@ def test_negative_definite_mass_matrix_is_valid():
     pos = MechanicalModel("0.5*theta_dot**2 + 9.81*cos(theta)", ["theta"])
     neg = MechanicalModel("-0.5*theta_dot**2 - 9.81*cos(theta)", ["theta"])
     t = np.linspace(0, 3, 31)
-    np.testing.assert_allclose(neg.simulate([1.0, 0.0], t), pos.simulate([1.0, 0.0], t),
-                               atol=1e-8)
+    np.testing.assert_allclose(
+        neg.simulate([1.0, 0.0], t), pos.simulate([1.0, 0.0], t), atol=1e-8
+    )
 
 
 def test_dissipation_and_forces_enter_equations():
     model = MechanicalModel(
-        "0.5*x_dot**2 - 2*x**2", ["x"], dissipation="0.3*x_dot**2/2",
+        "0.5*x_dot**2 - 2*x**2",
+        ["x"],
+        dissipation="0.3*x_dot**2/2",
         forces=["-0.1*tanh(x_dot/0.01)"],
     )
     q, qd = np.array([[0.5]]), np.array([[2.0]])
@@ -72,11 +79,15 @@ def test_dissipation_and_forces_enter_equations():
 
 
 def test_input_matrix_and_sampled_input():
-    model = MechanicalModel("0.5*x_dot**2 + 0.5*y_dot**2", ["x", "y"], input_matrix=[[1.0], [0.0]])
+    model = MechanicalModel(
+        "0.5*x_dot**2 + 0.5*y_dot**2", ["x", "y"], input_matrix=[[1.0], [0.0]]
+    )
     t = np.linspace(0, 1, 101)
     u = np.cos(t)[:, None]
     states = model.simulate([0, 0, 0, 0], t, tau=u)
-    np.testing.assert_allclose(states[:, 0], 1 - np.cos(t), atol=1e-4)  # linear interpolation
+    np.testing.assert_allclose(
+        states[:, 0], 1 - np.cos(t), atol=1e-4
+    )  # linear interpolation
     np.testing.assert_allclose(states[:, 1], 0.0)
     exact = model.simulate([0, 0, 0, 0], t, tau=lambda tt, x: np.array([np.cos(tt)]))
     np.testing.assert_allclose(exact[:, 0], 1 - np.cos(t), atol=1e-8)
@@ -97,14 +108,17 @@ def test_pickle_round_trip_keeps_equations():
     model = MechanicalModel("0.5*theta_dot**2 + 9.81*cos(theta)", ["theta"])
     model.simulate([0.1, 0.0], [0.0, 0.1])  # compile the lambdified code first
     copy = pickle.loads(pickle.dumps(model))
-    np.testing.assert_allclose(copy.simulate([0.1, 0.0], [0.0, 0.1]),
-                               model.simulate([0.1, 0.0], [0.0, 0.1]))
+    np.testing.assert_allclose(
+        copy.simulate([0.1, 0.0], [0.0, 0.1]), model.simulate([0.1, 0.0], [0.0, 0.1])
+    )
 
 
 def test_rollout_error_reports_divergence_and_failure():
     true = MechanicalModel("0.5*theta_dot**2 + 9.81*cos(theta)", ["theta"])
     close = MechanicalModel("0.5*theta_dot**2 + 9.8*cos(theta)", ["theta"])
-    broken = MechanicalModel("-0.5*theta_dot**2*sin(theta) + 9.81*cos(theta)", ["theta"])
+    broken = MechanicalModel(
+        "-0.5*theta_dot**2*sin(theta) + 9.81*cos(theta)", ["theta"]
+    )
     t = np.linspace(0, 5, 101)
     out = rollout_error(true, close, [1.0, 0.0], t)
     assert 1e-4 < out["max_abs_q"] < 0.1
@@ -113,8 +127,11 @@ def test_rollout_error_reports_divergence_and_failure():
 
 
 def test_equation_text_and_errors():
-    model = MechanicalModel("0.123456*theta_dot**2 + 9.81*cos(theta)", ["theta"],
-                            dissipation="0.1*theta_dot**2")
+    model = MechanicalModel(
+        "0.123456*theta_dot**2 + 9.81*cos(theta)",
+        ["theta"],
+        dissipation="0.1*theta_dot**2",
+    )
     text = model.equation(3)
     assert "L = 0.123*theta_dot**2" in text and "D = 0.1*theta_dot**2" in text
     with pytest.raises(ValueError, match="one entry per coordinate"):

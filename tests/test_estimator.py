@@ -58,18 +58,27 @@ def test_single_pendulum_case_III_ratio(single_passive):
     assert est.case_ == "fixed" and est.fixed_term_ == "theta_dot**2"
     assert set(learned) == {"theta_dot**2", "cos(theta)"}
     assert learned["theta_dot**2"] == 1.0
-    assert learned["cos(theta)"] / learned["theta_dot**2"] == pytest.approx(19.62, rel=0.01)
+    assert learned["cos(theta)"] / learned["theta_dot**2"] == pytest.approx(
+        19.62, rel=0.01
+    )
 
 
 def test_case_III_chooses_fixed_term_automatically():
-    data = make_dataset(double_pendulum(), n_trajectories=30, excitation=None, random_state=3)
+    data = make_dataset(
+        double_pendulum(), n_trajectories=30, excitation=None, random_state=3
+    )
     est = LagrangianSINDy(double_pendulum().paper_library(), random_state=0).fit(data.X)
     learned = _learned(est)
     assert est.fixed_term_ in learned and learned[est.fixed_term_] == 1.0
     scale = learned["theta1_dot**2"]
-    want = {"theta1_dot**2": 1.0, "theta2_dot**2": 0.5, "cos(theta1)": 19.62,
-            "cos(theta2)": 9.81, "theta1_dot*theta2_dot*cos(theta1)*cos(theta2)": 1.0,
-            "theta1_dot*theta2_dot*sin(theta1)*sin(theta2)": 1.0}
+    want = {
+        "theta1_dot**2": 1.0,
+        "theta2_dot**2": 0.5,
+        "cos(theta1)": 19.62,
+        "cos(theta2)": 9.81,
+        "theta1_dot*theta2_dot*cos(theta1)*cos(theta2)": 1.0,
+        "theta1_dot*theta2_dot*sin(theta1)*sin(theta2)": 1.0,
+    }
     assert set(learned) == set(want)
     for term, value in want.items():
         assert learned[term] / scale == pytest.approx(value, rel=1e-3)
@@ -82,10 +91,21 @@ def test_mass_normalization_avoids_the_near_null_lagrangian():
     With noisy passive data the fixed-term fit then prefers a Lagrangian that nearly
     vanishes on the data; fixing the mean trace of the mass matrix rules it out.
     """
-    data = make_dataset(single_pendulum(), n_trajectories=10, excitation=None, noise=0.05,
-                        random_state=0)
-    terms = ["theta_dot**2", "theta_dot**2*cos(theta)", "theta_dot**2*sin(theta)**2",
-             "cos(theta)", "theta_dot**2*theta**2", "theta_dot**2*cos(theta)**2"]
+    data = make_dataset(
+        single_pendulum(),
+        n_trajectories=10,
+        excitation=None,
+        noise=0.05,
+        random_state=0,
+    )
+    terms = [
+        "theta_dot**2",
+        "theta_dot**2*cos(theta)",
+        "theta_dot**2*sin(theta)**2",
+        "cos(theta)",
+        "theta_dot**2*theta**2",
+        "theta_dot**2*cos(theta)**2",
+    ]
     lib = CandidateLibrary.from_terms(["theta"], terms)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -105,7 +125,9 @@ def test_mass_normalization_avoids_the_near_null_lagrangian():
 
 def test_spherical_passive_needs_the_right_fixed_term():
     """theta_dot**2 alone is fit by a theta-only Lagrangian; the search avoids it."""
-    data = make_dataset(spherical_pendulum(), n_trajectories=30, excitation=None, random_state=4)
+    data = make_dataset(
+        spherical_pendulum(), n_trajectories=30, excitation=None, random_state=4
+    )
     lib = spherical_pendulum().paper_library()
     est = LagrangianSINDy(lib, random_state=0).fit(data.X)
     learned = _learned(est)
@@ -113,13 +135,17 @@ def test_spherical_passive_needs_the_right_fixed_term():
     assert set(ratio) == {"theta_dot**2", "phi_dot**2*sin(theta)**2", "cos(theta)"}
     assert ratio["cos(theta)"] == pytest.approx(19.62, rel=1e-3)
     # With the paper's prior (cos(theta) known, unpenalised) theta_dot**2 works too
-    est2 = LagrangianSINDy(lib, fixed_term="theta_dot**2", unpenalized=["cos(theta)"]).fit(data.X)
+    est2 = LagrangianSINDy(
+        lib, fixed_term="theta_dot**2", unpenalized=["cos(theta)"]
+    ).fit(data.X)
     assert set(_learned(est2)) == set(ratio)
 
 
 def test_constant_input_degeneracy_is_reported():
     """The paper's spherical input (a constant on phi) equals a linear potential in phi."""
-    data = make_dataset(spherical_pendulum(), n_trajectories=10, excitation="paper", random_state=5)
+    data = make_dataset(
+        spherical_pendulum(), n_trajectories=10, excitation="paper", random_state=5
+    )
     with pytest.warns(IdentifiabilityWarning, match="phi"):
         LagrangianSINDy(spherical_pendulum().paper_library()).fit(data.X, data.tau)
 
@@ -127,11 +153,17 @@ def test_constant_input_degeneracy_is_reported():
 def test_dataframe_input_uses_column_names(cart_active):
     df = pd.DataFrame(cart_active.X, columns=cart_active.feature_names)
     shuffled = df[df.columns[::-1]].assign(extra=1.0)
-    est = LagrangianSINDy(cart_pendulum().paper_library()).fit(shuffled, cart_active.tau)
+    est = LagrangianSINDy(cart_pendulum().paper_library()).fit(
+        shuffled, cart_active.tau
+    )
     assert list(est.feature_names_in_) == cart_active.feature_names
-    ref = LagrangianSINDy(cart_pendulum().paper_library()).fit(cart_active.X, cart_active.tau)
+    ref = LagrangianSINDy(cart_pendulum().paper_library()).fit(
+        cart_active.X, cart_active.tau
+    )
     np.testing.assert_allclose(est.coef_, ref.coef_, rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(est.predict(shuffled), ref.predict(cart_active.X), atol=1e-10)
+    np.testing.assert_allclose(
+        est.predict(shuffled), ref.predict(cart_active.X), atol=1e-10
+    )
 
 
 def test_default_library_takes_coordinates_from_dataframe(single_active):
@@ -144,27 +176,33 @@ def test_default_library_takes_coordinates_from_dataframe(single_active):
 
 
 def test_numpy_input_without_library_names_coordinates_q():
-    data = make_dataset(single_pendulum(), n_trajectories=10, excitation="paper", random_state=6)
+    data = make_dataset(
+        single_pendulum(), n_trajectories=10, excitation="paper", random_state=6
+    )
     est = LagrangianSINDy().fit(data.X, data.tau)
     assert est.coordinates_ == ["q0"]
     assert "cos(q0)" in _learned(est)
 
 
 def test_predictions_agree_with_model_equations(cart_active):
-    est = LagrangianSINDy(cart_pendulum().paper_library()).fit(cart_active.X, cart_active.tau)
+    est = LagrangianSINDy(cart_pendulum().paper_library()).fit(
+        cart_active.X, cart_active.tau
+    )
     X = cart_active.X[:500]
     n = 2
-    forces = est.model_.inverse_dynamics(X[:, :n], X[:, n:2 * n], X[:, 2 * n:])
+    forces = est.model_.inverse_dynamics(X[:, :n], X[:, n : 2 * n], X[:, 2 * n :])
     np.testing.assert_allclose(est.predict(X), forces, rtol=1e-9, atol=1e-9)
     acc = est.predict_acceleration(X, cart_active.tau[:500])
-    np.testing.assert_allclose(acc, X[:, 2 * n:], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(acc, X[:, 2 * n :], rtol=1e-6, atol=1e-6)
     assert isinstance(est.lagrangian_, sp.Expr)
     assert est.equation(3).startswith("L = ")
 
 
 def test_unpenalized_terms_are_kept(single_active):
     lib = single_pendulum().paper_library()
-    est = LagrangianSINDy(lib, unpenalized=["theta**2"]).fit(single_active.X, single_active.tau)
+    est = LagrangianSINDy(lib, unpenalized=["theta**2"]).fit(
+        single_active.X, single_active.tau
+    )
     # an unpenalised term is never thresholded: it stays in the support, with the
     # value the data give it (near zero here, as theta**2 is not in the truth)
     k = lib.index("theta**2")
@@ -185,7 +223,9 @@ def test_stages_record_the_path(cart_active):
     )
     assert len(est.stages_) == 3
     lams = [st.lam for st in est.stages_]
-    assert lams[1] == pytest.approx(lams[0] / 10) and lams[2] == pytest.approx(lams[1] / 10)
+    assert lams[1] == pytest.approx(lams[0] / 10) and lams[2] == pytest.approx(
+        lams[1] / 10
+    )
     assert est.stages_[0].coef.shape == est.coef_.shape
     assert est.n_iter_ == sum(st.n_iter for st in est.stages_)
 
@@ -205,5 +245,6 @@ def test_degenerate_case_III_model_is_flagged():
     s = triple_pendulum()
     data = make_dataset(s, n_trajectories=20, excitation=None, random_state=0)
     with pytest.warns(UserWarning, match=r"singular or indefinite.*theta2"):
-        LagrangianSINDy(s.paper_library(), fixed_term="theta1_dot**2",
-                        unpenalized=["cos(theta1)"]).fit(data.X)
+        LagrangianSINDy(
+            s.paper_library(), fixed_term="theta1_dot**2", unpenalized=["cos(theta1)"]
+        ).fit(data.X)

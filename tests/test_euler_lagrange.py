@@ -47,8 +47,9 @@ def test_columns_agree_with_sympy(system):
         want = np.stack(
             [np.broadcast_to(v, (25,)) for v in f(*q.T, *qd.T, *qdd.T)], axis=1
         )
-        np.testing.assert_allclose(theta[:, :, k], want, rtol=1e-10, atol=1e-10,
-                                   err_msg=str(term))
+        np.testing.assert_allclose(
+            theta[:, :, k], want, rtol=1e-10, atol=1e-10, err_msg=str(term)
+        )
 
 
 def test_components_agree_with_sympy():
@@ -56,22 +57,33 @@ def test_components_agree_with_sympy():
     names = lib.coordinates_
     q_s, qd_s, _ = symbols_for(names)
     q, qd, _ = _random_states(2, 10, 1)
-    m_mat, n_mat, o = (t.numpy() for t in lagrangian_components(
-        lib.to_torch(), torch.tensor(q), torch.tensor(qd)))
+    m_mat, n_mat, o = (
+        t.numpy()
+        for t in lagrangian_components(
+            lib.to_torch(), torch.tensor(q), torch.tensor(qd)
+        )
+    )
     args = q_s + qd_s
     for k in (0, 7, len(lib.terms_) - 1):
         term = lib.terms_[k]
         for i in range(2):
             f_o = sp.lambdify(args, sp.diff(term, q_s[i]))
-            np.testing.assert_allclose(o[:, k, i], np.broadcast_to(f_o(*q.T, *qd.T), (10,)),
-                                       atol=1e-10)
+            np.testing.assert_allclose(
+                o[:, k, i], np.broadcast_to(f_o(*q.T, *qd.T), (10,)), atol=1e-10
+            )
             for j in range(2):
                 f_m = sp.lambdify(args, sp.diff(term, qd_s[i], qd_s[j]))
                 f_n = sp.lambdify(args, sp.diff(term, qd_s[i], q_s[j]))
                 np.testing.assert_allclose(
-                    m_mat[:, k, i, j], np.broadcast_to(f_m(*q.T, *qd.T), (10,)), atol=1e-10)
+                    m_mat[:, k, i, j],
+                    np.broadcast_to(f_m(*q.T, *qd.T), (10,)),
+                    atol=1e-10,
+                )
                 np.testing.assert_allclose(
-                    n_mat[:, k, i, j], np.broadcast_to(f_n(*q.T, *qd.T), (10,)), atol=1e-10)
+                    n_mat[:, k, i, j],
+                    np.broadcast_to(f_n(*q.T, *qd.T), (10,)),
+                    atol=1e-10,
+                )
 
 
 @pytest.mark.parametrize("system", SYSTEMS)
@@ -81,7 +93,9 @@ def test_true_lagrangian_has_zero_residual_on_exact_data(system):
     coef = s.true_coefficients(lib)
     q, qd, _ = _random_states(s.n_dof, 50, 2)
     if s.name == "spherical pendulum":
-        q[:, 0] = np.random.default_rng(3).uniform(0.5, 2.5, 50)  # away from sin(theta) = 0
+        q[:, 0] = np.random.default_rng(3).uniform(
+            0.5, 2.5, 50
+        )  # away from sin(theta) = 0
     qdd = s.forward_dynamics(q, qd)
     X = torch.tensor(np.concatenate([q, qd, qdd], axis=1))
     op = EulerLagrangeOperator(lib.coordinates_, lib.terms_)
@@ -99,14 +113,17 @@ def test_forward_accelerations_match_model():
     want = s.forward_dynamics(q, qd, tau)
     X = torch.tensor(np.concatenate([q, qd, np.zeros_like(q)], axis=1))
     op = EulerLagrangeOperator(lib.coordinates_, [lib.terms_[k] for k in keep])
-    got = forward_accelerations(op, torch.tensor(coef[keep]), X, torch.tensor(tau)).numpy()
+    got = forward_accelerations(
+        op, torch.tensor(coef[keep]), X, torch.tensor(tau)
+    ).numpy()
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-9)
 
 
 def test_force_columns_and_gram_chunking():
     q_s, qd_s, _ = symbols_for(["x"])
-    op = EulerLagrangeOperator(["x"], [qd_s[0] ** 2, q_s[0] ** 2],
-                               forces=[[-qd_s[0]]], chunk_size=7)
+    op = EulerLagrangeOperator(
+        ["x"], [qd_s[0] ** 2, q_s[0] ** 2], forces=[[-qd_s[0]]], chunk_size=7
+    )
     X = torch.tensor(np.random.default_rng(6).normal(size=(40, 3)))
     cols = op.columns(X).numpy()
     np.testing.assert_allclose(cols[:, 0, 0], 2 * X[:, 2].numpy())

@@ -35,7 +35,9 @@ def test_parse_valid(text, expected):
     rng = np.random.default_rng(0)
     for _ in range(3):
         point = dict(zip(syms, rng.uniform(-2, 2, len(syms))))
-        assert float(expr.subs(point)) == pytest.approx(float(ref.subs(point)), rel=1e-14)
+        assert float(expr.subs(point)) == pytest.approx(
+            float(ref.subs(point)), rel=1e-14
+        )
 
 
 @pytest.mark.parametrize(

@@ -15,8 +15,12 @@ from lagsindy import io as lio
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
 _VISCOUS = {
-    "name": "viscous(x)", "kind": "viscous", "coordinates": ["x"],
-    "forces": ["-x_dot", "0"], "rayleigh": "x_dot**2/2", "coefficient": 0.1,
+    "name": "viscous(x)",
+    "kind": "viscous",
+    "coordinates": ["x"],
+    "forces": ["-x_dot", "0"],
+    "rayleigh": "x_dot**2/2",
+    "coefficient": 0.1,
 }
 
 
@@ -132,7 +136,9 @@ def test_mass_normalized_round_trip(passive_data, tmp_path):
     assert loaded.fixed_term_ == est.fixed_term_
     np.testing.assert_allclose(
         loaded.predict_acceleration(passive_data.X),
-        est.predict_acceleration(passive_data.X), rtol=0, atol=1e-12,
+        est.predict_acceleration(passive_data.X),
+        rtol=0,
+        atol=1e-12,
     )
 
 
@@ -204,13 +210,18 @@ def test_dissipation_field_round_trips(tmp_path):
     path = est.save(tmp_path / "d.json")
     entries = _doc(path)["dissipation"]
     assert [e["name"] for e in entries] == [
-        "viscous(x)", "viscous(theta)", "coulomb(x)", "coulomb(theta)"]
+        "viscous(x)",
+        "viscous(theta)",
+        "coulomb(x)",
+        "coulomb(theta)",
+    ]
     assert entries[2]["forces"] == ["-tanh(100.0*x_dot)", "0"]
     loaded = LagrangianSINDy.load(path)
     np.testing.assert_array_equal(loaded.dissipation_coef_, est.dissipation_coef_)
     np.testing.assert_array_equal(loaded.predict(data.X), est.predict(data.X))
     np.testing.assert_array_equal(
-        loaded.predict_acceleration(data.X, data.tau), est.predict_acceleration(data.X, data.tau)
+        loaded.predict_acceleration(data.X, data.tau),
+        est.predict_acceleration(data.X, data.tau),
     )
     assert loaded.equation() == est.equation()
     again = LagrangianSINDy.load(loaded.save(tmp_path / "again.json"))
@@ -358,17 +369,28 @@ def test_wrong_json_type_is_named(saved, tmp_path, field):
             "2 expressions",
         ),
         (
-            lambda d: d.update(dissipation=[dict(_VISCOUS, forces=["-x_dot", "exec('1')"])]),
+            lambda d: d.update(
+                dissipation=[dict(_VISCOUS, forces=["-x_dot", "exec('1')"])]
+            ),
             "not valid",
         ),
-        (lambda d: d.update(dissipation=[dict(_VISCOUS, code="x")]), "exactly the fields"),
+        (
+            lambda d: d.update(dissipation=[dict(_VISCOUS, code="x")]),
+            "exactly the fields",
+        ),
         (lambda d: d.update(dissipation=[dict(_VISCOUS, kind="magic")]), "kind"),
         (
             lambda d: d.update(dissipation=[dict(_VISCOUS, forces=["-x_dot**3", "0"])]),
             "does not match",
         ),
-        (lambda d: d.update(dissipation=[dict(_VISCOUS, coordinates=["y"])]), "coordinates"),
-        (lambda d: d.update(dissipation=[dict(_VISCOUS, coefficient="big")]), "coefficient"),
+        (
+            lambda d: d.update(dissipation=[dict(_VISCOUS, coordinates=["y"])]),
+            "coordinates",
+        ),
+        (
+            lambda d: d.update(dissipation=[dict(_VISCOUS, coefficient="big")]),
+            "coefficient",
+        ),
     ],
 )
 def test_tampered_document_gives_clear_error(saved, tmp_path, change, message):

@@ -33,7 +33,8 @@ def test_paper_library_counts(system, n_candidates, n_kept):
 
 def test_trivial_terms_removed():
     lib = CandidateLibrary.from_terms(
-        ["theta"], ["theta_dot", "theta*theta_dot", "theta_dot*sin(theta)", "theta_dot**2"]
+        ["theta"],
+        ["theta_dot", "theta*theta_dot", "theta_dot*sin(theta)", "theta_dot**2"],
     )
     assert list(lib.get_feature_names_out()) == ["theta_dot**2"]
     reasons = dict(lib.removed_)
@@ -42,17 +43,21 @@ def test_trivial_terms_removed():
 
 
 def test_dependent_terms_reported_with_combination():
-    lib = CandidateLibrary.from_terms(["theta"], ["sin(theta)**2", "cos(theta)**2", "cos(theta)"])
+    lib = CandidateLibrary.from_terms(
+        ["theta"], ["sin(theta)**2", "cos(theta)**2", "cos(theta)"]
+    )
     assert list(lib.get_feature_names_out()) == ["sin(theta)**2", "cos(theta)"]
-    (name, reason), = lib.removed_
+    ((name, reason),) = lib.removed_
     assert name == "cos(theta)**2"
     assert "dependent" in reason and "-1*[sin(theta)**2]" in reason
 
 
 def test_no_reduction_when_disabled():
     lib = CandidateLibrary.from_terms(
-        ["theta"], ["theta_dot", "sin(theta)**2", "cos(theta)**2"],
-        remove_trivial=False, remove_dependent=False,
+        ["theta"],
+        ["theta_dot", "sin(theta)**2", "cos(theta)**2"],
+        remove_trivial=False,
+        remove_dependent=False,
     )
     assert len(lib) == 3
 
@@ -74,7 +79,25 @@ def test_decompose_maps_equivalent_lagrangians():
     names = list(lib.get_feature_names_out())
     got = {names[k]: round(c, 10) for k, c in enumerate(coef) if c != 0}
     # 0.5*phi_dot**2*(1 - cos^2) = 0.5*phi_dot**2*sin^2 exactly; the rest is trivial
-    assert got == {"phi_dot**2*sin(theta)**2": 0.5, "theta_dot**2": 0.5, "cos(theta)": 9.81}
+    assert got == {
+        "phi_dot**2*sin(theta)**2": 0.5,
+        "theta_dot**2": 0.5,
+        "cos(theta)": 9.81,
+    }
+
+
+def test_decompose_is_exact_in_a_wide_ill_conditioned_library():
+    """theta**k * sin/cos(theta) on [-pi, pi]: least squares would leave round-off."""
+    lib = CandidateLibrary.polynomial(
+        ["theta"], angles=["theta"], degree=5, raw_angles=True
+    )
+    coef, resid = lib.decompose("0.5*theta_dot**2 + 9.81*cos(theta) - 9.81")
+    names = list(lib.get_feature_names_out())
+    assert {names[k]: c for k, c in enumerate(coef) if c != 0} == {
+        "theta_dot**2": 0.5,
+        "cos(theta)": 9.81,
+    }
+    assert resid < 1e-12
 
 
 def test_index_and_errors():
@@ -118,8 +141,9 @@ def test_euler_lagrange_expressions_of_pendulum():
 
 
 def test_separated_construction_counts():
-    lib = CandidateLibrary.separated(["a", "b"], angles="all", degree=2,
-                                     remove_trivial=False, remove_dependent=False)
+    lib = CandidateLibrary.separated(
+        ["a", "b"], angles="all", degree=2, remove_trivial=False, remove_dependent=False
+    )
     # trig: 4 + 10, velocities: 2 + 3, cross 14 * 5
     assert len(lib) == 14 + 5 + 70
     assert np.all([isinstance(t, sp.Expr) for t in lib.terms_])

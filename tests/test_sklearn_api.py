@@ -49,7 +49,9 @@ def test_sklearn_common_checks(estimator, check):
 
 @pytest.fixture(scope="module")
 def data():
-    return make_dataset(single_pendulum(), n_trajectories=12, duration=3.0, random_state=0)
+    return make_dataset(
+        single_pendulum(), n_trajectories=12, duration=3.0, random_state=0
+    )
 
 
 @pytest.fixture
@@ -106,7 +108,9 @@ def test_library_is_not_fitted_in_place(est, data):
 def test_nested_library_parameters(data):
     from lagsindy import CandidateLibrary
 
-    est = LagrangianSINDy(CandidateLibrary.polynomial(["theta"], angles="all", degree=1))
+    est = LagrangianSINDy(
+        CandidateLibrary.polynomial(["theta"], angles="all", degree=1)
+    )
     assert est.get_params()["library__degree"] == 1
     est.set_params(library__degree=2, library__raw_angles=True)
     est.fit(data.X, data.tau)
@@ -128,8 +132,13 @@ def test_gridsearch_over_lam_and_alpha(data):
 def test_gridsearch_passive_uses_acceleration_score():
     from lagsindy import CandidateLibrary
 
-    data = make_dataset(single_pendulum(), n_trajectories=12, duration=3.0, excitation=None,
-                        random_state=1)
+    data = make_dataset(
+        single_pendulum(),
+        n_trajectories=12,
+        duration=3.0,
+        excitation=None,
+        random_state=1,
+    )
     good = single_pendulum().paper_library()
     no_gravity = CandidateLibrary.from_terms(["theta"], ["theta_dot**2", "theta**2"])
     grid = GridSearchCV(
@@ -146,8 +155,12 @@ def test_gridsearch_passive_uses_acceleration_score():
 
 
 def test_cross_val_score_and_pipeline(data):
-    pipe = make_pipeline(FunctionTransformer(), LagrangianSINDy(single_pendulum().paper_library()))
-    scores = cross_val_score(pipe, data.X, data.tau, cv=GroupKFold(3), groups=data.groups)
+    pipe = make_pipeline(
+        FunctionTransformer(), LagrangianSINDy(single_pendulum().paper_library())
+    )
+    scores = cross_val_score(
+        pipe, data.X, data.tau, cv=GroupKFold(3), groups=data.groups
+    )
     assert np.all(scores > 0.999)
 
 
@@ -159,10 +172,19 @@ def test_float32_and_int_inputs_are_accepted(data):
 
 
 def test_cart_grid_with_groups_n_jobs():
-    data = make_dataset(cart_pendulum(), n_trajectories=12, duration=3.0, excitation="sincos",
-                        random_state=2)
-    grid = GridSearchCV(LagrangianSINDy(cart_pendulum().paper_library()),
-                        {"lam": [1e-4, 1e-3]}, cv=GroupKFold(2), n_jobs=2)
+    data = make_dataset(
+        cart_pendulum(),
+        n_trajectories=12,
+        duration=3.0,
+        excitation="sincos",
+        random_state=2,
+    )
+    grid = GridSearchCV(
+        LagrangianSINDy(cart_pendulum().paper_library()),
+        {"lam": [1e-4, 1e-3]},
+        cv=GroupKFold(2),
+        n_jobs=2,
+    )
     grid.fit(data.X, data.tau, groups=data.groups)
     assert grid.best_score_ > 0.999
 
@@ -237,7 +259,11 @@ def test_tags_repr_and_regressor_type(est):
 
 def test_refit_with_other_data_replaces_everything(data):
     passive = make_dataset(
-        single_pendulum(), n_trajectories=4, duration=2.0, excitation=None, random_state=5
+        single_pendulum(),
+        n_trajectories=4,
+        duration=2.0,
+        excitation=None,
+        random_state=5,
     )
     est = LagrangianSINDy(single_pendulum().paper_library(), fixed_term="theta_dot**2")
     est.fit(passive.X)

@@ -41,8 +41,9 @@ def test_orthonormal_design_gives_soft_thresholding():
     lam = 0.3
     res = fista(_gram_problem(A, y), L1(lam), tol=1e-12)
     z = A.T @ y / n
-    np.testing.assert_allclose(res.coef.numpy(), np.sign(z) * np.maximum(np.abs(z) - lam, 0),
-                               atol=1e-10)
+    np.testing.assert_allclose(
+        res.coef.numpy(), np.sign(z) * np.maximum(np.abs(z) - lam, 0), atol=1e-10
+    )
 
 
 def test_lam_above_lam_max_gives_exact_zeros():
@@ -69,9 +70,14 @@ def test_unpenalized_weight_is_not_shrunk():
 def test_converges_on_ill_conditioned_problem():
     rng = np.random.default_rng(4)
     base = rng.normal(size=(300, 1))
-    A = np.concatenate([base + 1e-3 * rng.normal(size=(300, 1)),
-                        base + 1e-3 * rng.normal(size=(300, 1)),
-                        rng.normal(size=(300, 3))], axis=1)
+    A = np.concatenate(
+        [
+            base + 1e-3 * rng.normal(size=(300, 1)),
+            base + 1e-3 * rng.normal(size=(300, 1)),
+            rng.normal(size=(300, 3)),
+        ],
+        axis=1,
+    )
     y = A @ np.array([1.0, 1.0, 0.5, 0.0, 0.0])
     df = _gram_problem(A, y)
     ev = torch.linalg.eigvalsh(df.gram)
@@ -123,13 +129,16 @@ def test_staged_schedule_removes_small_terms_and_debiases():
     A = rng.normal(size=(500, 8))
     w_true = np.array([3.0, 0.0, -2.0, 0.0, 0.0, 0.0, 0.0, 1.0])
     y = A @ w_true + 0.01 * rng.normal(size=500)
-    res = staged_fista(_gram_problem(A, y), lam=0.05, threshold=0.05, tol=0.0, max_stages=3)
+    res = staged_fista(
+        _gram_problem(A, y), lam=0.05, threshold=0.05, tol=0.0, max_stages=3
+    )
     np.testing.assert_array_equal(res.support, [0, 2, 7])
     # debiased: no L1 shrinkage left
     np.testing.assert_allclose(res.coef.numpy(), w_true, atol=5e-3)
     assert res.stages[0].lam == 0.05 and res.stages[1].lam == pytest.approx(0.005)
-    no_debias = staged_fista(_gram_problem(A, y), lam=0.05, threshold=0.05, debias=False,
-                             max_stages=1)
+    no_debias = staged_fista(
+        _gram_problem(A, y), lam=0.05, threshold=0.05, debias=False, max_stages=1
+    )
     assert np.abs(no_debias.coef.numpy()[0]) < 3.0 - 0.04  # shrunk by the penalty
 
 
@@ -161,7 +170,9 @@ def test_balanced_gram_is_invariant_to_row_and_column_units():
     y = a @ np.array([1.0, -1.0, 0.5, 0.0])
     full = np.concatenate([a, y[:, :, None]], axis=2)
     g1 = torch.tensor(np.einsum("sip,siq->ipq", full, full))
-    scaled = full * np.array([1.0, 1000.0])[None, :, None] * np.array([1, 7.0, 1, 0.01, 1])
+    scaled = (
+        full * np.array([1.0, 1000.0])[None, :, None] * np.array([1, 7.0, 1, 0.01, 1])
+    )
     g2 = torch.tensor(np.einsum("sip,siq->ipq", scaled, scaled))
     d1, _ = BalancedGram(g1, 200, 4).problem(np.arange(4), 4)
     d2, _ = BalancedGram(g2, 200, 4).problem(np.arange(4), 4)

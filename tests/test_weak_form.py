@@ -9,12 +9,17 @@ import torch
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy.euler_lagrange import (
     EulerLagrangeOperator,
+    bump_function,
     estimate_noise_covariance,
     estimate_sampling_interval,
-    bump_function,
     trajectory_segments,
 )
-from lagsindy.systems import cart_pendulum, double_pendulum, make_dataset, single_pendulum
+from lagsindy.systems import (
+    cart_pendulum,
+    double_pendulum,
+    make_dataset,
+    single_pendulum,
+)
 
 
 def _rel_err(est, truth):
@@ -23,7 +28,9 @@ def _rel_err(est, truth):
 
 def test_weak_columns_equal_integrated_strong_columns():
     """int psi * EL(phi) dt: by parts (weak) equals the direct integral of Theta."""
-    data = make_dataset(cart_pendulum(), n_trajectories=2, excitation="sincos", random_state=0)
+    data = make_dataset(
+        cart_pendulum(), n_trajectories=2, excitation="sincos", random_state=0
+    )
     lib = cart_pendulum().paper_library()
     op = EulerLagrangeOperator(lib.coordinates_, lib.terms_)
     X = torch.tensor(data.X_clean)
@@ -32,25 +39,35 @@ def test_weak_columns_equal_integrated_strong_columns():
     weak, n_w = op.weak_gram(X, None, seg, window=window, stride=stride, dt=dt)
     theta = op.columns(X[:500])  # strong columns (exact accelerations)
     psi, _ = bump_function(window, dt)
-    direct = torch.stack([
-        (psi[:, None, None] * theta[s:s + window]).sum(0) * dt
-        for s in range(0, 500 - window + 1, stride)
-    ])
+    direct = torch.stack(
+        [
+            (psi[:, None, None] * theta[s : s + window]).sum(0) * dt
+            for s in range(0, 500 - window + 1, stride)
+        ]
+    )
     assert direct.shape[0] == n_w
     ref = torch.einsum("wip,wiq->ipq", direct, direct)
-    np.testing.assert_allclose(weak.numpy(), ref.numpy(), rtol=2e-4, atol=1e-6 * float(ref.abs().max()))
+    np.testing.assert_allclose(
+        weak.numpy(), ref.numpy(), rtol=2e-4, atol=1e-6 * float(ref.abs().max())
+    )
 
 
 def test_noise_covariance_estimate():
     rng = np.random.default_rng(0)
     t = np.arange(2000) * 0.01
     clean = np.stack([np.sin(t), np.cos(2 * t), 2 * np.cos(t), -4 * np.sin(2 * t)], 1)
-    independent = clean + rng.normal(size=clean.shape) * np.array([0.01, 0.02, 0.05, 0.1])
-    cov = estimate_noise_covariance(torch.tensor(independent), [torch.arange(2000)], 2).numpy()
+    independent = clean + rng.normal(size=clean.shape) * np.array(
+        [0.01, 0.02, 0.05, 0.1]
+    )
+    cov = estimate_noise_covariance(
+        torch.tensor(independent), [torch.arange(2000)], 2
+    ).numpy()
     np.testing.assert_allclose(np.sqrt(np.diag(cov)), [0.01, 0.02, 0.05, 0.1], rtol=0.1)
     assert abs(cov[0, 3]) < 0.1 * np.sqrt(cov[0, 0] * cov[3, 3])
     shared = clean + 0.05 * rng.normal(size=(2000, 1))
-    cov = estimate_noise_covariance(torch.tensor(shared), [torch.arange(2000)], 2).numpy()
+    cov = estimate_noise_covariance(
+        torch.tensor(shared), [torch.arange(2000)], 2
+    ).numpy()
     corr = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
     assert corr.min() > 0.99  # one shared sample per step: fully correlated
 
@@ -63,7 +80,9 @@ def test_noise_correction_removes_expected_bias():
     (E cos(q + e) = exp(-sigma^2 / 2) cos q, 2 % at sigma = 0.2), which the first-order
     correction does not model.
     """
-    data = make_dataset(single_pendulum(), n_trajectories=4, excitation="paper", random_state=1)
+    data = make_dataset(
+        single_pendulum(), n_trajectories=4, excitation="paper", random_state=1
+    )
     lib = CandidateLibrary.from_terms(["theta"], ["theta_dot**2", "cos(theta)"])
     op = EulerLagrangeOperator(lib.coordinates_, lib.terms_)
     segs = [torch.arange(i * 500, (i + 1) * 500) for i in range(4)]
@@ -76,7 +95,9 @@ def test_noise_correction_removes_expected_bias():
     for _ in range(draws):
         noisy = torch.tensor(data.X_clean + sigma * rng.normal(size=data.X_clean.shape))
         raw.append(op.weak_gram(noisy, None, segs, **kw)[0][0].numpy())
-        corrected.append(op.weak_gram(noisy, None, segs, noise_cov=cov, **kw)[0][0].numpy())
+        corrected.append(
+            op.weak_gram(noisy, None, segs, noise_cov=cov, **kw)[0][0].numpy()
+        )
     raw, corrected = np.array(raw), np.array(corrected)
     se = raw.std(axis=0) / np.sqrt(draws)
     assert raw.mean(0)[0, 0] - clean[0, 0] > 5 * se[0, 0]  # attenuation bias
@@ -99,15 +120,23 @@ def test_weak_form_with_noise_correction_beats_strong_form():
     system = cart_pendulum()
     lib = system.paper_library()
     truth = system.true_coefficients(lib)
-    data = make_dataset(system, n_trajectories=20, excitation="sincos", noise=0.05,
-                        protocol="paper", random_state=3)
+    data = make_dataset(
+        system,
+        n_trajectories=20,
+        excitation="sincos",
+        noise=0.05,
+        protocol="paper",
+        random_state=3,
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         strong = LagrangianSINDy(lib).fit(data.X, data.tau)
-        weak_raw = LagrangianSINDy(lib, formulation="weak", dt=0.01, noise_cov=None).fit(
-            data.X, data.tau, groups=data.groups)
+        weak_raw = LagrangianSINDy(
+            lib, formulation="weak", dt=0.01, noise_cov=None
+        ).fit(data.X, data.tau, groups=data.groups)
         weak = LagrangianSINDy(lib, formulation="weak", dt=0.01).fit(
-            data.X, data.tau, groups=data.groups)
+            data.X, data.tau, groups=data.groups
+        )
     # measured: strong 0.56, weak without correction 0.08, weak corrected 0.010
     assert _rel_err(strong, truth) > 0.3  # attenuation of the paper's strong form
     assert _rel_err(weak_raw, truth) > 0.04
@@ -118,10 +147,21 @@ def test_weak_form_with_noise_correction_beats_strong_form():
 def test_weak_form_case_III_passive():
     system = double_pendulum()
     lib = system.paper_library()
-    data = make_dataset(system, n_trajectories=20, excitation=None, noise=0.05,
-                        protocol="paper", random_state=4)
-    est = LagrangianSINDy(lib, formulation="weak", dt=0.01, fixed_term=system.fixed_term,
-                          unpenalized=system.prior_terms).fit(data.X, groups=data.groups)
+    data = make_dataset(
+        system,
+        n_trajectories=20,
+        excitation=None,
+        noise=0.05,
+        protocol="paper",
+        random_state=4,
+    )
+    est = LagrangianSINDy(
+        lib,
+        formulation="weak",
+        dt=0.01,
+        fixed_term=system.fixed_term,
+        unpenalized=system.prior_terms,
+    ).fit(data.X, groups=data.groups)
     truth = system.true_coefficients(lib)
     truth = truth / truth[lib.index(system.fixed_term)]
     np.testing.assert_array_equal(est.coef_ != 0, truth != 0)
@@ -129,14 +169,23 @@ def test_weak_form_case_III_passive():
 
 
 def test_segments_and_dt_without_groups():
-    data = make_dataset(single_pendulum(), n_trajectories=5, duration=2.0, excitation="paper",
-                        noise=0.01, protocol="paper", random_state=5)
+    data = make_dataset(
+        single_pendulum(),
+        n_trajectories=5,
+        duration=2.0,
+        excitation="paper",
+        noise=0.01,
+        protocol="paper",
+        random_state=5,
+    )
     X = torch.tensor(data.X)
     dt = estimate_sampling_interval(X, 1, [torch.arange(len(X))])
     assert dt == pytest.approx(0.01, rel=0.02)
     segs = trajectory_segments(X, 1, None, dt=0.01)
     assert [int(s[0]) for s in segs] == [0, 200, 400, 600, 800]
-    est = LagrangianSINDy(single_pendulum().paper_library(), formulation="weak", window=41)
+    est = LagrangianSINDy(
+        single_pendulum().paper_library(), formulation="weak", window=41
+    )
     est.fit(data.X, data.tau)  # no groups, no dt: both inferred
     assert est.dt_ == pytest.approx(0.01, rel=0.02)
     assert set(est.term_names_[est.support_]) == {"theta_dot**2", "cos(theta)"}
@@ -146,13 +195,17 @@ def test_weak_form_errors(single_active):
     lib = single_pendulum().paper_library()
     with pytest.raises(ValueError, match="window"):
         LagrangianSINDy(lib, formulation="weak", dt=0.01, window=1001).fit(
-            single_active.X, single_active.tau, groups=single_active.groups)
+            single_active.X, single_active.tau, groups=single_active.groups
+        )
     with pytest.raises(ValueError, match="noise_cov must have shape"):
         LagrangianSINDy(lib, formulation="weak", dt=0.01, noise_cov=np.eye(3)).fit(
-            single_active.X, single_active.tau, groups=single_active.groups)
+            single_active.X, single_active.tau, groups=single_active.groups
+        )
     with pytest.raises(ValueError, match="groups"):
         LagrangianSINDy(lib, formulation="weak", dt=0.01).fit(
-            single_active.X, single_active.tau, groups=single_active.groups[:10])
+            single_active.X, single_active.tau, groups=single_active.groups[:10]
+        )
     with pytest.raises(ValueError, match="weak"):
         LagrangianSINDy(lib, formulation="weak", case="acceleration", dt=0.01).fit(
-            single_active.X)
+            single_active.X
+        )

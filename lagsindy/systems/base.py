@@ -59,8 +59,12 @@ class System(MechanicalModel):
         name: str | None = None,
     ):
         super().__init__(
-            lagrangian, coordinates, dissipation=dissipation, forces=forces,
-            input_matrix=input_matrix, name=name,
+            lagrangian,
+            coordinates,
+            dissipation=dissipation,
+            forces=forces,
+            input_matrix=input_matrix,
+            name=name,
         )
         self.angles = list(angles)
         names = state_names(self.coordinates, accelerations=False)
@@ -84,7 +88,9 @@ class System(MechanicalModel):
         """The authors' input ``u(t)`` for frequencies ``omega`` (n_trajectories, n_inputs)."""
         if self._paper_input is None:
             raise ValueError(f"{self.name} has no paper input form")
-        return np.asarray(self._paper_input(float(t), np.asarray(omega, dtype=float)), dtype=float)
+        return np.asarray(
+            self._paper_input(float(t), np.asarray(omega, dtype=float)), dtype=float
+        )
 
     def sample_initial_states(self, n: int, random_state=None) -> np.ndarray:
         """Draw ``n`` initial states ``[q..., q_dot...]`` from ``initial_ranges``."""
@@ -114,7 +120,9 @@ class System(MechanicalModel):
             out[str(rest)] = out.get(str(rest), 0.0) + float(coef)
         return out
 
-    def with_damping(self, viscous=None, coulomb=None, *, eps: float = COULOMB_EPS) -> System:
+    def with_damping(
+        self, viscous=None, coulomb=None, *, eps: float = COULOMB_EPS
+    ) -> System:
         """A copy with known dissipation added, for experiments.
 
         Parameters
@@ -145,11 +153,20 @@ class System(MechanicalModel):
             forces[i] = forces[i] - sp.Float(mu) * sp.tanh(qd / sp.Float(eps))
         new.dissipation = canonical(self.dissipation + extra_d, self.coordinates)
         new.forces = forces
-        parts = [f"viscous {viscous}" if viscous else "", f"Coulomb {coulomb}" if coulomb else ""]
-        new.name = f"{self.name} ({', '.join(p for p in parts if p)})" if any(parts) else self.name
+        parts = [
+            f"viscous {viscous}" if viscous else "",
+            f"Coulomb {coulomb}" if coulomb else "",
+        ]
+        new.name = (
+            f"{self.name} ({', '.join(p for p in parts if p)})"
+            if any(parts)
+            else self.name
+        )
         return new
 
     def _index(self, name):
         if name not in self.coordinates:
-            raise ValueError(f"{name!r} is not a coordinate of {self.name}: {self.coordinates}")
+            raise ValueError(
+                f"{name!r} is not a coordinate of {self.name}: {self.coordinates}"
+            )
         return self.coordinates.index(name)

@@ -41,7 +41,9 @@ def cart_pendulum(
             "theta_dot": (0.0, 0.0),
         },
         input_matrix=[[1.0], [0.0]],
-        library=lambda: CandidateLibrary.polynomial(["x", "theta"], angles=["theta"], degree=3),
+        library=lambda: CandidateLibrary.polynomial(
+            ["x", "theta"], angles=["theta"], degree=3
+        ),
         paper_input=lambda t, w: np.cos(w * t)[:, None],
         fixed_term="theta_dot**2",
         prior_terms=["cos(theta)"],

@@ -135,6 +135,7 @@ def make_dataset(
     x0 = system.sample_initial_states(n_trajectories, rng)
     omega = rng.uniform(math.pi / 2, math.pi, n_trajectories)
     if excitation == "paper":
+
         def u_fn(tt, _x):
             return system.paper_input(tt, omega)
     elif excitation == "sincos":

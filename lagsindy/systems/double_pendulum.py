@@ -25,7 +25,12 @@ def double_pendulum(
     lagrangian = (
         (m1_ + m2_) / 2 * l1_**2 * t1d**2
         + m2_ / 2 * l2_**2 * t2d**2
-        + m2_ * l1_ * l2_ * t1d * t2d * (sp.cos(t1) * sp.cos(t2) + sp.sin(t1) * sp.sin(t2))
+        + m2_
+        * l1_
+        * l2_
+        * t1d
+        * t2d
+        * (sp.cos(t1) * sp.cos(t2) + sp.sin(t1) * sp.sin(t2))
         + (m1_ + m2_) * gg * l1_ * sp.cos(t1)
         + m2_ * gg * l2_ * sp.cos(t2)
     )
@@ -42,7 +47,9 @@ def double_pendulum(
         library=lambda: CandidateLibrary.separated(
             ["theta1", "theta2"], angles="all", degree=2
         ),
-        paper_input=lambda t, w: np.stack([np.cos(w * t) - np.sin(w * t), np.sin(w * t)], 1),
+        paper_input=lambda t, w: np.stack(
+            [np.cos(w * t) - np.sin(w * t), np.sin(w * t)], 1
+        ),
         fixed_term="theta1_dot**2",
         prior_terms=["cos(theta1)"],
         name="double pendulum",

@@ -10,7 +10,10 @@ from .base import System
 
 
 def elastic_pendulum(
-    mass: float = 1.0, stiffness: float = 40.0, rest_length: float = 1.0, g: float = 9.81
+    mass: float = 1.0,
+    stiffness: float = 40.0,
+    rest_length: float = 1.0,
+    g: float = 9.81,
 ) -> System:
     """Polar coordinates: length ``r`` of the spring and angle ``theta`` from the vertical.
 
@@ -39,9 +42,16 @@ def elastic_pendulum(
             "theta_dot": (0.0, 0.0),
         },
         library=lambda: CandidateLibrary.polynomial(
-            ["r", "theta"], angles=["theta"], degree=2,
-            terms=["r*theta_dot**2", "r**2*theta_dot**2", "r**2*cos(theta)", "r**3",
-                   "r*r_dot**2"],
+            ["r", "theta"],
+            angles=["theta"],
+            degree=2,
+            terms=[
+                "r*theta_dot**2",
+                "r**2*theta_dot**2",
+                "r**2*cos(theta)",
+                "r**3",
+                "r*r_dot**2",
+            ],
         ),
         paper_input=lambda t, w: np.stack([np.cos(w * t), np.sin(w * t)], 1),
         fixed_term="r_dot**2",

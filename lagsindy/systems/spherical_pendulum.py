@@ -9,7 +9,9 @@ from ..library import CandidateLibrary
 from .base import System
 
 
-def spherical_pendulum(mass: float = 1.0, length: float = 1.0, g: float = 9.81) -> System:
+def spherical_pendulum(
+    mass: float = 1.0, length: float = 1.0, g: float = 9.81
+) -> System:
     """A point mass on a rod free to swing in 3-D; polar angle theta, azimuth phi.
 
     ``L = m l^2/2 (theta_dot^2 + sin(theta)^2 phi_dot^2) + m g l cos(theta)``. The mass
@@ -19,7 +21,9 @@ def spherical_pendulum(mass: float = 1.0, length: float = 1.0, g: float = 9.81) 
     library: the separated construction with ``{cos, sin}`` of theta and
     ``{theta_dot, phi, phi_dot}`` (59 candidates).
     """
-    theta, phi, theta_dot, phi_dot = sp.symbols("theta phi theta_dot phi_dot", real=True)
+    theta, phi, theta_dot, phi_dot = sp.symbols(
+        "theta phi theta_dot phi_dot", real=True
+    )
     m, l, gg = map(sp.Float, (mass, length, g))
     lagrangian = (
         m * l**2 / 2 * phi_dot**2 * sp.sin(theta) ** 2
@@ -36,7 +40,9 @@ def spherical_pendulum(mass: float = 1.0, length: float = 1.0, g: float = 9.81) 
             "theta_dot": (0.0, 0.0),
             "phi_dot": (math.pi, math.pi),
         },
-        library=lambda: CandidateLibrary.separated(["theta", "phi"], angles=["theta"], degree=2),
+        library=lambda: CandidateLibrary.separated(
+            ["theta", "phi"], angles=["theta"], degree=2
+        ),
         paper_input=lambda t, w: np.stack([np.zeros_like(w), np.ones_like(w)], 1),
         fixed_term="theta_dot**2",
         prior_terms=["cos(theta)"],

@@ -7,7 +7,9 @@ from ..library import CandidateLibrary
 from .base import System
 
 
-def spring_chain(n_masses: int = 2, mass: float = 1.0, stiffness: float = 10.0) -> System:
+def spring_chain(
+    n_masses: int = 2, mass: float = 1.0, stiffness: float = 10.0
+) -> System:
     """``n_masses`` equal masses joined by equal springs, the ends fixed to walls.
 
     Coordinates ``x1..xn`` are displacements from rest:

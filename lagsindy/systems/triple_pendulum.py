@@ -29,13 +29,18 @@ def n_link_lagrangian(masses, lengths, g=9.81, names=None):
         lagrangian += mass_below * gg * lens[i] * sp.cos(th[i])
         for j in range(i + 1, n):
             coupling = sum(m[j:], sp.Integer(0)) * lens[i] * lens[j]
-            lagrangian += coupling * thd[i] * thd[j] * (
-                sp.cos(th[i]) * sp.cos(th[j]) + sp.sin(th[i]) * sp.sin(th[j])
+            lagrangian += (
+                coupling
+                * thd[i]
+                * thd[j]
+                * (sp.cos(th[i]) * sp.cos(th[j]) + sp.sin(th[i]) * sp.sin(th[j]))
             )
     return sp.expand(lagrangian), names
 
 
-def triple_pendulum(masses=(1.0, 1.0, 1.0), lengths=(1.0, 1.0, 1.0), g: float = 9.81) -> System:
+def triple_pendulum(
+    masses=(1.0, 1.0, 1.0), lengths=(1.0, 1.0, 1.0), g: float = 9.81
+) -> System:
     """Three point masses on massless rods; all joints driven for active runs.
 
     Initial angles ``U(-pi/2, pi/2)``, velocities zero. Library: the separated
