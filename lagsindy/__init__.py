@@ -8,7 +8,7 @@ from .estimator import LagrangianSINDy
 from .io import load_model, save_model
 from .library import CandidateLibrary
 
-__version__ = "0.1.0.dev0"
+__version__ = "0.1.0"
 
 __all__ = [
     "CandidateLibrary",
