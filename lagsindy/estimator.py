@@ -773,24 +773,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         weights = torch.as_tensor(
             penalty[free], dtype=datafit.rhs.dtype, device=datafit.rhs.device
         )
-        result = staged_fista(
-            datafit,
-            lam=self.lam,
-            penalty_weights=weights,
-            threshold=torch.as_tensor(
-                self._thresholds(free), dtype=weights.dtype, device=weights.device
-            ),
-            reference=reference,
-            lam_decay=self.lam_decay,
-            step_growth=self.step_growth,
-            alpha=self.alpha,
-            max_stages=self.max_stages,
-            max_iter=self.max_iter,
-            tol=self.tol,
-            solver_tol=self.solver_tol,
-            debias=self.debias,
-            verbose=verbose,
-        )
+        result = self._stages(datafit, free, weights, verbose, reference=reference)
         coef = np.zeros(balanced.n_features)
         coef[free] = to_numpy(to_coef(result.coef))
         # Stage records in coefficient units, over all terms.
@@ -970,24 +953,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             gq / (dq[:, None] * dq[None, :]), bq / (dq * c0**0.5), 1.0
         )
         weights = torch.as_tensor(penalty[f[others]], dtype=dtype, device=device)
-        result = staged_fista(
-            datafit,
-            lam=self.lam,
-            penalty_weights=weights,
-            threshold=torch.as_tensor(
-                self._thresholds(f[others]), dtype=dtype, device=device
-            ),
-            reference=1.0,
-            lam_decay=self.lam_decay,
-            step_growth=self.step_growth,
-            alpha=self.alpha,
-            max_stages=self.max_stages,
-            max_iter=self.max_iter,
-            tol=self.tol,
-            solver_tol=self.solver_tol,
-            debias=self.debias,
-            verbose=verbose,
-        )
+        result = self._stages(datafit, f[others], weights, verbose, reference=1.0)
 
         def to_coef(u_scaled):
             w = T @ (u_scaled * c0**0.5 / dq) + y0
@@ -1000,6 +966,32 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             st.coef = to_coef(torch.as_tensor(st.coef, dtype=dtype, device=device))
             st.support = np.concatenate([[pivot], f[others][st.support]])
         return coef, result
+
+    def _stages(self, datafit, features, weights, verbose, **kwargs):
+        """The staged sparse solve with this estimator's settings.
+
+        ``features`` are the library indices of the datafit's coefficients (for their
+        thresholds), ``weights`` their L1 weights; ``kwargs`` go to
+        :func:`~lagsindy.solvers.staged_fista` (``reference``, ``w0``).
+        """
+        return staged_fista(
+            datafit,
+            lam=self.lam,
+            penalty_weights=weights,
+            threshold=torch.as_tensor(
+                self._thresholds(features), dtype=weights.dtype, device=weights.device
+            ),
+            lam_decay=self.lam_decay,
+            step_growth=self.step_growth,
+            alpha=self.alpha,
+            max_stages=self.max_stages,
+            max_iter=self.max_iter,
+            tol=self.tol,
+            solver_tol=self.solver_tol,
+            debias=self.debias,
+            verbose=verbose,
+            **kwargs,
+        )
 
     def _subsample_rows(self, n, size):
         """Sorted row indices of a subsample of at most ``size`` of ``n`` rows.
@@ -1047,24 +1039,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         w0 = vecs[:, int(np.argmin(losses))]
         weights = torch.as_tensor(penalty[free], dtype=Xt.dtype, device=Xt.device)
         try:
-            result = staged_fista(
-                datafit,
-                lam=self.lam,
-                penalty_weights=weights,
-                threshold=torch.as_tensor(
-                    self._thresholds(free), dtype=weights.dtype, device=weights.device
-                ),
-                lam_decay=self.lam_decay,
-                step_growth=self.step_growth,
-                alpha=self.alpha,
-                max_stages=self.max_stages,
-                max_iter=self.max_iter,
-                tol=self.tol,
-                solver_tol=self.solver_tol,
-                debias=self.debias,
-                verbose=self.verbose,
-                w0=w0,
-            )
+            result = self._stages(datafit, free, weights, self.verbose, w0=w0)
         except FloatingPointError as exc:
             raise ValueError(
                 f"case='acceleration' failed: {exc}. The model lost every term that "
