@@ -201,16 +201,19 @@ def _demo(args) -> int:
         unpenalized=None if active else system.prior_terms,
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
+        formulation=args.formulation,
+        dt=0.01,
     )
     _say(
         args,
         f"{system.name}: {args.trajectories} trajectories x {args.duration:g} s "
         "at 100 Hz, "
         f"{'forced' if active else 'passive'}, noise sigma={args.noise} "
-        f"({args.protocol} protocol); library of {len(library)} terms",
+        f"({args.protocol} protocol); library of {len(library)} terms; "
+        f"{args.formulation} form",
     )
     start = time.perf_counter()
-    est.fit(data.X, data.tau)
+    est.fit(data.X, data.tau, groups=data.groups)
     elapsed = time.perf_counter() - start
     truth = system.true_coefficients(est.library_)
     learned = est.coef_
@@ -709,6 +712,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="noise protocol (default: paper, independent noise)",
     )
     demo.add_argument("--passive", action="store_true", help="no input (case III)")
+    demo.add_argument(
+        "--formulation",
+        default="strong",
+        choices=["strong", "weak"],
+        help="strong (the paper's pointwise residual, default) or weak (integral "
+        "form with noise correction: removes the noise bias of the coefficients)",
+    )
     demo.add_argument(
         "--trajectories",
         type=int,
