@@ -135,6 +135,14 @@ def _fmt(s):
     return "none" if s is None else ("0" if s == 0 else f"{s:g}")
 
 
+def _cells(df, name, mode, protocol, formulation=None):
+    """The rows of one system, data mode and protocol (and formulation)."""
+    keep = (df.system == name) & (df["mode"] == mode) & (df.protocol == protocol)
+    if formulation is not None:
+        keep &= df.formulation == formulation
+    return df[keep]
+
+
 def report(rows, sigmas, seeds, n_traj, duration, elapsed):
     import pandas as pd
 
@@ -162,11 +170,7 @@ def report(rows, sigmas, seeds, n_traj, duration, elapsed):
     for name in SYSTEMS:
         for mode in ("active", "passive"):
             for protocol in PROTOCOLS:
-                sub = df[
-                    (df.system == name)
-                    & (df["mode"] == mode)
-                    & (df.protocol == protocol)
-                ]
+                sub = _cells(df, name, mode, protocol)
                 if sub.empty:
                     continue
                 cells = []
@@ -182,11 +186,7 @@ def report(rows, sigmas, seeds, n_traj, duration, elapsed):
     for name in SYSTEMS:
         for mode in ("active", "passive"):
             for protocol in PROTOCOLS:
-                sub = df[
-                    (df.system == name)
-                    & (df["mode"] == mode)
-                    & (df.protocol == protocol)
-                ]
+                sub = _cells(df, name, mode, protocol)
                 if sub.empty:
                     continue
                 vals = []
@@ -210,12 +210,7 @@ def report(rows, sigmas, seeds, n_traj, duration, elapsed):
             text += "|---|---|" + "---|" * len(sigmas) + "\n"
             for name in SYSTEMS:
                 for form in FORMULATIONS:
-                    sub = df[
-                        (df.system == name)
-                        & (df["mode"] == mode)
-                        & (df.protocol == protocol)
-                        & (df.formulation == form)
-                    ]
+                    sub = _cells(df, name, mode, protocol, form)
                     if sub.empty:
                         continue
                     cells = []
@@ -255,12 +250,7 @@ def plot(df, sigmas, path):
     ):
         for name in SYSTEMS:
             for form, style in zip(FORMULATIONS, ("--", "-")):
-                sub = df[
-                    (df.system == name)
-                    & (df["mode"] == mode)
-                    & (df.protocol == protocol)
-                    & (df.formulation == form)
-                ]
+                sub = _cells(df, name, mode, protocol, form)
                 if sub.empty:
                     continue
                 frac = [sub[sub.sigma == s].correct.mean() for s in sigmas]

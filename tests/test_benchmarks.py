@@ -273,3 +273,21 @@ def test_case2_tiny(tiny_results):
         line for line in text.splitlines() if line.startswith("| single pendulum")
     )
     assert "| yes |" in row  # noise-free single pendulum: case II finds the structure
+
+
+def test_robustness_tiny(tiny_results):
+    from benchmarks import robustness
+
+    robustness.main(["--quick"])
+    text = (tiny_results / "robustness_quick.md").read_text()
+    _check_header(text)
+    assert "## Largest sigma with exactly the true terms in every seed" in text
+    # Noise-free single pendulum: both formulations find the structure.
+    row = next(
+        line
+        for line in text.splitlines()
+        if line.startswith("| single_pendulum | active | shared |")
+    )
+    assert row.split("|")[5].strip() != "none" and row.split("|")[6].strip() != "none"
+    assert (tiny_results / "robustness_quick.png").stat().st_size > 1000
+    assert (tiny_results / "robustness_quick.csv").exists()
