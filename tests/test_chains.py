@@ -110,7 +110,10 @@ def test_multiarm_triple_pendulum_equals_the_authors_reference_ode(seed):
     qd = rng.uniform(-6.0, 6.0, (40, 3))
     ours = system.forward_dynamics(q, qd)
     ref = np.stack(
-        [reference_accelerations(np.r_[q[i] + np.pi, qd[i]], *params) for i in range(40)]
+        [
+            reference_accelerations(np.r_[q[i] + np.pi, qd[i]], *params)
+            for i in range(40)
+        ]
     )
     # measured max |difference| 2.8e-13 with |accelerations| up to 75 rad/s^2
     np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-10 * np.abs(ref).max())
@@ -129,7 +132,7 @@ def test_multiarm_triple_pendulum_is_the_nine_term_chain_model():
 def test_compound_chain_reduces_to_point_masses():
     """a = L, I = 0: the compound Lagrangian is the point-mass one, compact or not."""
     masses, lengths = [1.2, 0.8, 0.5], [0.9, 0.7, 0.5]
-    compact, _, names = chain_lagrangian(masses, lengths, com=lengths, inertia=[0, 0, 0])
+    compact, _, _ = chain_lagrangian(masses, lengths, com=lengths, inertia=[0] * 3)
     expanded, _ = n_link_lagrangian(masses, lengths)
     diff = sp.expand(sp.expand_trig(compact) - expanded)
     assert diff == 0 or max(abs(float(c)) for c in sp.Poly(diff).coeffs()) < 1e-12

@@ -88,7 +88,8 @@ def chain_lagrangian(
     F = sp.Float
     lag = sp.Integer(0)
     for j in range(n):
-        lag += F((inert[j] + m[j] * a[j] ** 2 + length[j] ** 2 * below[j]) / 2) * qd[j] ** 2
+        inertia_j = inert[j] + m[j] * a[j] ** 2 + length[j] ** 2 * below[j]
+        lag += F(inertia_j / 2) * qd[j] ** 2
         lag += F(g * (m[j] * a[j] + length[j] * below[j])) * sp.cos(q[j])
         for i in range(j + 1, n):
             c = F(length[j] * (m[i] * a[i] + length[i] * below[i]))
