@@ -143,7 +143,7 @@ class CandidateLibrary(BaseEstimator):
     >>> lib = CandidateLibrary.polynomial(["theta"], angles=["theta"], degree=2,
     ...                                   raw_angles=True)
     >>> len(lib.candidates_), len(lib)
-    (14, 11)
+    (14, 9)
     >>> lib.removed_[0]
     ('theta_dot', 'trivial: its Euler-Lagrange expression is identically zero')
     """
