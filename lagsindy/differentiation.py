@@ -610,6 +610,123 @@ def _is_uniform(t: np.ndarray) -> bool:
     return bool(np.max(np.abs(steps - mean)) <= _UNIFORM_RTOL * mean)
 
 
+
+# ----------------------------------------------------------------- gaps and glitches
+# A step longer than this many times the median step of its trajectory is a gap.
+_GAP_FACTOR = 5.0
+# A step shorter than this fraction of the median step is a timing glitch.
+_GLITCH_FRACTION = 0.25
+
+
+def _split_at_gaps(times, segments, factor):
+    """Cut segments at gaps; returns (new segments, gaps, glitches).
+
+    ``gaps`` lists ``(key, row, step, median)`` for each step longer than ``factor``
+    median steps (the row is the first after the gap); ``glitches`` the rows that
+    come less than ``_GLITCH_FRACTION`` median steps after the previous row, in
+    trajectories on a regular clock (90 % of the steps within 10 % of the median).
+    """
+    out, gaps, glitches = [], [], []
+    for key, sl in segments:
+        steps = np.diff(times[sl])
+        if steps.size == 0:
+            out.append((key, sl))
+            continue
+        median = float(np.median(steps))
+        # glitches only mean something on a regular clock (most steps near the median)
+        if np.mean(np.abs(steps - median) <= 0.1 * median) >= 0.9:
+            short = np.flatnonzero(steps < _GLITCH_FRACTION * median)
+            glitches.extend((sl.start + 1 + short).tolist())
+        if factor is None:
+            out.append((key, sl))
+            continue
+        cut = np.flatnonzero(steps > factor * median)
+        if cut.size == 0:
+            out.append((key, sl))
+            continue
+        bounds = [sl.start, *(sl.start + cut + 1).tolist(), sl.stop]
+        for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+            out.append(((key, k), slice(a, b)))
+        for c in cut:
+            gaps.append((key, sl.start + int(c) + 1, float(steps[c]), median))
+    return out, gaps, glitches
+
+
+def _describe_rows(rows, times, limit=5):
+    shown = ", ".join(f"{r} (t = {times[r]:.6g})" for r in rows[:limit])
+    return shown + (f" and {len(rows) - limit} more" if len(rows) > limit else "")
+
+
+def _warn_gaps(gaps, times, factor, stacklevel=3):
+    rows = [g[1] for g in gaps]
+    worst = max(gaps, key=lambda g: g[2] / g[3])
+    warnings.warn(
+        f"{len(gaps)} gap(s) in the time stamps (a step longer than {factor:g} times "
+        f"the trajectory's median step) before row(s) {_describe_rows(rows, times)}; "
+        f"the longest is {worst[2]:.4g} s against a median step of {worst[3]:.4g} s. "
+        f"Derivatives were estimated on the {len(gaps)} extra segment(s) separately. "
+        "Fit with the segments as trajectories, so that the weak form and "
+        "cross-validation never span a gap: groups = split_gaps(t, groups) "
+        "(lagsindy.differentiation), or derivatives(..., return_groups=True)",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+
+
+def _warn_glitches(glitches, times, stacklevel=3):
+    warnings.warn(
+        f"{len(glitches)} row(s) come less than {_GLITCH_FRACTION:g} median steps after "
+        f"the previous row: {_describe_rows(glitches, times)}. Duplicated or "
+        "mistimed frames? Their derivatives are kept (the time stamps are used as "
+        "given), but check those rows and drop them or repair their time stamps",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+
+
+def split_gaps(t, groups=None, *, gap_factor: float = _GAP_FACTOR) -> np.ndarray:
+    """Trajectory labels with every trajectory cut at its gaps in time.
+
+    A gap is a time step longer than ``gap_factor`` times the median step of its
+    trajectory. Pass the result as ``groups`` to :func:`derivatives`,
+    :meth:`LagrangianSINDy.fit <lagsindy.LagrangianSINDy.fit>` and cross-validation,
+    so that no estimate (splines, the weak form's integrals) spans a gap.
+
+    Parameters
+    ----------
+    t : array-like of shape (n_samples,)
+        Time stamps, strictly increasing within each trajectory.
+    groups : array-like of shape (n_samples,), default=None
+        Trajectory labels (rows of a trajectory contiguous); ``None``: one trajectory.
+    gap_factor : float, default=5.0
+        Steps longer than this many median steps are gaps.
+
+    Returns
+    -------
+    ndarray of int of shape (n_samples,)
+        Segment number of each row, 0, 1, ... in row order (a trajectory without
+        gaps keeps one number).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from lagsindy.differentiation import split_gaps
+    >>> t = np.r_[np.arange(5), np.arange(10, 14)] * 0.01
+    >>> split_gaps(t).tolist()
+    [0, 0, 0, 0, 0, 1, 1, 1, 1]
+    """
+    if not (isinstance(gap_factor, Real) and gap_factor > 1):
+        raise ValueError(f"gap_factor must be a number > 1, got {gap_factor!r}")
+    n = np.shape(t)[0] if np.ndim(t) else 0
+    segments = _segments(groups, n)
+    times = _check_times(t, n, segments)
+    cut, _, _ = _split_at_gaps(times, segments, gap_factor)
+    labels = np.empty(n, dtype=int)
+    for k, (_, sl) in enumerate(cut):
+        labels[sl] = k
+    return labels
+
+
 # ----------------------------------------------------------------- public function
 def derivatives(
     q,
@@ -621,7 +738,9 @@ def derivatives(
     polyorder: int = 4,
     smoothing: float | None = None,
     angles=None,
-) -> np.ndarray:
+    gap_factor: float | None = _GAP_FACTOR,
+    return_groups: bool = False,
+):
     """Estimate ``[q, q_dot, q_ddot]`` from sampled positions, trajectory by trajectory.
 
     Parameters
@@ -664,13 +783,27 @@ def derivatives(
         per trajectory before differentiating, so a jump from pi to -pi is read as
         continued rotation; the returned positions of these coordinates are the
         unwrapped (continuous) angles, not reduced to (-pi, pi].
+    gap_factor : float or None, default=5.0
+        A time step longer than ``gap_factor`` times the median step of its
+        trajectory is a gap: the trajectory is cut there and each segment is
+        differentiated on its own (nothing is interpolated across a gap), with one
+        ``UserWarning`` saying where. Fit with the segments as trajectories
+        (``return_groups=True`` or :func:`split_gaps`). ``None``: no gap detection.
+        Rows less than a quarter of the median step after the previous one
+        (duplicated or mistimed frames) are reported by a ``UserWarning`` naming
+        them.
+    return_groups : bool, default=False
+        Also return the segment labels (see :func:`split_gaps`).
 
     Returns
     -------
-    ndarray of shape (n_samples, 3 * n_dof)
+    X : ndarray of shape (n_samples, 3 * n_dof)
         Columns ``[q..., q_dot..., q_ddot...]``, rows in the input order. The first
         block is the smoothed fit of q for the smoothing methods and q itself
         (unwrapped) for ``"finite_difference"``.
+    groups : ndarray of int of shape (n_samples,)
+        Only with ``return_groups=True``: the segment number of each row (the
+        trajectories cut at their gaps), to pass as ``groups`` to ``fit``.
 
     Raises
     ------
@@ -732,12 +865,28 @@ def derivatives(
             f"smoothing must be None (GCV) or a float >= 0, got {smoothing!r}"
         )
     mask = _angle_mask(angles, n_dof)
+    if gap_factor is not None and not (isinstance(gap_factor, Real) and gap_factor > 1):
+        raise ValueError(
+            f"gap_factor must be a number > 1 or None, got {gap_factor!r}"
+        )
     segments = _segments(groups, n)
     times = _check_times(t, n, segments)
+    segments, gaps, glitches = _split_at_gaps(times, segments, gap_factor)
+    if gaps:
+        _warn_gaps(gaps, times, gap_factor)
+    if glitches:
+        _warn_glitches(glitches, times)
     need = _MIN_SAMPLES[method]
     for key, sl in segments:
         if sl.stop - sl.start < need:
-            where = "the data have" if key is None else f"trajectory {key!r} has"
+            if isinstance(key, tuple):
+                where = (
+                    f"segment {key[1]} of "
+                    + ("the data" if key[0] is None else f"trajectory {key[0]!r}")
+                    + " (between gaps in t) has"
+                )
+            else:
+                where = "the data have" if key is None else f"trajectory {key!r} has"
             raise ValueError(
                 f"method={method!r} needs at least {need} samples per trajectory, but "
                 f"{where} {sl.stop - sl.start}; use a method that needs fewer "
@@ -776,6 +925,11 @@ def derivatives(
             UserWarning,
             stacklevel=2,
         )
+    if return_groups:
+        labels = np.empty(n, dtype=int)
+        for k, (_, sl) in enumerate(segments):
+            labels[sl] = k
+        return out, labels
     return out
 
 
@@ -860,6 +1014,11 @@ class Derivatives(TransformerMixin, BaseEstimator):
         time or trajectory column.
     dt : float, default=None
         Sampling interval, used only when ``time=None``.
+    gap_factor : float or None, default=5.0
+        Steps longer than this many median steps are gaps: each trajectory is
+        differentiated segment by segment (a ``UserWarning`` says where). Fit with
+        ``groups=split_gaps(t, trajectory)`` so that the estimator sees the
+        segments too. ``None``: no gap detection.
 
     Attributes
     ----------
@@ -905,6 +1064,7 @@ class Derivatives(TransformerMixin, BaseEstimator):
         "trajectory": [str, Interval(Integral, None, None, closed="neither"), None],
         "coordinates": ["array-like", None],
         "dt": [Interval(Real, 0, None, closed="neither"), None],
+        "gap_factor": [Interval(Real, 1, None, closed="neither"), None],
     }
 
     def __init__(
@@ -919,6 +1079,7 @@ class Derivatives(TransformerMixin, BaseEstimator):
         trajectory="trajectory",
         coordinates=None,
         dt=None,
+        gap_factor=_GAP_FACTOR,
     ):
         self.method = method
         self.window = window
@@ -929,6 +1090,7 @@ class Derivatives(TransformerMixin, BaseEstimator):
         self.trajectory = trajectory
         self.coordinates = coordinates
         self.dt = dt
+        self.gap_factor = gap_factor
 
     def __sklearn_tags__(self):
         tags = super().__sklearn_tags__()
@@ -1088,6 +1250,7 @@ class Derivatives(TransformerMixin, BaseEstimator):
             polyorder=self.polyorder,
             smoothing=self.smoothing,
             angles=[names.index(a) for a in self.angles_],
+            gap_factor=self.gap_factor,
         )
         if frame:
             return pd.DataFrame(

@@ -821,7 +821,8 @@ def load_multiarm_pendulum(
     ----------
     path : str or path-like, default=None
         The ``.mat`` file, or the folder holding it. ``None``: the shipped
-        recordings (or ``$LAGSINDY_MULTIARM_DIR``), see :func:`find_multiarm_pendulum`.
+        recordings (or ``$LAGSINDY_MULTIARM_DIR``); see
+        :func:`find_multiarm_pendulum`.
     which : {"single", "double", "triple"}, default="single"
         Which pendulum.
     split : {"id", "vad"}, default="id"
