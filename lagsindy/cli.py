@@ -519,6 +519,7 @@ def _fit_csv(args):
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
     )
+    tau = _apply_delay(args, df, X, tau, groups, est)
     _say(
         args,
         f"fitting {len(X)} samples of {coords}: "
@@ -530,6 +531,44 @@ def _fit_csv(args):
     elapsed = time.perf_counter() - start
     args._groups = groups  # the segments, for diagnose
     return est, X, tau, inputs, elapsed
+
+
+def _apply_delay(args, df, X, tau, groups, est):
+    """Shift the inputs by ``--delay`` (seconds, or ``auto``: estimated with ``est``)."""
+    value = getattr(args, "delay", None)
+    if value is None:
+        return tau
+    if tau is None:
+        raise CLIError(
+            "--delay shifts the input columns, but the data have none (passive data); "
+            "drop --delay or give the input with --input"
+        )
+    from .delay import estimate_delay, shift_input
+
+    if "t" in df.columns:
+        t = _numeric(df, ["t"], args.data)[:, 0]
+    elif getattr(args, "dt", None):
+        t = np.arange(len(df)) * float(args.dt)
+    else:
+        raise CLIError("--delay needs a 't' column or --dt SECONDS")
+    if value == "auto":
+        if est is None:
+            raise CLIError(
+                "--delay auto estimates the delay by refitting; with --model give the "
+                "delay in seconds (e.g. the one `lagsindy fit --delay auto` printed)"
+            )
+        _say(args, "estimating the input delay (held-out fits over sample shifts) ...")
+        result = estimate_delay(est, X, tau, t, groups=groups)
+        _say(args, f"{result}; the inputs are shifted by it")
+        delay = result.delay
+    else:
+        try:
+            delay = float(value)
+        except ValueError:
+            raise CLIError(
+                f"--delay must be a number of seconds or 'auto', got {value!r}"
+            ) from None
+    return shift_input(tau, t, delay, groups)
 
 
 # ----------------------------------------------------------------------------- diagnose
@@ -547,6 +586,7 @@ def _diagnose(args) -> int:
         X, groups = _state_and_groups(df, coords, args, args.data, angles)
         inputs = _input_columns(df, coords, args)
         tau = None if inputs is None else _numeric(df, inputs, args.data)
+        tau = _apply_delay(args, df, X, tau, groups, None)
         if (tau is None) != (est.case_ != "forces"):
             raise CLIError(
                 "the model was fitted "
@@ -702,6 +742,16 @@ def _add_fit_options(p, *, required):
         choices=["strong", "weak"],
         help="weak: integral Euler-Lagrange equations with a noise correction (needs "
         "time-ordered trajectories; see LagrangianSINDy)",
+    )
+    p.add_argument(
+        "--delay",
+        metavar="SECONDS|auto",
+        default=None,
+        help="input delay: the input recorded at t acts at t + SECONDS, so the inputs "
+        "are shifted by it (linear interpolation per trajectory; the first SECONDS "
+        "of each trajectory hold the first input). 'auto': estimate it by held-out "
+        "fits over whole-sample shifts (lagsindy.delay.estimate_delay; slow: about "
+        "40 fits)",
     )
 
 
