@@ -128,6 +128,23 @@ def test_split_gaps_per_trajectory_and_transformer():
         split_gaps(t, groups, gap_factor=0.5)
 
 
+def test_weak_form_refuses_a_trajectory_with_a_gap():
+    from lagsindy import LagrangianSINDy
+    from lagsindy.systems import make_dataset, single_pendulum
+
+    system = single_pendulum()
+    data = make_dataset(system, n_trajectories=2, duration=4.0, random_state=1)
+    keep = np.ones(len(data.t), dtype=bool)
+    keep[150:170] = False  # 0.2 s lost in the first trajectory
+    X, tau, t, groups = data.X[keep], data.tau[keep], data.t[keep], data.groups[keep]
+    est = LagrangianSINDy(system.paper_library(), formulation="weak")
+    with pytest.raises(ValueError, match="jumps between rows 149 and 150"):
+        est.fit(X, tau, groups=groups)
+    est.fit(X, tau, groups=split_gaps(t, groups))  # the segments fit
+    table = est.coef_table().set_index("term")["coefficient"]
+    assert table["cos(theta)"] == pytest.approx(9.81, rel=0.01)
+
+
 def test_timing_glitches_are_reported_by_row():
     t = np.arange(200) * 0.015
     t[[50, 120]] = t[[49, 119]] + 0.002  # frames 2 ms after the previous one
