@@ -1,5 +1,6 @@
 """Recordings (#13): long records, gaps, timing glitches, shipped data, CLI angles."""
 
+import re
 import warnings
 
 import numpy as np
@@ -216,3 +217,22 @@ def test_cli_unwraps_angles_as_the_api_does(tmp_path, capsys):
         models.append(capsys.readouterr().out.strip())
     assert models[0] == models[1]
     assert "cos(theta)" in models[0]
+
+
+def test_cli_fits_the_segments_of_a_record_with_a_gap(tmp_path, capsys):
+    from lagsindy.systems import make_dataset, single_pendulum
+
+    data = make_dataset(single_pendulum(), n_trajectories=2, duration=4.0,
+                        random_state=1)
+    frame = data.to_frame()[["trajectory", "t", "theta", "tau_theta"]]
+    frame = frame.drop(index=range(150, 170))  # 0.2 s lost in trajectory 0
+    frame.to_csv(tmp_path / "gap.csv", index=False)
+    args = ["fit", str(tmp_path / "gap.csv"), "--coordinates", "theta", "--angles",
+            "theta", "--formulation", "weak", "--out", str(tmp_path / "m.json"),
+            "--quiet"]
+    code = main(args)
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert re.search(r"1 gap\(s\).*row\(s\) 150 .*uses these segments", captured.err)
+    # without the segments the weak form would refuse (it integrates over rows)
+    assert "cos(theta)" in captured.out
