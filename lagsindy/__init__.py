@@ -1,5 +1,6 @@
 """lagsindy: sparse identification of Lagrangians from trajectories (xL-SINDy)."""
 
+from .delay import DelayEstimate, estimate_delay, shift_input
 from .diagnostics import DiagnosisReport, diagnose
 from .differentiation import Derivatives, derivatives
 from .dissipation import DissipationLibrary
@@ -12,6 +13,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "CandidateLibrary",
+    "DelayEstimate",
     "Derivatives",
     "DiagnosisReport",
     "DissipationLibrary",
@@ -20,8 +22,10 @@ __all__ = [
     "SingularMassMatrixError",
     "derivatives",
     "diagnose",
+    "estimate_delay",
     "load_model",
     "rollout_error",
     "save_model",
+    "shift_input",
     "__version__",
 ]

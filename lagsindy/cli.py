@@ -99,6 +99,16 @@ def _is_float(v):
 
 def _state_frame(df, coords, args, source):
     """X as a DataFrame ``[q, q_dot, q_ddot]``; derivatives estimated if absent."""
+    return _state_and_groups(df, coords, args, source)[0]
+
+
+def _state_and_groups(df, coords, args, source, angles=()):
+    """X ``[q, q_dot, q_ddot]`` and the trajectory labels to fit with.
+
+    When derivatives are estimated, ``angles`` are unwrapped per trajectory (as
+    ``Derivatives(angles=...)`` does in the API) and trajectories are cut at gaps in
+    ``t`` (one warning says where); the labels returned are then the segments.
+    """
     import pandas as pd
 
     from ._expr import state_names
@@ -107,8 +117,10 @@ def _state_frame(df, coords, args, source):
     q = _numeric(df, coords, source)
     have_derivatives = all(n in df.columns for n in names)
     method = getattr(args, "derivatives", None)
+    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
     if have_derivatives and method is None:
-        return pd.DataFrame(_numeric(df, names, source), columns=names, index=df.index)
+        X = pd.DataFrame(_numeric(df, names, source), columns=names, index=df.index)
+        return X, groups
     from .differentiation import derivatives
 
     if "t" in df.columns:
@@ -120,7 +132,6 @@ def _state_frame(df, coords, args, source):
             f"{source} has positions only and no 't' column: add a time column 't' or "
             "pass --dt SECONDS (the sampling interval)"
         )
-    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
     for idx in _group_rows(groups, len(df)):
         if idx.size < 5:
             raise CLIError(
@@ -132,21 +143,41 @@ def _state_frame(df, coords, args, source):
                 f"'t' must increase within each trajectory in {source} (sort the rows, "
                 "and give separate trajectories a 'trajectory' column)"
             )
-    kwargs = {"groups": groups}
+    kwargs = {"groups": groups, "return_groups": True}
     if method is not None:
         kwargs["method"] = method
+    mask = [c in angles for c in coords]
+    if any(mask):
+        kwargs["angles"] = mask
     _say(
         args,
         f"estimating velocities and accelerations of {coords} "
-        f"({method or 'default method'}) ...",
+        f"({method or 'default method'}"
+        + (f"; angles {list(angles)} unwrapped" if any(mask) else "")
+        + ") ...",
     )
-    X = np.asarray(derivatives(q, t, **kwargs), dtype=float)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        X, segments = derivatives(q, t, **kwargs)
+    for w in caught:
+        text = str(w.message)
+        if "gap(s) in the time stamps" in text:
+            text = (
+                text.split(" Fit with the segments")[0]
+                + " The fit uses these segments as separate trajectories."
+            )
+        warnings.warn_explicit(text, w.category, w.filename, w.lineno)
+    n_segments = len(np.unique(segments))
+    n_before = 1 if groups is None else len(np.unique(groups))
+    if n_segments > n_before:
+        groups = segments
+    X = np.asarray(X, dtype=float)
     if X.shape != (len(df), 3 * len(coords)):
         raise CLIError(
             f"derivative estimation returned shape {X.shape}, expected "
             f"{(len(df), 3 * len(coords))}"
         )
-    return pd.DataFrame(X, columns=names, index=df.index)
+    return pd.DataFrame(X, columns=names, index=df.index), groups
 
 
 def _group_rows(groups, n):
@@ -467,7 +498,7 @@ def _fit_csv(args):
     if unknown:
         raise CLIError(f"--angles {unknown} are not among --coordinates {coords}")
     df = _read_csv(args.data)
-    X = _state_frame(df, coords, args, args.data)
+    X, groups = _state_and_groups(df, coords, args, args.data, angles)
     inputs = _input_columns(df, coords, args)
     if inputs is not None and args.fixed_term is not None:
         raise CLIError(
@@ -488,17 +519,56 @@ def _fit_csv(args):
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
     )
+    tau = _apply_delay(args, df, X, tau, groups, est)
     _say(
         args,
         f"fitting {len(X)} samples of {coords}: "
         + (f"forces from {inputs}" if inputs else "passive (no input columns)")
         + f", library {args.library} ({len(library)} terms after reduction)",
     )
-    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
     start = time.perf_counter()
     est.fit(X, tau, groups=groups)
     elapsed = time.perf_counter() - start
+    args._groups = groups  # the segments, for diagnose
     return est, X, tau, inputs, elapsed
+
+
+def _apply_delay(args, df, X, tau, groups, est):
+    """Shift the inputs by ``--delay`` (seconds, or ``auto``: estimated with ``est``)."""
+    value = getattr(args, "delay", None)
+    if value is None:
+        return tau
+    if tau is None:
+        raise CLIError(
+            "--delay shifts the input columns, but the data have none (passive data); "
+            "drop --delay or give the input with --input"
+        )
+    from .delay import estimate_delay, shift_input
+
+    if "t" in df.columns:
+        t = _numeric(df, ["t"], args.data)[:, 0]
+    elif getattr(args, "dt", None):
+        t = np.arange(len(df)) * float(args.dt)
+    else:
+        raise CLIError("--delay needs a 't' column or --dt SECONDS")
+    if value == "auto":
+        if est is None:
+            raise CLIError(
+                "--delay auto estimates the delay by refitting; with --model give the "
+                "delay in seconds (e.g. the one `lagsindy fit --delay auto` printed)"
+            )
+        _say(args, "estimating the input delay (held-out fits over sample shifts) ...")
+        result = estimate_delay(est, X, tau, t, groups=groups)
+        _say(args, f"{result}; the inputs are shifted by it")
+        delay = result.delay
+    else:
+        try:
+            delay = float(value)
+        except ValueError:
+            raise CLIError(
+                f"--delay must be a number of seconds or 'auto', got {value!r}"
+            ) from None
+    return shift_input(tau, t, delay, groups)
 
 
 # ----------------------------------------------------------------------------- diagnose
@@ -512,9 +582,11 @@ def _diagnose(args) -> int:
         est = _load(args.model)
         df = _read_csv(args.data)
         coords = list(est.coordinates_)
-        X = _state_frame(df, coords, args, args.data)
+        angles = est.library._angle_names(coords) if est.library is not None else []
+        X, groups = _state_and_groups(df, coords, args, args.data, angles)
         inputs = _input_columns(df, coords, args)
         tau = None if inputs is None else _numeric(df, inputs, args.data)
+        tau = _apply_delay(args, df, X, tau, groups, None)
         if (tau is None) != (est.case_ != "forces"):
             raise CLIError(
                 "the model was fitted "
@@ -526,9 +598,8 @@ def _diagnose(args) -> int:
         if not args.coordinates:
             raise CLIError("give --model model.json, or --coordinates to fit one first")
         est, X, tau, inputs, _ = _fit_csv(args)
-        df = _read_csv(args.data)
+        groups = args._groups
         _say(args, f"fitted: {est.equation(args.precision).splitlines()[0]}")
-    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="X has feature names")
         report = diagnose(
@@ -671,6 +742,16 @@ def _add_fit_options(p, *, required):
         choices=["strong", "weak"],
         help="weak: integral Euler-Lagrange equations with a noise correction (needs "
         "time-ordered trajectories; see LagrangianSINDy)",
+    )
+    p.add_argument(
+        "--delay",
+        metavar="SECONDS|auto",
+        default=None,
+        help="input delay: the input recorded at t acts at t + SECONDS, so the inputs "
+        "are shifted by it (linear interpolation per trajectory; the first SECONDS "
+        "of each trajectory hold the first input). 'auto': estimate it by held-out "
+        "fits over whole-sample shifts (lagsindy.delay.estimate_delay; slow: about "
+        "40 fits)",
     )
 
 

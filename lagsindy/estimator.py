@@ -22,6 +22,7 @@ from sklearn.utils.validation import check_is_fitted, validate_data
 from . import _validation as val
 from ._expr import state_names
 from ._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
+from .differentiation import check_weak_form_segments
 from .dynamics import MechanicalModel
 from .euler_lagrange import (
     EulerLagrangeOperator,
@@ -712,6 +713,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                     "are the rows time-ordered? Pass dt="
                 )
         segments = trajectory_segments(Xt, d, groups, dt=dt)
+        if groups is not None:  # never integrate across a gap inside a trajectory
+            parts = [to_numpy(s) for s in segments]
+            check_weak_form_segments(to_numpy(Xt), d, parts, dt)
         window = int(self.window)
         usable = [s for s in segments if len(s) >= window]
         if not usable:
