@@ -55,6 +55,8 @@ _SEAM_RTOL = 1e-6
 _SEAM_RTOL_SUBSAMPLED = 1e-2
 # Samples (strong form) or windows (weak form) per block, at least, in block mode.
 _MAX_BLOCKS = 20
+# Fewer trajectories than this: resample time blocks within them instead.
+_MIN_TRAJECTORIES = 10
 
 
 class BootstrapReport:
@@ -391,9 +393,11 @@ def bootstrap(
 
     The estimator's configuration is fitted on all data, then on ``n_resamples``
     resamples drawn with replacement from whole trajectories (``groups``), or, when
-    there is one trajectory, from ``n_blocks`` contiguous time blocks of it (a
-    moving-block bootstrap with non-overlapping blocks; the errors within a block may
-    be correlated, those of different blocks are taken as independent).
+    there are fewer than 10 trajectories, from about ``n_blocks`` contiguous time
+    blocks cut from them (a block bootstrap with non-overlapping blocks: the errors
+    within a block may be correlated, those of different blocks are taken as
+    independent; in the weak form, test windows that straddle two blocks are not
+    used by the resamples).
 
     Parameters
     ----------
@@ -404,7 +408,8 @@ def bootstrap(
     tau : array-like of shape (n_samples, n_dof), default=None
         Generalized forces (case I); ``None`` for passive data.
     groups : array-like of shape (n_samples,), default=None
-        Trajectory label of each row. ``None`` or a single label: block bootstrap.
+        Trajectory label of each row. ``None`` (one record) or fewer than 10
+        trajectories: block bootstrap.
     n_resamples : int, default=100
     level : float, default=0.95
         Coverage of the intervals.
@@ -416,8 +421,9 @@ def bootstrap(
         ``"basic"``: reflected about the full fit. See the calibration tests for the
         measured coverage.
     n_blocks : int, default=None
-        Blocks in block mode. ``None``: 20 (strong form), or as many as keep 4 test
-        windows per block (weak form), at most 20.
+        Blocks in block mode (about; each trajectory gets a share by its length).
+        ``None``: 20, or fewer where blocks would hold less than four test windows
+        (weak form).
     random_state : int, RandomState instance or None, default=None
         Seeds the resamples; the result does not depend on ``n_jobs``.
     n_jobs : int, default=None
@@ -454,26 +460,34 @@ def bootstrap(
         params.update(dt=full.dt_, noise_cov=full.noise_cov_)
     base = clone(est).set_params(**params)
 
-    labels = None if groups is None else np.asarray(groups)
-    if labels is not None and labels.shape != (n,):
+    traj = np.zeros(n, dtype=np.int64) if groups is None else np.asarray(groups)
+    if traj.shape != (n,):
         raise ValueError(f"groups must have one label per row of X ({n})")
-    if labels is None or np.unique(labels).size == 1:
-        resampling = "blocks"
-        if n_blocks is None:
-            if weak:
-                per = 4 * max(1, int(full.window) // 4) + int(full.window)
-                n_blocks = min(_MAX_BLOCKS, n // per)
-            else:
-                n_blocks = _MAX_BLOCKS
-        if n_blocks < 2 or n_blocks > n:
-            raise ValueError(
-                f"cannot split {n} samples into n_blocks={n_blocks} blocks (need at "
-                "least 2, each longer than one test window in the weak form); record "
-                "longer or more trajectories, or pass groups"
-            )
-        labels = np.minimum(np.arange(n) * n_blocks // n, n_blocks - 1)
+    trajectories = _group_rows(traj)
+    if len(trajectories) >= _MIN_TRAJECTORIES:
+        resampling, labels = "trajectories", traj
     else:
-        resampling = "trajectories"
+        resampling = "blocks"
+        shortest = 1
+        if weak:
+            shortest = int(full.window) + 4 * max(1, int(full.window) // 4)
+        room = sum(len(r) // shortest for r in trajectories)
+        if n_blocks is None:
+            n_blocks = min(_MAX_BLOCKS, room)
+        if n_blocks < 2 or n_blocks > room:
+            raise ValueError(
+                f"cannot cut {n} samples in {len(trajectories)} trajectories into "
+                f"n_blocks={n_blocks} blocks (at least 2, each of at least {shortest} "
+                "samples, four test windows in the weak form); record longer or more "
+                "trajectories"
+            )
+        labels = np.zeros(n, dtype=np.int64)
+        next_label = 0
+        for r in trajectories:
+            k = int(round(n_blocks * len(r) / n))
+            k = max(1, min(k, len(r) // shortest))
+            labels[r] = next_label + np.minimum(np.arange(len(r)) * k // len(r), k - 1)
+            next_label += k
     rows_of = _group_rows(labels)
     n_groups = len(rows_of)
     if n_groups < 5:
