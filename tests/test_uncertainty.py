@@ -90,7 +90,8 @@ def test_report_table_and_determinism(noisy_pendulum):
     d = noisy_pendulum
     est = LagrangianSINDy(_small_library(), formulation="weak")
     rep = bootstrap(
-        est, d.X, d.tau, groups=d.groups, n_resamples=10, random_state=3
+        est, d.X, d.tau, groups=d.groups, n_resamples=10, method="percentile",
+        random_state=3
     )
     assert isinstance(rep, BootstrapReport) and rep.fast_path
     frame = rep.to_frame()
@@ -108,7 +109,8 @@ def test_report_table_and_determinism(noisy_pendulum):
     ref = U.clone(est).fit(d.X, d.tau, groups=d.groups)
     np.testing.assert_array_equal(frame.coefficient, ref.coef_)
     again = bootstrap(
-        est, d.X, d.tau, groups=d.groups, n_resamples=10, random_state=3, n_jobs=2
+        est, d.X, d.tau, groups=d.groups, n_resamples=10, method="percentile",
+        random_state=3, n_jobs=2
     )
     np.testing.assert_array_equal(rep.samples, again.samples)
     np.testing.assert_array_equal(rep.low, again.low)
@@ -208,7 +210,9 @@ def _calibration(n_draws, n_traj, n_resamples):
 
 def test_calibration_of_intervals():
     coverage, inclusion = _calibration(n_draws=12, n_traj=10, n_resamples=30)
-    # measured: coverage 0.92 (22 of 24 intervals), true terms kept in every resample
+    # measured: coverage 0.958 (23 of 24 intervals), true terms kept in every
+    # resample, spurious terms in none. A 30-draw run with 40 resamples measured
+    # 0.95 (BCa), 0.98 (percentile), 0.98 (basic).
     assert coverage >= 0.85
     assert inclusion[:, :2].min() >= 0.9
     assert inclusion[:, 2:].mean(axis=0).max() <= 0.5
