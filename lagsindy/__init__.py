@@ -8,18 +8,22 @@ from .dynamics import MechanicalModel, SingularMassMatrixError, rollout_error
 from .estimator import LagrangianSINDy
 from .io import load_model, save_model
 from .library import CandidateLibrary
+from .uncertainty import BootstrapReport, LibraryBaggingLagrangianSINDy, bootstrap
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "BootstrapReport",
     "CandidateLibrary",
     "DelayEstimate",
     "Derivatives",
     "DiagnosisReport",
     "DissipationLibrary",
     "LagrangianSINDy",
+    "LibraryBaggingLagrangianSINDy",
     "MechanicalModel",
     "SingularMassMatrixError",
+    "bootstrap",
     "derivatives",
     "diagnose",
     "estimate_delay",
