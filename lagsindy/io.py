@@ -549,6 +549,11 @@ def model_from_dict(doc: dict):
         if text not in {t.name for t in dissipation_terms}:
             _index(fitted, text)
     est.stages_ = []
+    # The weak form's sampling interval and noise covariance are not saved: refits
+    # (e.g. by diagnose) estimate them again from their data (dt_ from the `dt`
+    # hyperparameter when it was given).
+    est.dt_ = None if hyper.get("dt") is None else float(hyper["dt"])
+    est.noise_cov_ = None
     est.n_iter_ = int(values["n_iter"])
     est.residual_ = None if residual is None else float(residual)
     est._y_1d = bool(values["tau_1d"])
@@ -559,12 +564,16 @@ def model_from_dict(doc: dict):
     est.dissipation_coef_ = np.asarray(dissipation_coef, dtype=float)
     est.dissipation_removed_ = []
     if dissipation_terms:
-        eps = [_coulomb_eps(t) for t in dissipation_terms if t.kind == "coulomb"]
+        eps = {
+            t.coordinates[0]: _coulomb_eps(t)
+            for t in dissipation_terms
+            if t.kind == "coulomb"
+        }
         est.set_params(
             dissipation=DissipationLibrary(
                 kinds=(),
                 coordinates=coords,
-                eps=eps[0] if eps else DEFAULT_EPS,
+                eps=eps or DEFAULT_EPS,
                 terms=[
                     (
                         t.kind,
