@@ -577,6 +577,10 @@ class _Scorer:
         full = np.einsum("i,kipq->pq", weights, stats.fit)
         diag = np.sqrt(np.clip(np.diag(full), 0, None))
         self.col = np.where(diag > 0, diag, 1.0)
+        # The target (or the fixed term) keeps its units, so the SSE is in force
+        # units squared, comparable with the reference scales, and coefficients
+        # unscale by their own column alone.
+        self.col[fixed_col if target is None else target] = 1.0
         self._cache = {}
 
     def _combine(self, g):
@@ -627,21 +631,23 @@ class _Scorer:
         free = [j for j in key if j != self.fixed_col]
         K = self.stats.raw.shape[0]
         total = self._combine(self.stats.fit.sum(0))
-        num, den, folds, bad = 0.0, 0.0, [], []
+        sse, ref, bad = np.zeros(K), np.zeros(K), []
         for k in range(K):
             train = total - self._combine(self.stats.fit[k])
             active, coef = self._solve(train, free)
             if self.mass is not None and not self._mass_ok(k, active, coef):
                 bad.append(k)
-                folds.append(np.nan)
-                continue
-            sse = float(self.w @ self._sse(self.stats.raw[k], active, coef))
-            ref = float(self.w @ self.reference[k])
-            num += sse
-            den += ref
-            folds.append(sse / max(ref, 1e-300))
-        value = np.sqrt(num / den) if den > 0 else np.inf
-        out = (float(value), np.asarray(folds), bad)
+            sse[k] = float(self.w @ self._sse(self.stats.raw[k], active, coef))
+            ref[k] = float(self.w @ self.reference[k])
+        # Degenerate folds are left out, unless every fold is degenerate (the
+        # support itself cannot predict accelerations; valid() then rejects it).
+        keep = np.ones(K, dtype=bool)
+        if len(bad) < K:
+            keep[bad] = False
+        folds = np.where(keep, sse / np.maximum(ref, 1e-300), np.nan)
+        den = ref[keep].sum()
+        value = np.sqrt(sse[keep].sum() / den) if den > 0 else np.inf
+        out = (float(value), folds, bad if len(bad) < K else [])
         self._cache[key] = out
         return out
 
@@ -1191,8 +1197,10 @@ def diagnose(
     # ------------------------------------------------ step 3: never worse
     final = current
     if current is not est and not value < value0:
-        final, support, value, effects, gains = est, s0, j0, [], {}
+        final, support, effects, gains = est, s0, [], {}
         stop_reason = "the diagnosed model does not beat the starting one held out"
+    if final is est:
+        value = j0
     p1 = scorer_s.score(support)[0]
     lib_before = {str(t) for t, c in zip(est.library_.terms_, est.coef_) if c}
     lib_after = {str(t) for t, c in zip(final.library_.terms_, final.coef_) if c}
