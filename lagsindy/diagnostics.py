@@ -771,9 +771,9 @@ def diagnose(
     angles=None,
     units=None,
     n_splits: int = 3,
-    min_explained: float = 0.01,
+    min_explained: float = 0.05,
     max_effects: int = 4,
-    min_improvement: float = 2e-3,
+    min_improvement: float = 0.01,
     eps="auto",
     revise: bool = True,
     window=None,
@@ -811,11 +811,11 @@ def diagnose(
         of x_dot").
     n_splits : int, default=3
         Held-out folds.
-    min_explained : float, default=0.01
+    min_explained : float, default=0.05
         Smallest share of the held-out criterion (squared) a candidate must explain
         to be tried (it must also improve every fold).
     max_effects : int, default=4
-    min_improvement : float, default=2e-3
+    min_improvement : float, default=0.01
         A revision or an effect is kept only if the refitted model's held-out
         criterion falls by at least this fraction.
     eps : "auto", float or dict, default="auto"
@@ -1051,6 +1051,14 @@ def diagnose(
             if f.name in names_
         )
 
+    total_ref = float(sum(scorer.w @ r for r in scorer.reference))
+
+    def contributes(model, cand, gns):
+        """The effect's share of the force scale is above rounding in ``model``."""
+        c = _effect_coefficient(model, cand, gns)
+        size = abs(c) * scorer.col[index[cand.name]]
+        return size**2 > _PRECISION * total_ref
+
     # ------------------------------------------------ step 1: joint revision of L
     if revise and diss:
         try:
@@ -1097,7 +1105,7 @@ def diagnose(
 
     # ------------------------------------------------ step 2: forward additions
     for _ in range(max(0, max_effects - len(effects))):
-        if value <= _PRECISION:
+        if min(value, scorer_s.score(support)[0]) ** 2 <= _PRECISION:
             stop_reason = "the remaining residual is at rounding level"
             break
         taken = {e.name for e in effects} | {f"gain({coords[i]})" for i in gains}
@@ -1167,6 +1175,7 @@ def diagnose(
                 jt < (1 - min_improvement) * value
                 and valid(st)
                 and nonneg_ok(trial, trial_effects)
+                and contributes(trial, best, trial_gains)
             ):
                 current, support, value = trial, st, jt
                 effects, gains = trial_effects, trial_gains
