@@ -422,7 +422,7 @@ def velocity_eps(X, n_dof, coordinates) -> dict:
     qd = np.abs(np.asarray(X, dtype=float)[:, n_dof : 2 * n_dof])
     top = np.quantile(qd, 0.99, axis=0)
     return {
-        c: float(_EPS_FRACTION * t) if t > 0 else DEFAULT_EPS
+        c: float(f"{_EPS_FRACTION * t:.3g}") if t > 0 else DEFAULT_EPS
         for c, t in zip(coordinates, top)
     }
 
@@ -1072,17 +1072,28 @@ def diagnose(
             kept = [by_name[f.name] for f, c in zip(joint.dissipation_terms_,
                                                     joint.dissipation_coef_)
                     if c and f.name in by_name]
-            jj, _ = J(sj)
-            # Backward pruning: drop an effect while the criterion does not worsen.
+            # Backward pruning: each kept effect must pass the test of an added one
+            # (explain min_explained of the held-out criterion, improve every fold,
+            # improve the criterion by min_improvement); drop the weakest until so.
             while kept:
-                trials = [(J(sj - {index[e.name]})[0], e) for e in kept]
-                best_value, worst = min(trials, key=lambda t: t[0])
-                if best_value <= jj * (1 + min_improvement):
-                    kept.remove(worst)
-                    sj = sj - {index[worst.name]}
-                    jj = min(jj, best_value) if best_value < jj else best_value
-                else:
+                jj, folds_j = J(sj)
+                trials = []
+                for e in kept:
+                    v, folds_v = J(sj - {index[e.name]})
+                    ok = np.isfinite(folds_v) & np.isfinite(folds_j)
+                    share = 1 - jj**2 / v**2 if np.isfinite(v) and v > 0 else 1.0
+                    passes = (
+                        share >= min_explained
+                        and jj < (1 - min_improvement) * v
+                        and bool(ok.any() and np.all(folds_j[ok] < folds_v[ok]))
+                    )
+                    trials.append((passes, share, e))
+                failing = [t for t in trials if not t[0]]
+                if not failing:
                     break
+                weakest = min(failing, key=lambda t: t[1])[2]
+                kept.remove(weakest)
+                sj = sj - {index[weakest.name]}
             if verbose:
                 print(f"[lagsindy] joint revision keeps {[e.name for e in kept]}")
             if kept:
@@ -1110,6 +1121,9 @@ def diagnose(
             break
         taken = {e.name for e in effects} | {f"gain({coords[i]})" for i in gains}
         pool = [c for c in candidates if c.name not in taken]
+        if gains and len(gains) >= len(gain) - 1:
+            # Gains on every input would leave the model's scale free (all zero).
+            pool = [c for c in pool if c.kind != "gain"]
         if not pool:
             stop_reason = "every candidate is in the model"
             break

