@@ -235,7 +235,8 @@ def test_coulomb_smoothing_from_the_velocity_scale(tmp_path):
         system, n_trajectories=8, duration=4.0, excitation="sincos", random_state=3
     )
     eps = velocity_eps(data.X, 1, ["x"])
-    assert eps["x"] == pytest.approx(0.01 * np.quantile(np.abs(data.X[:, 1]), 0.99))
+    top = np.quantile(np.abs(data.X[:, 1]), 0.99)
+    assert eps["x"] == pytest.approx(0.01 * top, rel=5e-3)  # 3 significant digits
     lib = CandidateLibrary.from_terms(["x"], ["x_dot**2"])
     fits = {}
     for name, e in [("auto", eps), ("fixed", 0.01)]:
