@@ -610,6 +610,11 @@ def _diagnose(args) -> int:
             min_explained=args.min_explained,
             max_effects=args.max_effects,
             n_splits=args.splits,
+            **(
+                {"catalogue": tuple(k.strip() for k in args.catalogue.split(","))}
+                if args.catalogue
+                else {}
+            ),
         )
     print(report)
     if args.plot:
@@ -919,9 +924,9 @@ def build_parser() -> argparse.ArgumentParser:
         "and add it",
         description="Residual diagnosis: fit a Lagrangian (or load --model), test "
         "candidate missing effects (viscous, joint and quadratic damping, Coulomb "
-        "friction, offsets, input gain errors, missing conservative terms) for how much "
-        "of the residual each explains on held-out trajectories, add the best, refit, "
-        "and repeat. Prints the report; --plot saves the residual figure.",
+        "friction, offsets, input gain errors, missing conservative terms) jointly with "
+        "the Lagrangian's terms, keep those that improve the prediction of held-out "
+        "trajectories, and report the errors before and after. Prints the report; --plot saves the residual figure.",
     )
     diag.add_argument("data", help="CSV file")
     diag.add_argument("--model", default=None, help="a saved model (JSON) to diagnose")
@@ -929,13 +934,22 @@ def build_parser() -> argparse.ArgumentParser:
     diag.add_argument(
         "--min-explained",
         type=float,
-        default=0.02,
-        help="smallest held-out share of the residual an effect must "
-        "explain (default 0.02)",
+        default=0.05,
+        help="smallest share of the held-out trajectory residual an effect must "
+        "explain (default 0.05)",
     )
-    diag.add_argument("--max-effects", type=int, default=3)
+    diag.add_argument("--max-effects", type=int, default=4)
     diag.add_argument(
-        "--splits", type=int, default=3, help="held-out folds of trajectories"
+        "--splits",
+        type=int,
+        default=3,
+        help="held-out folds of trajectories (time blocks when there are fewer)",
+    )
+    diag.add_argument(
+        "--catalogue",
+        default=None,
+        help="comma-separated candidate kinds (default: all): viscous, relative, "
+        "drag, coulomb, bias, gain, conservative",
     )
     diag.add_argument("--plot", default=None, help="save the residual figure (PNG)")
     diag.add_argument("--out-model", default=None, help="save the final model (JSON)")
