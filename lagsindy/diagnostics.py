@@ -557,10 +557,11 @@ def _refit(est, effects, X, tau, groups):
     new.set_params(library=library, unpenalized=unpenalized or None)
     if est.case_ == "fixed":
         new.set_params(fixed_term=_normalization(est))
+    new.set_params(verbose=0)  # refits are quiet; the result keeps est's verbose
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         new.fit(X, tau, groups=groups)
-    return new
+    return new.set_params(verbose=est.verbose)
 
 
 def _normalization(est):
@@ -598,7 +599,7 @@ def _heldout_error(est, X, tau, groups, folds):
     num = den = 0.0
     for test in folds:
         train = np.setdiff1d(np.arange(len(X)), test)
-        model = clone(est)
+        model = clone(est).set_params(verbose=0)  # no stage lines per fold
         if est.case_ == "fixed":
             model.set_params(fixed_term=_normalization(est))
         with warnings.catch_warnings():
