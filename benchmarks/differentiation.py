@@ -73,7 +73,10 @@ def measure(data, kwargs, sigma, seeds):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--quick", action="store_true", help="one seed (--seeds 1)")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.seeds = 1
     data = make_dataset(
         cart_pendulum(), n_trajectories=20, excitation="sincos", random_state=0
     )

@@ -345,6 +345,7 @@ def _demo(args) -> int:
                 check["states_b"],
                 system.coordinates,
                 velocities=True,
+                units=["rad" if c in system.angles else "m" for c in system.coordinates],
                 title=f"{system.name}: true vs learned (unforced)",
                 path=args.plot,
             )

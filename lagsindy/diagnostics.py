@@ -246,15 +246,17 @@ class DiagnosisReport:
         X = self._data["X"]
         n = len(self.coordinates)
         before = self._data["residual_before"]
-        panels = self.steps or [None]
+        # Nothing found: one panel per coordinate, its residual against its velocity.
+        panels = self.steps or [(None, i) for i in range(n)]
         fig, axes = plt.subplots(
             1, len(panels), figsize=(4.5 * len(panels), 3.6), squeeze=False
         )
         rng = np.random.default_rng(0)
         idx = rng.choice(X.shape[0], size=min(X.shape[0], 4000), replace=False)
         for ax, step in zip(axes[0], panels):
-            if step is None:
-                i, var, label = 0, X[:, n], f"{self.coordinates[0]}_dot"
+            if isinstance(step, tuple):
+                step, i = step
+                var, label = X[:, n + i], f"{self.coordinates[i]}_dot"
                 after = None
             else:
                 cand = step.candidate
