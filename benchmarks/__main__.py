@@ -23,6 +23,7 @@ import argparse
 import importlib
 import inspect
 import pkgutil
+import resource
 import sys
 import time
 import traceback
@@ -42,6 +43,12 @@ def discover() -> dict:
         if callable(getattr(module, "main", None)):
             found[info.name] = module
     return found
+
+
+def _cpu() -> float:
+    """CPU seconds of this process so far (all threads), user + system."""
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def accepts_quick(module) -> bool:
@@ -76,7 +83,7 @@ def main(argv=None) -> int:
     names = args.names or list(found)
     sub_argv = ["--quick"] if args.quick else []
     failed, skipped = [], []
-    start_all = time.perf_counter()
+    start_all, cpu_all = time.perf_counter(), _cpu()
     for name in names:
         _common.RUNNER_COMMAND = f"python -m benchmarks {' '.join(sub_argv + [name])}"
         print(f"=== {name} {' '.join(sub_argv)}", flush=True)
@@ -84,7 +91,7 @@ def main(argv=None) -> int:
             print(f"=== {name}: SKIPPED: its command line has no --quick option")
             skipped.append(name)
             continue
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), _cpu()
         try:
             found[name].main(list(sub_argv))
         except (ImportError, FileNotFoundError) as exc:
@@ -101,9 +108,14 @@ def main(argv=None) -> int:
             failed.append(name)
         finally:
             _common.RUNNER_COMMAND = None
-        print(f"=== {name}: {time.perf_counter() - start:.1f} s", flush=True)
+        print(
+            f"=== {name}: {time.perf_counter() - start:.1f} s "
+            f"({_cpu() - cpu:.1f} CPU s)",
+            flush=True,
+        )
     print(
-        f"all done in {time.perf_counter() - start_all:.1f} s"
+        f"all done in {time.perf_counter() - start_all:.1f} s "
+        f"({_cpu() - cpu_all:.1f} CPU s)"
         + (f"; skipped: {skipped}" if skipped else "")
         + (f"; FAILED: {failed}" if failed else "")
     )

@@ -124,7 +124,7 @@ def _line(i):
 
 
 def _numeric(df, columns, source):
-    """The named columns as a float array; names the column and file line of bad values."""
+    """The named columns as a float array; names the column and line of bad values."""
     missing = [c for c in columns if c not in df.columns]
     if missing:
         raise CLIError(
@@ -345,7 +345,9 @@ def _demo(args) -> int:
                 check["states_b"],
                 system.coordinates,
                 velocities=True,
-                units=["rad" if c in system.angles else "m" for c in system.coordinates],
+                units=[
+                    "rad" if c in system.angles else "m" for c in system.coordinates
+                ],
                 title=f"{system.name}: true vs learned (unforced)",
                 path=args.plot,
             )
@@ -796,7 +798,8 @@ def _add_fit_options(p, *, required):
     p.add_argument(
         "--terms",
         default="",
-        help="extra candidate terms, comma-separated, e.g. 'x_dot*theta_dot*cos(theta)'",
+        help="extra candidate terms, comma-separated, e.g. "
+        "'x_dot*theta_dot*cos(theta)'",
     )
     p.add_argument(
         "--fixed-term",
