@@ -663,7 +663,8 @@ def test_every_option_has_help_and_shows_its_default():
         if action.option_strings and action.default not in (None, False):
             formatter = parser._get_formatter()
             text = formatter._get_help_string(action) % {"default": action.default}
-            assert "default" in text, f"{command} {action.option_strings} hides its default"
+            where = f"{command} {action.option_strings}"
+            assert "default" in text, f"{where} hides its default"
             checked += 1
     assert checked > 30  # measured 50 options with a default
 
@@ -703,7 +704,11 @@ def test_help_imports_no_heavy_module():
         "print('HEAVY', heavy)\n"
     )
     proc = subprocess.run(
-        [sys.executable, "-c", code], env=ENV, capture_output=True, text=True, timeout=120
+        [sys.executable, "-c", code],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
     assert "HEAVY []" in proc.stdout, proc.stdout[-500:]
@@ -720,7 +725,11 @@ def test_import_lagsindy_is_lazy_but_complete():
         "print('OK')\n"
     )
     proc = subprocess.run(
-        [sys.executable, "-c", code], env=ENV, capture_output=True, text=True, timeout=120
+        [sys.executable, "-c", code],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 0 and "OK" in proc.stdout, proc.stderr
 
@@ -806,7 +815,8 @@ def test_semicolon_csv_is_read_with_a_note(capsys, workdir, tmp_path):
 
 
 def test_poly2_warns_that_it_cannot_couple_the_cart_and_pendulum(capsys, workdir):
-    args = ["fit", workdir / "data.csv", "--coordinates", "x,theta", "--angles", "theta"]
+    args = ["fit", workdir / "data.csv", "--coordinates", "x,theta"]
+    args += ["--angles", "theta"]
     code, out, err = run(
         capsys, *args, "--library", "poly2", "--out", workdir / "p2.json", "--quiet"
     )

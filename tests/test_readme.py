@@ -99,7 +99,9 @@ def test_output_matching_can_fail():
     assert not _line_matches("kept 4 terms", "kept 5 terms")
 
 
-@pytest.mark.parametrize("line, code, expected", BLOCKS, ids=[f"line{b[0]}" for b in BLOCKS])
+@pytest.mark.parametrize(
+    "line, code, expected", BLOCKS, ids=[f"line{b[0]}" for b in BLOCKS]
+)
 def test_readme_block_runs_alone(line, code, expected, tmp_path):
     env = {
         **os.environ,
