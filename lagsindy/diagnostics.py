@@ -352,15 +352,17 @@ class DiagnosisReport:
         n = len(self.coordinates)
         before = self._data["residual_before"]
         after = self._data["residual_after"]
-        panels = self.steps or [None]
+        # Nothing found: one panel per coordinate, its residual against its velocity.
+        panels = self.steps or [(None, i) for i in range(n)]
         fig, axes = plt.subplots(
             1, len(panels), figsize=(4.5 * len(panels), 3.6), squeeze=False
         )
         rng = np.random.default_rng(0)
         idx = rng.choice(X.shape[0], size=min(X.shape[0], 4000), replace=False)
         for ax, step in zip(axes[0], panels):
-            if step is None:
-                i, var, label = 0, X[:, n], f"{self.coordinates[0]}_dot"
+            if isinstance(step, tuple):
+                step, i = step
+                var, label = X[:, n + i], f"{self.coordinates[i]}_dot"
             else:
                 cand = step.candidate
                 i = self.coordinates.index(cand.coordinates[0])
@@ -727,10 +729,11 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None):
     new.set_params(library=library, unpenalized=unpenalized or None)
     if est.case_ == "fixed":
         new.set_params(fixed_term=_normalization(est))
+    new.set_params(verbose=0)  # refits are quiet; the result keeps est's verbose
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         new.fit(X, tau, groups=groups)
-    return new
+    return new.set_params(verbose=est.verbose)
 
 
 def _adjusted_tau(tau, gains):

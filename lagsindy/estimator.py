@@ -685,10 +685,16 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             hint = (
                 f"; no learned term contains the velocity of {absent}" if absent else ""
             )
+            advice = (
+                " In case III try another fixed term, or fixed_term=None to search "
+                "them all."
+                if self.case_ == "fixed"
+                else ""
+            )
             warnings.warn(
                 f"the learned mass matrix d2L/dqdot2 is singular or indefinite at {bad:.0%} "
-                f"of the samples{hint}, so the model cannot predict accelerations there. "
-                "In case III try another fixed term, or fixed_term=None to search them all.",
+                f"of the samples{hint}, so the model cannot predict accelerations there."
+                + advice,
                 UserWarning,
                 stacklevel=3,
             )

@@ -180,6 +180,7 @@ def model_to_dict(est) -> dict:
     params = est.get_params(deep=False)
     params.pop("library", None)
     params.pop("dissipation", None)  # its terms are stored under "dissipation"
+    params.pop("verbose", None)  # how chatty a session was is not part of the model
     if not isinstance(params.get("random_state"), Integral | type(None)):
         params["random_state"] = None  # a RandomState instance has no JSON form
     hyper = {k: _plain(v) for k, v in sorted(params.items())}
@@ -378,6 +379,9 @@ def _hyperparameters(hyper: dict) -> dict:
         if _is_number(value) and not math.isfinite(float(value)):
             raise ValueError(f"hyperparameter {key!r} in the model file is not finite")
     hyper = dict(hyper)
+    # Files written before 0.2 store the verbose of the session that fitted them; a
+    # loaded model is quiet (set est.verbose to see its refits' stages).
+    hyper.pop("verbose", None)
     device = hyper.get("device", "cpu")
     if not isinstance(device, str) or not re.fullmatch(
         r"(cpu|cuda|mps)(:\d{1,3})?", device
