@@ -28,6 +28,7 @@ SYSTEM_NAMES = (
     "cart_pendulum",
     "double_pendulum",
     "elastic_pendulum",
+    "planar_chain",
     "single_pendulum",
     "spherical_pendulum",
     "spring_chain",
