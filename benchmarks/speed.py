@@ -508,7 +508,9 @@ def main(argv=None):
     quick = args.quick or tiny()
     name = "speed_quick.md" if quick else "speed.md"
     if args.floor_only:
-        section = floor_section(args.baseline, repeats=1 if quick else 3, quick=quick)
+        section = floor_section(
+            args.baseline, repeats=1 if quick else min(args.repeats, 3), quick=quick
+        )
         path = _common.RESULTS / name
         old = path.read_text() if path.exists() else header(
             "Fit time: cart-pendulum, case I", command("speed", argv)
