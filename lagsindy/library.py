@@ -23,7 +23,8 @@ import numpy as np
 import sympy as sp
 from sklearn.base import BaseEstimator
 
-from ._expr import canonical, check_coordinate_names, compile_torch, symbols_for
+from ._batched import compile_terms
+from ._expr import canonical, check_coordinate_names, symbols_for
 
 _KINDS = ("polynomial", "separated", "chain")
 TRIVIAL_REASON = "trivial: its Euler-Lagrange expression is identically zero"
@@ -447,11 +448,15 @@ class CandidateLibrary(BaseEstimator):
         return [euler_lagrange_expressions(t, self.coordinates_) for t in self.terms_]
 
     def to_torch(self):
-        """Compile the terms into ``f(q, qd) -> Tensor (n_terms,)`` for one sample."""
+        """Compile the terms into ``f(q, qd) -> Tensor (n_terms,)`` for one sample.
+
+        The returned :class:`lagsindy._batched.TermKernels` is callable per sample
+        (composable with ``torch.func``) and also evaluates the Euler-Lagrange columns
+        of many samples as batched kernels (see :mod:`lagsindy._batched`).
+        """
         self._ensure_built()
         if self.__dict__.get("_compiled") is None:
-            q, qd, _ = symbols_for(self.coordinates_)
-            self._compiled = compile_torch(self.terms_, (q, qd))
+            self._compiled = compile_terms(self.terms_, self.coordinates_)
         return self._compiled
 
     def index(self, term) -> int:
