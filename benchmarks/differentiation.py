@@ -135,7 +135,8 @@ def main(argv=None):
         f"Command: `python -m benchmarks.differentiation {' '.join(argv or sys.argv[1:])}`"
         f"  \nDate: {datetime.now(timezone.utc):%Y-%m-%d %H:%M} UTC  \n"
         f"Machine: {platform.machine()}, {os.cpu_count()} CPU cores (shared), no GPU; "
-        f"Python {platform.python_version()}, numpy {np.__version__}",
+        f"Python {platform.python_version()}, numpy {np.__version__}  \n"
+        "Load average (1 min) at the start: " + f"{os.getloadavg()[0]:.2f}",
     ]
     if args.quick or args.long:
         scaling(LONG_SIZES[:2] if args.quick else LONG_SIZES, lines)
