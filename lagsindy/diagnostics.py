@@ -4,7 +4,8 @@ r"""Close the loop: find what a fitted Lagrangian leaves unexplained, and add it
 for missing effects in a catalogue: viscous damping, relative (joint) damping,
 quadratic drag and Coulomb friction on every coordinate, a constant offset force, an
 input gain error (when several coordinates are driven) and missing conservative terms
-(a spring ``q**2`` on every coordinate, ``cos``/``sin`` of angles, or terms you pass).
+(a spring ``q**2`` on every coordinate, ``cos``/``sin`` of angles, or terms you pass)
+and, for forced data, a delay between the recorded input and the positions.
 
 The loop
 --------
@@ -76,6 +77,7 @@ from .euler_lagrange import (
 )
 
 DEFAULT_CATALOGUE = (
+    "delay",
     "viscous",
     "relative",
     "drag",
@@ -106,6 +108,7 @@ _KIND_TEXT = {
     "bias": "constant offset force",
     "gain": "input gain error",
     "conservative": "missing conservative term",
+    "delay": "input delay",
 }
 
 
@@ -496,6 +499,8 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps):
                 )
                 if term.name not in present_forces:
                     out.append(Candidate(kind, term.name, tuple(tgt), term))
+        elif kind == "delay":
+            continue  # estimated before the other effects (see diagnose)
         elif kind == "gain":
             if tau is None:
                 continue
@@ -733,10 +738,11 @@ def _normalization(est):
     return "mass" if getattr(est, "normalization_", None) == "mass" else est.fixed_term_
 
 
-def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None):
+def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=True):
     """Refit ``est``'s configuration: the Lagrangian's sparse search runs again.
 
     ``effects`` enter as known (unpenalized) terms, ``penalized`` as candidates.
+    ``fit=False`` returns the configured (unfitted, quiet) estimator.
     """
     new = clone(est)
     unpenalized = list(est.unpenalized or [])
@@ -775,6 +781,8 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None):
     if est.case_ == "fixed":
         new.set_params(fixed_term=_normalization(est))
     new.set_params(verbose=0)  # refits are quiet; the result keeps est's verbose
+    if not fit:
+        return new
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         new.fit(X, tau, groups=groups)
@@ -849,7 +857,14 @@ def diagnose(
         than ``n_splits``, each is cut into ``n_splits`` time blocks.
     catalogue : sequence of str, default=all kinds
         Candidate kinds: ``"viscous"``, ``"relative"``, ``"drag"``, ``"coulomb"``,
-        ``"bias"``, ``"gain"``, ``"conservative"``.
+        ``"bias"``, ``"gain"``, ``"conservative"``, ``"delay"``. ``"delay"`` (forced
+        data only) estimates a delay between the recorded input and the positions
+        first (:func:`lagsindy.delay.estimate_delay`, up to 10 sampling intervals);
+        it is kept, as the step ``"delay"`` with its estimate in ms, when the model
+        refitted on the shifted input (:func:`lagsindy.delay.shift_input`) predicts
+        held-out trajectories better; the other effects are then searched with the
+        shifted input, and ``report.final`` is fitted on it (predict with
+        ``shift_input(tau, t, report.steps[0].coefficient / 1000)``).
     extra_terms : list of str or sympy.Expr, default=None
         More conservative candidates (Lagrangian terms), beside ``q**2`` for every
         coordinate and ``cos``/``sin`` of angles.
@@ -1118,6 +1133,61 @@ def diagnose(
             if f.name in names_
         )
 
+    # ------------------------------------------------ step 0: input delay
+    tau_recorded = tau_a
+    scorer_rec, scorer_s_rec = scorer, scorer_s
+    delay = None  # (Candidate, DelayEstimate) once accepted
+    if "delay" in catalogue and tau_a is not None and dt and dt > 0:
+        # The delay is estimated with the dissipative catalogue as candidates:
+        # an input delay and missing damping both shift the phase of the force.
+        joint_config = _fit_model(est, None, None, None, penalized=diss, eps=eps,
+                                  fit=False)
+        found = _input_delay(joint_config, Xf, tau_a, segments, float(dt), verbose)
+        if found is not None:
+            estimate, shifted = found
+            tau_sh = to_tensor(shifted, dtype=torch.float64, device="cpu")
+            extra_sh = None
+            if gain:
+                extra_sh = Xt.new_zeros((Xt.shape[0], d, len(gain)))
+                for k, c in enumerate(gain):
+                    extra_sh[:, c.term, k] = -tau_sh[:, c.term]
+            ss = _Statistics(op, Xt, tau_sh, extra_sh, folds, "strong")
+            sw = None
+            if stats_w is not None:
+                sw = _Statistics(
+                    op, Xt, tau_sh, extra_sh, folds, "weak", window=win, dt=float(dt)
+                )
+            scorer_s = make_scorer(ss)
+            scorer = make_scorer(sw) if sw is not None else scorer_s
+            tau_a = shifted
+            try:
+                trial = fit_with([], {})
+            except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                trial = None
+            st = support_of(trial) if trial is not None else s0
+            jt = J(st)[0] if trial is not None else np.inf
+            if jt < (1 - min_improvement) * value and valid(st):
+                driven = tuple(
+                    c for i, c in enumerate(coords) if np.any(tau_recorded[:, i] != 0)
+                )
+                cand = Candidate("delay", "delay", driven, estimate)
+                delay = (cand, estimate)
+                current, support, value = trial, st, jt
+                history[cand.name] = ("added", jt)
+                if verbose:
+                    print(
+                        f"[lagsindy] input delay {1e3 * estimate.delay:.1f} ms: "
+                        f"held-out {jt:.4g}"
+                    )
+            else:
+                if verbose:
+                    print(
+                        f"[lagsindy] an input delay of {1e3 * estimate.delay:.1f} ms "
+                        f"does not improve the held-out criterion ({value:.4g} -> "
+                        f"{jt:.4g})"
+                    )
+                scorer, scorer_s, tau_a = scorer_rec, scorer_s_rec, tau_recorded
+
     total_ref = float(sum(scorer.w @ r for r in scorer.reference))
 
     def contributes(model, cand, gns):
@@ -1289,6 +1359,9 @@ def diagnose(
     if current is not est and not value < value0:
         final, support, effects, gains = est, s0, [], {}
         stop_reason = "the diagnosed model does not beat the starting one held out"
+        if delay is not None:
+            delay = None
+            scorer, scorer_s, tau_a = scorer_rec, scorer_s_rec, tau_recorded
     if final is est:
         value = j0
     p1 = scorer_s.score(support)[0]
@@ -1301,14 +1374,33 @@ def diagnose(
     }
 
     tau_final = _adjusted_tau(tau_a, gains)
-    residual_before = _residual(est, Xf, tau_a)
+    residual_before = _residual(est, Xf, tau_recorded)
     residual_after = _residual(final, Xf, tau_final)
     # The scale a residual is compared with: the measured force, or the model's
     # force contributions where they are larger (an undriven coordinate).
     force_rms = _force_scale(est, Xt)
     if not passive:
-        force_rms = np.maximum(force_rms, np.sqrt(np.mean(tau_a**2, axis=0)))
+        force_rms = np.maximum(force_rms, np.sqrt(np.mean(tau_recorded**2, axis=0)))
     steps = []
+    if delay is not None:
+        cand, estimate = delay
+        v_without = scorer_rec.score(support)[0]
+        steps.append(
+            Step(
+                candidate=cand,
+                coefficient=1e3 * estimate.delay,
+                units=f"ms (+- {1e3 * estimate.std:.2g} ms)",
+                explained=float(1 - value**2 / v_without**2)
+                if np.isfinite(v_without) and v_without > 0
+                else 1.0,
+                fold_explained=[],
+                residual_rms=np.sqrt(np.mean(residual_after**2, axis=0)),
+                heldout_error=history[cand.name][1],
+                equation=final.equation(4),
+                ranking=pd.DataFrame(),
+                how="added",
+            )
+        )
     all_effects = list(effects) + [by_name[f"gain({coords[i]})"] for i in gains]
     for e in all_effects:
         how, after = history.get(e.name, ("added", value))
@@ -1388,11 +1480,47 @@ def diagnose(
         },
         _data={
             "X": Xa,
-            "tau": tau_a,
+            "tau": tau_recorded,
             "residual_before": residual_before,
             "residual_after": residual_after,
         },
     )
+
+
+def _input_delay(est, X, tau, segments, dt, verbose):
+    """Estimate an input delay; ``(DelayEstimate, shifted tau)`` or None.
+
+    :func:`lagsindy.delay.estimate_delay` (held-out force prediction over folds of
+    trajectories, up to 10 sampling intervals either way) with the (unfitted)
+    configuration ``est``. Kept only when the estimate is at least a tenth of a sampling
+    interval and twice its standard error; :func:`diagnose` then accepts it only if
+    the model refitted on the shifted input improves its held-out criterion.
+    """
+    from .delay import estimate_delay, shift_input
+
+    n = len(tau)
+    t = np.zeros(n)
+    labels = np.zeros(n, dtype=np.int64)
+    for k, seg in enumerate(segments):
+        t[seg] = np.arange(len(seg)) * dt
+        labels[seg] = k
+    groups = labels if len(segments) >= 2 else None
+    base = clone(est).set_params(verbose=0)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            estimate = estimate_delay(base, X, tau, t, groups=groups)
+            shifted = shift_input(tau, t, estimate.delay, groups)
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        if verbose:
+            print(f"[lagsindy] no input delay estimate: {exc}")
+        return None
+    if verbose:
+        print(f"[lagsindy] {estimate}")
+    size = abs(estimate.delay)
+    if size < 0.1 * dt or (np.isfinite(estimate.std) and size <= 2 * estimate.std):
+        return None
+    return estimate, shifted
 
 
 def _bootstrap_final(final, X, tau, groups, segments, n, n_resamples, random_state,
