@@ -21,6 +21,10 @@ The loop
    squares refit on the other folds); the best is kept only if it improves every
    fold and, after the Lagrangian's sparse search is rerun with it, the new model
    improves the held-out criterion by at least ``min_improvement``.
+   Then each accepted dissipative effect is tried against the other candidates of
+   the same coordinates (a swap, e.g. quadratic drag for viscous damping), and a
+   swap is kept when the refitted model improves the held-out criterion by
+   ``min_improvement``.
 3. **Never make things worse.** The final model is compared with the starting one on
    the same held-out criterion; if it is not better, the starting model is kept.
 
@@ -142,7 +146,8 @@ class Step:
     heldout_error : float
         Held-out criterion of the model right after this effect was accepted.
     how : str
-        ``"joint"`` (kept by the joint sparse search of step 1) or ``"added"``.
+        ``"joint"`` (kept by the joint sparse search of step 1), ``"added"``, or
+        ``"swapped"`` (replaced another effect of the same coordinates, step 2b).
     """
 
     candidate: Candidate
@@ -347,6 +352,8 @@ class DiagnosisReport:
                 "excluded degenerate folds (refit mass matrix singular or indefinite, "
                 "cannot predict accelerations): " + "; ".join(self.degenerate_folds)
             )
+        for old, new in self.settings.get("swaps", []):
+            lines.append(f"swapped {old} for {new} (better held-out criterion)")
         if self.stop_reason:
             lines.append(f"stopped: {self.stop_reason}")
         if self.bootstrap is not None:
@@ -1251,6 +1258,58 @@ def diagnose(
                         f"criterion ({value:.4g} -> {jr:.4g}); kept the model"
                     )
 
+    # ------------------------------------------------ step 2b: swaps
+    # The joint search or a greedy addition can keep the wrong effect of a
+    # coordinate (quadratic drag for small viscous damping): try replacing each
+    # accepted dissipative effect by another candidate acting on the same
+    # coordinates, and keep the swap that most improves the held-out criterion.
+    swaps = []
+
+    def swap_pass():
+        nonlocal current, support, value, effects
+        for _ in range(len(effects)):
+            trials = []
+            names = {e.name for e in effects}
+            for e in effects:
+                if e.kind not in _DISSIPATIVE:
+                    continue
+                for c in diss:
+                    if c.name in names or c.coordinates != e.coordinates:
+                        continue
+                    v = J((support - {index[e.name]}) | {index[c.name]})[0]
+                    if v < (1 - min_improvement) * value:
+                        trials.append((v, e, c))
+            accepted = False
+            for _, e, c in sorted(trials, key=lambda t: t[0])[:3]:
+                trial_effects = [c if x is e else x for x in effects]
+                try:
+                    trial = fit_with(trial_effects, gains)
+                except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                    continue
+                st = support_of(trial)
+                st |= {index[f"gain({coords[i]})"] for i in gains}
+                jt, _ = J(st)
+                if (
+                    jt < (1 - min_improvement) * value
+                    and valid(st)
+                    and nonneg_ok(trial, trial_effects)
+                    and contributes(trial, c, gains)
+                ):
+                    if verbose:
+                        print(
+                            f"[lagsindy] swapped {e.name} for {c.name}: held-out "
+                            f"{value:.4g} -> {jt:.4g}"
+                        )
+                    current, support, value, effects = trial, st, jt, trial_effects
+                    history[c.name] = ("swapped", jt)
+                    swaps.append((e.name, c.name))
+                    accepted = True
+                    break
+            if not accepted:
+                break
+
+    swap_pass()
+
     # ------------------------------------------------ step 2: forward additions
     for _ in range(max(0, max_effects - len(effects))):
         if min(value, scorer_s.score(support)[0]) ** 2 <= _PRECISION:
@@ -1353,6 +1412,8 @@ def diagnose(
             break
     else:
         stop_reason = f"max_effects={max_effects} reached"
+
+    swap_pass()
 
     # ------------------------------------------------ step 3: never worse
     final = current
@@ -1477,6 +1538,7 @@ def diagnose(
             "eps": dict(eps),
             "window": win if stats_w is not None else None,
             "start_valid": start_valid,
+            "swaps": swaps,
         },
         _data={
             "X": Xa,
