@@ -1152,7 +1152,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--catalogue",
         default=None,
         help="comma-separated candidate kinds (default: all): viscous, relative, "
-        "drag, coulomb, bias, gain, conservative",
+        "drag, coulomb, bias, gain, conservative, delay",
     )
     diag.add_argument(
         "--bootstrap",
