@@ -758,6 +758,8 @@ def _diagnose(args) -> int:
             min_explained=args.min_explained,
             max_effects=args.max_effects,
             n_splits=args.splits,
+            bootstrap=args.bootstrap,
+            random_state=args.seed,
             **(
                 {"catalogue": tuple(k.strip() for k in args.catalogue.split(","))}
                 if args.catalogue
@@ -1150,7 +1152,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--catalogue",
         default=None,
         help="comma-separated candidate kinds (default: all): viscous, relative, "
-        "drag, coulomb, bias, gain, conservative",
+        "drag, coulomb, bias, gain, conservative, delay",
+    )
+    diag.add_argument(
+        "--bootstrap",
+        type=int,
+        default=None,
+        metavar="N",
+        help="bootstrap the final model with N resamples of whole trajectories (time "
+        "blocks with fewer than 10) and print each term's and effect's interval "
+        "(resamples seeded by --seed)",
     )
     diag.add_argument("--plot", default=None, help="save the residual figure (PNG)")
     diag.add_argument("--out-model", default=None, help="save the final model (JSON)")

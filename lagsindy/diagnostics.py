@@ -4,7 +4,8 @@ r"""Close the loop: find what a fitted Lagrangian leaves unexplained, and add it
 for missing effects in a catalogue: viscous damping, relative (joint) damping,
 quadratic drag and Coulomb friction on every coordinate, a constant offset force, an
 input gain error (when several coordinates are driven) and missing conservative terms
-(a spring ``q**2`` on every coordinate, ``cos``/``sin`` of angles, or terms you pass).
+(a spring ``q**2`` on every coordinate, ``cos``/``sin`` of angles, or terms you pass)
+and, for forced data, a delay between the recorded input and the positions.
 
 The loop
 --------
@@ -20,6 +21,10 @@ The loop
    squares refit on the other folds); the best is kept only if it improves every
    fold and, after the Lagrangian's sparse search is rerun with it, the new model
    improves the held-out criterion by at least ``min_improvement``.
+   Then each accepted dissipative effect is tried against the other candidates of
+   the same coordinates (a swap, e.g. quadratic drag for viscous damping), and a
+   swap is kept when the refitted model improves the held-out criterion by
+   ``min_improvement``.
 3. **Never make things worse.** The final model is compared with the starting one on
    the same held-out criterion; if it is not better, the starting model is kept.
 
@@ -76,6 +81,7 @@ from .euler_lagrange import (
 )
 
 DEFAULT_CATALOGUE = (
+    "delay",
     "viscous",
     "relative",
     "drag",
@@ -106,6 +112,7 @@ _KIND_TEXT = {
     "bias": "constant offset force",
     "gain": "input gain error",
     "conservative": "missing conservative term",
+    "delay": "input delay",
 }
 
 
@@ -139,7 +146,8 @@ class Step:
     heldout_error : float
         Held-out criterion of the model right after this effect was accepted.
     how : str
-        ``"joint"`` (kept by the joint sparse search of step 1) or ``"added"``.
+        ``"joint"`` (kept by the joint sparse search of step 1), ``"added"``, or
+        ``"swapped"`` (replaced another effect of the same coordinates, step 2b).
     """
 
     candidate: Candidate
@@ -153,6 +161,8 @@ class Step:
     ranking: pd.DataFrame
     how: str = "added"
     coefficient_when_added: float = float("nan")
+    low: float = float("nan")
+    high: float = float("nan")
 
 
 @dataclass
@@ -191,6 +201,10 @@ class DiagnosisReport:
     passive : bool
         Passive data fix the model only up to scale: coefficients are relative to the
         fixed term (whose coefficient is 1).
+    bootstrap : BootstrapReport or None
+        With ``diagnose(..., bootstrap=n)``: intervals and inclusion of every term of
+        the final model (:func:`lagsindy.bootstrap` of the final configuration); the
+        steps' ``low`` and ``high`` are its intervals of the effects.
     """
 
     initial: object
@@ -211,6 +225,7 @@ class DiagnosisReport:
     degenerate_folds: list = field(default_factory=list)
     stop_reason: str = ""
     settings: dict = field(default_factory=dict)
+    bootstrap: object = None
     _data: dict = field(default_factory=dict, repr=False)
 
     @property
@@ -219,7 +234,12 @@ class DiagnosisReport:
         return [s.candidate.name for s in self.steps]
 
     def to_frame(self) -> pd.DataFrame:
-        """One row per effect: kind, final coefficient, units, share, criterion."""
+        """One row per effect: kind, final coefficient, units, share, criterion.
+
+        ``low`` and ``high`` are the effect's bootstrap interval
+        (``diagnose(..., bootstrap=n)``; NaN without it, and for input gain and delay
+        effects, which are not coefficients of the refitted model).
+        """
         rows = []
         for k, s in enumerate(self.steps, 1):
             rows.append(
@@ -233,6 +253,8 @@ class DiagnosisReport:
                     "explained": s.explained,
                     "how": s.how,
                     "heldout_error": s.heldout_error,
+                    "low": s.low,
+                    "high": s.high,
                 }
             )
         return pd.DataFrame(rows)
@@ -299,17 +321,27 @@ class DiagnosisReport:
         if not self.steps:
             lines.append("no effect improves the held-out criterion")
         else:
+            boot = self.bootstrap
+            level = f"{boot.level:.0%} interval" if boot is not None else ""
             head = (
                 f"{'step':>4}  {'effect':<26} {'term':<24} {'final coef.':>12} "
-                f"{'units':<24} {'explained':>9}  {'held-out error':>14}"
+                + (f"{level:>27} " if boot is not None else "")
+                + f"{'units':<24} {'explained':>9}  {'held-out error':>14}"
             )
             lines.append(head)
             lines.append("-" * len(head))
             for k, s in enumerate(self.steps, 1):
+                interval = ""
+                if boot is not None:
+                    interval = (
+                        f"[{s.low:>12.5g}, {s.high:>12.5g}] "
+                        if np.isfinite(s.low) and np.isfinite(s.high)
+                        else f"{'-':>27} "
+                    )
                 lines.append(
                     f"{k:>4}  {s.candidate.description:<26} {s.candidate.name:<24} "
-                    f"{s.coefficient:>12.5g} {s.units:<24} {s.explained:>9.1%}  "
-                    f"{s.heldout_error:>14.4g}"
+                    f"{s.coefficient:>12.5g} {interval}{s.units:<24} "
+                    f"{s.explained:>9.1%}  {s.heldout_error:>14.4g}"
                 )
             lines.append(
                 "  explained: share of the final model's held-out residual (squared) "
@@ -320,8 +352,31 @@ class DiagnosisReport:
                 "excluded degenerate folds (refit mass matrix singular or indefinite, "
                 "cannot predict accelerations): " + "; ".join(self.degenerate_folds)
             )
+        for old, new in self.settings.get("swaps", []):
+            lines.append(f"swapped {old} for {new} (better held-out criterion)")
         if self.stop_reason:
             lines.append(f"stopped: {self.stop_reason}")
+        if self.bootstrap is not None:
+            boot = self.bootstrap
+            lines.append(
+                f"bootstrap of the final model: {boot.n_resamples} resamples of "
+                f"{boot.n_groups} {boot.resampling}, {boot.level:.0%} {boot.method} "
+                "intervals (terms of the final model)"
+                + (f"; {boot.n_failed} resample(s) failed" if boot.n_failed else "")
+            )
+            width = max([12] + [len(t) for t in boot.terms])
+            lines.append(
+                f"  {'term':<{width}}  {'coefficient':>12}  {'inclusion':>9}  "
+                f"{'low':>12}  {'high':>12}"
+            )
+            for k, t in enumerate(boot.terms):
+                if boot.coefficient[k] == 0:
+                    continue
+                lines.append(
+                    f"  {t:<{width}}  {boot.coefficient[k]:>12.5g}  "
+                    f"{boot.inclusion[k]:>9.2f}  {boot.low[k]:>12.5g}  "
+                    f"{boot.high[k]:>12.5g}"
+                )
         lines.append("final model:")
         lines.extend("  " + line for line in self.final.equation(4).splitlines())
         return "\n".join(lines)
@@ -451,6 +506,8 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps):
                 )
                 if term.name not in present_forces:
                     out.append(Candidate(kind, term.name, tuple(tgt), term))
+        elif kind == "delay":
+            continue  # estimated before the other effects (see diagnose)
         elif kind == "gain":
             if tau is None:
                 continue
@@ -688,10 +745,11 @@ def _normalization(est):
     return "mass" if getattr(est, "normalization_", None) == "mass" else est.fixed_term_
 
 
-def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None):
+def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=True):
     """Refit ``est``'s configuration: the Lagrangian's sparse search runs again.
 
     ``effects`` enter as known (unpenalized) terms, ``penalized`` as candidates.
+    ``fit=False`` returns the configured (unfitted, quiet) estimator.
     """
     new = clone(est)
     unpenalized = list(est.unpenalized or [])
@@ -730,6 +788,8 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None):
     if est.case_ == "fixed":
         new.set_params(fixed_term=_normalization(est))
     new.set_params(verbose=0)  # refits are quiet; the result keeps est's verbose
+    if not fit:
+        return new
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         new.fit(X, tau, groups=groups)
@@ -780,6 +840,8 @@ def diagnose(
     eps="auto",
     revise: bool = True,
     window=None,
+    bootstrap=None,
+    random_state=None,
     verbose: int = 0,
 ) -> DiagnosisReport:
     """Find the missing effects a fitted model leaves in its residual, add and refit.
@@ -802,7 +864,14 @@ def diagnose(
         than ``n_splits``, each is cut into ``n_splits`` time blocks.
     catalogue : sequence of str, default=all kinds
         Candidate kinds: ``"viscous"``, ``"relative"``, ``"drag"``, ``"coulomb"``,
-        ``"bias"``, ``"gain"``, ``"conservative"``.
+        ``"bias"``, ``"gain"``, ``"conservative"``, ``"delay"``. ``"delay"`` (forced
+        data only) estimates a delay between the recorded input and the positions
+        first (:func:`lagsindy.delay.estimate_delay`, up to 10 sampling intervals);
+        it is kept, as the step ``"delay"`` with its estimate in ms, when the model
+        refitted on the shifted input (:func:`lagsindy.delay.shift_input`) predicts
+        held-out trajectories better; the other effects are then searched with the
+        shifted input, and ``report.final`` is fitted on it (predict with
+        ``shift_input(tau, t, report.steps[0].coefficient / 1000)``).
     extra_terms : list of str or sympy.Expr, default=None
         More conservative candidates (Lagrangian terms), beside ``q**2`` for every
         coordinate and ``cos``/``sin`` of angles.
@@ -831,6 +900,15 @@ def diagnose(
     window : int, default=None
         Samples per test function of the trajectory criterion; ``None``: the
         estimator's ``window`` (at most half the shortest time block).
+    bootstrap : int, default=None
+        When an integer, the final model's configuration is bootstrapped with that
+        many resamples (:func:`lagsindy.bootstrap`, whole trajectories as groups, or
+        time blocks with fewer than 10): ``report.bootstrap`` holds the intervals and
+        inclusion of every term, and each step's ``low`` and ``high`` the interval of
+        its effect (shown in the report's table). Costs about one fit per 10
+        resamples on the fast path, one fit per resample otherwise.
+    random_state : int, RandomState instance or None, default=None
+        Seeds the bootstrap's resamples (the diagnosis itself is deterministic).
     verbose : int, default=0
 
     Returns
@@ -864,6 +942,14 @@ def diagnose(
         )
     if not 0 < min_explained < 1:
         raise ValueError(f"min_explained must be in (0, 1), got {min_explained}")
+    if bootstrap is not None and not (
+        isinstance(bootstrap, (int, np.integer))
+        and not isinstance(bootstrap, bool)
+        and bootstrap >= 2
+    ):
+        raise ValueError(
+            f"bootstrap must be None or a number of resamples >= 2, got {bootstrap!r}"
+        )
     if groups is not None:
         groups = np.asarray(groups)
         if groups.shape != (Xa.shape[0],):
@@ -1054,6 +1140,61 @@ def diagnose(
             if f.name in names_
         )
 
+    # ------------------------------------------------ step 0: input delay
+    tau_recorded = tau_a
+    scorer_rec, scorer_s_rec = scorer, scorer_s
+    delay = None  # (Candidate, DelayEstimate) once accepted
+    if "delay" in catalogue and tau_a is not None and dt and dt > 0:
+        # The delay is estimated with the dissipative catalogue as candidates:
+        # an input delay and missing damping both shift the phase of the force.
+        joint_config = _fit_model(est, None, None, None, penalized=diss, eps=eps,
+                                  fit=False)
+        found = _input_delay(joint_config, Xf, tau_a, segments, float(dt), verbose)
+        if found is not None:
+            estimate, shifted = found
+            tau_sh = to_tensor(shifted, dtype=torch.float64, device="cpu")
+            extra_sh = None
+            if gain:
+                extra_sh = Xt.new_zeros((Xt.shape[0], d, len(gain)))
+                for k, c in enumerate(gain):
+                    extra_sh[:, c.term, k] = -tau_sh[:, c.term]
+            ss = _Statistics(op, Xt, tau_sh, extra_sh, folds, "strong")
+            sw = None
+            if stats_w is not None:
+                sw = _Statistics(
+                    op, Xt, tau_sh, extra_sh, folds, "weak", window=win, dt=float(dt)
+                )
+            scorer_s = make_scorer(ss)
+            scorer = make_scorer(sw) if sw is not None else scorer_s
+            tau_a = shifted
+            try:
+                trial = fit_with([], {})
+            except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                trial = None
+            st = support_of(trial) if trial is not None else s0
+            jt = J(st)[0] if trial is not None else np.inf
+            if jt < (1 - min_improvement) * value and valid(st):
+                driven = tuple(
+                    c for i, c in enumerate(coords) if np.any(tau_recorded[:, i] != 0)
+                )
+                cand = Candidate("delay", "delay", driven, estimate)
+                delay = (cand, estimate)
+                current, support, value = trial, st, jt
+                history[cand.name] = ("added", jt)
+                if verbose:
+                    print(
+                        f"[lagsindy] input delay {1e3 * estimate.delay:.1f} ms: "
+                        f"held-out {jt:.4g}"
+                    )
+            else:
+                if verbose:
+                    print(
+                        f"[lagsindy] an input delay of {1e3 * estimate.delay:.1f} ms "
+                        f"does not improve the held-out criterion ({value:.4g} -> "
+                        f"{jt:.4g})"
+                    )
+                scorer, scorer_s, tau_a = scorer_rec, scorer_s_rec, tau_recorded
+
     total_ref = float(sum(scorer.w @ r for r in scorer.reference))
 
     def contributes(model, cand, gns):
@@ -1116,6 +1257,58 @@ def diagnose(
                         f"[lagsindy] the revision does not improve the held-out "
                         f"criterion ({value:.4g} -> {jr:.4g}); kept the model"
                     )
+
+    # ------------------------------------------------ step 2b: swaps
+    # The joint search or a greedy addition can keep the wrong effect of a
+    # coordinate (quadratic drag for small viscous damping): try replacing each
+    # accepted dissipative effect by another candidate acting on the same
+    # coordinates, and keep the swap that most improves the held-out criterion.
+    swaps = []
+
+    def swap_pass():
+        nonlocal current, support, value, effects
+        for _ in range(len(effects)):
+            trials = []
+            names = {e.name for e in effects}
+            for e in effects:
+                if e.kind not in _DISSIPATIVE:
+                    continue
+                for c in diss:
+                    if c.name in names or c.coordinates != e.coordinates:
+                        continue
+                    v = J((support - {index[e.name]}) | {index[c.name]})[0]
+                    if v < (1 - min_improvement) * value:
+                        trials.append((v, e, c))
+            accepted = False
+            for _, e, c in sorted(trials, key=lambda t: t[0])[:3]:
+                trial_effects = [c if x is e else x for x in effects]
+                try:
+                    trial = fit_with(trial_effects, gains)
+                except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                    continue
+                st = support_of(trial)
+                st |= {index[f"gain({coords[i]})"] for i in gains}
+                jt, _ = J(st)
+                if (
+                    jt < (1 - min_improvement) * value
+                    and valid(st)
+                    and nonneg_ok(trial, trial_effects)
+                    and contributes(trial, c, gains)
+                ):
+                    if verbose:
+                        print(
+                            f"[lagsindy] swapped {e.name} for {c.name}: held-out "
+                            f"{value:.4g} -> {jt:.4g}"
+                        )
+                    current, support, value, effects = trial, st, jt, trial_effects
+                    history[c.name] = ("swapped", jt)
+                    swaps.append((e.name, c.name))
+                    accepted = True
+                    break
+            if not accepted:
+                break
+
+    swap_pass()
 
     # ------------------------------------------------ step 2: forward additions
     for _ in range(max(0, max_effects - len(effects))):
@@ -1220,11 +1413,16 @@ def diagnose(
     else:
         stop_reason = f"max_effects={max_effects} reached"
 
+    swap_pass()
+
     # ------------------------------------------------ step 3: never worse
     final = current
     if current is not est and not value < value0:
         final, support, effects, gains = est, s0, [], {}
         stop_reason = "the diagnosed model does not beat the starting one held out"
+        if delay is not None:
+            delay = None
+            scorer, scorer_s, tau_a = scorer_rec, scorer_s_rec, tau_recorded
     if final is est:
         value = j0
     p1 = scorer_s.score(support)[0]
@@ -1237,14 +1435,33 @@ def diagnose(
     }
 
     tau_final = _adjusted_tau(tau_a, gains)
-    residual_before = _residual(est, Xf, tau_a)
+    residual_before = _residual(est, Xf, tau_recorded)
     residual_after = _residual(final, Xf, tau_final)
     # The scale a residual is compared with: the measured force, or the model's
     # force contributions where they are larger (an undriven coordinate).
     force_rms = _force_scale(est, Xt)
     if not passive:
-        force_rms = np.maximum(force_rms, np.sqrt(np.mean(tau_a**2, axis=0)))
+        force_rms = np.maximum(force_rms, np.sqrt(np.mean(tau_recorded**2, axis=0)))
     steps = []
+    if delay is not None:
+        cand, estimate = delay
+        v_without = scorer_rec.score(support)[0]
+        steps.append(
+            Step(
+                candidate=cand,
+                coefficient=1e3 * estimate.delay,
+                units=f"ms (+- {1e3 * estimate.std:.2g} ms)",
+                explained=float(1 - value**2 / v_without**2)
+                if np.isfinite(v_without) and v_without > 0
+                else 1.0,
+                fold_explained=[],
+                residual_rms=np.sqrt(np.mean(residual_after**2, axis=0)),
+                heldout_error=history[cand.name][1],
+                equation=final.equation(4),
+                ranking=pd.DataFrame(),
+                how="added",
+            )
+        )
     all_effects = list(effects) + [by_name[f"gain({coords[i]})"] for i in gains]
     for e in all_effects:
         how, after = history.get(e.name, ("added", value))
@@ -1267,6 +1484,21 @@ def diagnose(
                 how=how,
             )
         )
+    boot = None
+    if bootstrap is not None:
+        boot = _bootstrap_final(
+            final, Xf, tau_final, groups, segments, Xa.shape[0], int(bootstrap),
+            random_state, verbose,
+        )
+        by_term = {t: k for k, t in enumerate(boot.terms)}
+        for s in steps:
+            k = by_term.get(
+                str(s.candidate.term)
+                if s.candidate.kind == "conservative"
+                else s.candidate.name
+            )
+            if k is not None and s.candidate.kind != "gain":
+                s.low, s.high = float(boot.low[k]), float(boot.high[k])
     fold_names = [
         f"fold {k + 1} ({sum(len(b) for b in folds[k])} samples)"
         for k in sorted(degenerate)
@@ -1297,6 +1529,7 @@ def diagnose(
         lagrangian_changes=changes,
         degenerate_folds=fold_names,
         stop_reason=stop_reason,
+        bootstrap=boot,
         settings={
             "n_splits": n_splits,
             "fold_kind": fold_kind,
@@ -1305,13 +1538,76 @@ def diagnose(
             "eps": dict(eps),
             "window": win if stats_w is not None else None,
             "start_valid": start_valid,
+            "swaps": swaps,
         },
         _data={
             "X": Xa,
-            "tau": tau_a,
+            "tau": tau_recorded,
             "residual_before": residual_before,
             "residual_after": residual_after,
         },
+    )
+
+
+def _input_delay(est, X, tau, segments, dt, verbose):
+    """Estimate an input delay; ``(DelayEstimate, shifted tau)`` or None.
+
+    :func:`lagsindy.delay.estimate_delay` (held-out force prediction over folds of
+    trajectories, up to 10 sampling intervals either way) with the (unfitted)
+    configuration ``est``. Kept only when the estimate is at least a tenth of a sampling
+    interval and twice its standard error; :func:`diagnose` then accepts it only if
+    the model refitted on the shifted input improves its held-out criterion.
+    """
+    from .delay import estimate_delay, shift_input
+
+    n = len(tau)
+    t = np.zeros(n)
+    labels = np.zeros(n, dtype=np.int64)
+    for k, seg in enumerate(segments):
+        t[seg] = np.arange(len(seg)) * dt
+        labels[seg] = k
+    groups = labels if len(segments) >= 2 else None
+    base = clone(est).set_params(verbose=0)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            estimate = estimate_delay(base, X, tau, t, groups=groups)
+            shifted = shift_input(tau, t, estimate.delay, groups)
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        if verbose:
+            print(f"[lagsindy] no input delay estimate: {exc}")
+        return None
+    if verbose:
+        print(f"[lagsindy] {estimate}")
+    size = abs(estimate.delay)
+    if size < 0.1 * dt or (np.isfinite(estimate.std) and size <= 2 * estimate.std):
+        return None
+    return estimate, shifted
+
+
+def _bootstrap_final(final, X, tau, groups, segments, n, n_resamples, random_state,
+                     verbose):
+    """:func:`lagsindy.bootstrap` of the final model's configuration.
+
+    The groups are the trajectories (``groups``, else the segments diagnose found),
+    so resamples never join pieces of different trajectories.
+    """
+    from .uncertainty import bootstrap as _bootstrap
+
+    if groups is None:
+        groups = np.zeros(n, dtype=np.int64)
+        for k, seg in enumerate(segments):
+            groups[seg] = k
+    if verbose:
+        print(f"[lagsindy] bootstrap of the final model: {n_resamples} resamples")
+    return _bootstrap(
+        final,
+        X,
+        tau,
+        groups=groups,
+        n_resamples=n_resamples,
+        random_state=random_state,
+        verbose=max(0, verbose - 1),
     )
 
 

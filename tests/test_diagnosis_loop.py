@@ -75,23 +75,30 @@ def _joint_damped_double(b1, b2):
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "b1, b2, noise",
+    "b1, b2, noise, seed",
     [
-        (0.05, 0.03, 1e-3),
+        (0.05, 0.03, 1e-3, 1),
+        # the joint revision keeps drag(theta1) for the small viscous(theta1) in the
+        # next three; the swap move replaces it (measured viscous +7.5 %, +6.5 %,
+        # +5.0 %; relative within 0.5 %)
+        (0.02, 0.06, 3e-3, 1),
+        (0.03, 0.05, 3e-3, 2),
+        (0.02, 0.06, 2e-3, 1),
         pytest.param(
-            0.02,
-            0.06,
+            0.015,
+            0.04,
             3e-3,
+            3,
             marks=pytest.mark.xfail(
-                strict=True,
-                reason="known limitation: the joint revision keeps drag(theta1) for "
-                "the small viscous(theta1) and the loop has no swap move; "
-                "relative(theta1,theta2) is found within 0.3 %",
+                strict=False,
+                reason="known limitation: drag(theta1) (0.00345) is kept for "
+                "viscous(theta1)=0.015; the swap improves the held-out criterion by "
+                "less than min_improvement=1 %",
             ),
         ),
     ],
 )
-def test_small_joint_damping_found_by_the_trajectory_criterion(b1, b2, noise):
+def test_small_joint_damping_found_by_the_trajectory_criterion(b1, b2, noise, seed):
     """Passive double pendulum, small joint damping, noise on positions only."""
     system = _joint_damped_double(b1, b2)
     data = make_dataset(
@@ -101,7 +108,7 @@ def test_small_joint_damping_found_by_the_trajectory_criterion(b1, b2, noise):
         excitation=None,
         noise=noise,
         protocol="sensor",
-        random_state=1,
+        random_state=seed,
     )
     est = LagrangianSINDy(
         system.paper_library(), formulation="weak", fixed_term="theta1_dot**2", dt=0.01
@@ -109,8 +116,9 @@ def test_small_joint_damping_found_by_the_trajectory_criterion(b1, b2, noise):
     report = diagnose(est, data.X, groups=data.groups)
     coef = _coefficients(report)
     # theta1_dot**2 has coefficient 1 in the true Lagrangian: same scale
-    assert coef["viscous(theta1)"] == pytest.approx(b1, rel=0.20)  # measured 1 %
-    assert coef["relative(theta1,theta2)"] == pytest.approx(b2, rel=0.20)  # 0.8 %
+    assert coef["viscous(theta1)"] == pytest.approx(b1, rel=0.20)  # measured 1-7.5 %
+    assert coef["relative(theta1,theta2)"] == pytest.approx(b2, rel=0.20)  # <= 0.8 %
+    assert set(coef) == {"viscous(theta1)", "relative(theta1,theta2)"}
     # the pointwise criterion barely sees them; the trajectory criterion does
     assert report.heldout_error_after < 0.3 * report.heldout_error_before
     assert report.pointwise_after > 0.8 * report.pointwise_before
@@ -289,3 +297,39 @@ def test_never_worse_and_no_effect_on_undamped_data(noise):
     report = diagnose(est, data.X, data.tau, groups=data.groups)
     assert report.heldout_error_after <= report.heldout_error_before
     assert [e for e in report.effects if e.startswith(("viscous", "relative"))] == []
+
+
+# ----------------------------------------------------------------------- input delay
+@pytest.mark.parametrize(
+    "delay, noise", [(0.03, 0.0), (0.03, 2e-3), (0.0, 0.0)], ids=["30ms", "30ms-noisy", "none"]
+)
+def test_input_delay_is_an_effect(delay, noise):
+    """Forced damped pendulum whose recorded input leads the acting force by 30 ms:
+    the delay is found first (with the dissipative catalogue as candidates, else
+    the missing damping biases it), then the damping, and the fit is right after."""
+    from lagsindy.delay import shift_input
+
+    system = single_pendulum(mass=0.8, length=0.5).with_damping(viscous={"theta": 0.05})
+    kw = {"noise": noise, "protocol": "sensor"} if noise else {}
+    data = make_dataset(
+        system, n_trajectories=10, duration=3.0, excitation="sincos", random_state=0, **kw
+    )
+    # recorded(t) = acting(t + delay): the input acts `delay` after it is recorded
+    recorded = shift_input(data.tau, data.t, -delay, data.groups)
+    formulation = "weak" if noise else "strong"
+    est = LagrangianSINDy(system.paper_library(), formulation=formulation, dt=0.01)
+    est.fit(data.X, recorded, groups=data.groups)
+    report = diagnose(est, data.X, recorded, groups=data.groups)
+    coef = _coefficients(report)
+    if delay:
+        assert report.effects[0] == "delay"
+        assert report.steps[0].candidate.description == "input delay"
+        assert report.steps[0].units.startswith("ms")
+        # measured 29.998 ms (no noise), 29.57 ms (noise 2e-3)
+        assert coef["delay"] == pytest.approx(1e3 * delay, abs=5.0)
+        assert "input delay" in str(report)
+    else:
+        assert "delay" not in report.effects
+    assert coef["viscous(theta)"] == pytest.approx(0.05, rel=0.02)  # measured 0.02 %
+    truth = {"theta_dot**2": 0.1, "cos(theta)": 0.8 * 9.81 * 0.5}
+    assert _lagrangian_error(report.final, truth) < 0.02  # measured 0.03 %

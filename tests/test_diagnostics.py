@@ -1,5 +1,6 @@
 """Close the loop: residual diagnosis finds undeclared effects (issue 5 acceptance)."""
 
+import numpy as np
 import pytest
 import sympy as sp
 
@@ -170,3 +171,58 @@ def test_diagnose_errors(single_active):
             groups=single_active.groups,
             catalogue=("magic",),
         )
+
+
+# ------------------------------------------------------------- bootstrap intervals
+def _noisy_force_pendulum():
+    system = single_pendulum().with_damping(viscous={"theta": 0.2})
+    data = make_dataset(
+        system, n_trajectories=10, duration=2.0, excitation="sincos", random_state=0
+    )
+    rng = np.random.default_rng(1)
+    tau = data.tau + 0.05 * rng.standard_normal(data.tau.shape)
+    return system, data, tau
+
+
+def test_diagnose_with_bootstrap_intervals(tmp_path, capsys):
+    """Noise on the forces: the effect and the Lagrangian terms get intervals that
+    hold the truth, are narrow, and appear in the table, the frame and the CLI."""
+    system, data, tau = _noisy_force_pendulum()
+    est = LagrangianSINDy(system.paper_library(), formulation="strong")
+    est.fit(data.X, tau, groups=data.groups)
+    report = diagnose(
+        est, data.X, tau, groups=data.groups, bootstrap=20, random_state=0
+    )
+    assert report.effects == ["viscous(theta)"]
+    step = report.steps[0]
+    assert step.low < step.coefficient < step.high
+    assert step.low < 0.2 < step.high
+    # measured half-width 0.9 % of 0.2 (12 trajectories: 0.6 %)
+    assert 0.001 * 0.2 < (step.high - step.low) / 2 < 0.03 * 0.2
+    frame = report.to_frame()
+    assert {"low", "high"} <= set(frame.columns)
+    assert frame.loc[0, "low"] == step.low and frame.loc[0, "high"] == step.high
+    boot = report.bootstrap.to_frame().set_index("term")
+    assert boot.loc["viscous(theta)", "low"] == step.low  # joined on the term name
+    cos = boot.loc["cos(theta)"]
+    assert cos.low < cos.coefficient < cos.high
+    assert cos.high - cos.low < 0.02 * 9.81  # measured 1.1 %
+    text = str(report)
+    assert "95% interval" in text and "bootstrap of the final model" in text
+    with pytest.raises(ValueError, match="bootstrap"):
+        diagnose(est, data.X, tau, groups=data.groups, bootstrap=1)
+
+    from lagsindy.cli import main
+
+    frame_csv = data.to_frame()
+    frame_csv[[c for c in frame_csv.columns if c.startswith("tau")]] = tau
+    csv = tmp_path / "data.csv"
+    frame_csv.to_csv(csv, index=False)
+    path = tmp_path / "model.json"
+    est.save(path)
+    code = main(
+        ["diagnose", str(csv), "--model", str(path), "--bootstrap", "10", "--quiet"]
+    )
+    assert code == 0
+    out = capsys.readouterr().out
+    assert "95% interval" in out and "bootstrap of the final model" in out
