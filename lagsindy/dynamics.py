@@ -105,7 +105,8 @@ def _float_stepper(solver_class, d):
             f"y_{i} + h*({combo(A[j, :j], names[:j], i)})" for i in comps
         )
         lines.append(
-            f"    {', '.join(f'k{j}_{i}' for i in comps)}, = f(t + {float(C[j])!r}*h, ({arg},))"
+            f"    {', '.join(f'k{j}_{i}' for i in comps)}, = "
+            f"f(t + {float(C[j])!r}*h, ({arg},))"
         )
     for i in comps:
         lines.append(f"    n_{i} = y_{i} + h*({combo(B, names[:s], i)})")
@@ -125,7 +126,7 @@ def _float_stepper(solver_class, d):
             f"    e5 = {e5}",
             f"    e3 = {e3}",
             "    if e5 == 0.0 and e3 == 0.0:",
-            "        return ({new},), fn, 0.0".format(new=new),
+            f"        return ({new},), fn, 0.0",
             f"    return ({new},), fn, abs(h)*e5/math.sqrt((e5 + 0.01*e3)*{d})",
         ]
     else:
@@ -159,7 +160,8 @@ def _integrate_floats(solver_class, rhs, segment, t, y0, rtol, atol, max_step):
     exponent = -1.0 / (solver_class.error_estimator_order + 1)
     if rtol < 100 * np.finfo(float).eps:  # as scipy does
         warnings.warn(
-            f"rtol={rtol:g} is below 100 machine epsilons; using {100 * np.finfo(float).eps:.3g}",
+            f"rtol={rtol:g} is below 100 machine epsilons; "
+            f"using {100 * np.finfo(float).eps:.3g}",
             stacklevel=3,
         )
         rtol = 100 * np.finfo(float).eps
@@ -179,7 +181,8 @@ def _integrate_floats(solver_class, rhs, segment, t, y0, rtol, atol, max_step):
             rejected = False
             while True:
                 if h_abs < min_step:
-                    return out, -1, "Required step size is less than spacing between numbers.", (tt, y)
+                    message = "Required step size is less than spacing between numbers."
+                    return out, -1, message, (tt, y)
                 h = h_abs
                 t_new = tt + h
                 if t_new > t_end:
@@ -207,7 +210,8 @@ def _integrate_floats(solver_class, rhs, segment, t, y0, rtol, atol, max_step):
                 rejected = True
             tt, y, f = t_new, y_new, f_new
         out.append(y)
-    return out, 0, "The solver successfully reached the end of the integration interval.", (tt, y)
+    message = "The solver successfully reached the end of the integration interval."
+    return out, 0, message, (tt, y)
 
 
 class SingularMassMatrixError(ValueError):
