@@ -2,7 +2,7 @@
 
 Data: encoder recordings of a physical pendulum swinging freely (1 kHz), from
 Kaheman et al., "The Experimental Multi-Arm Pendulum on a Cart", arXiv:2205.06231
-(MIT license), stored in ../shared/data/multiarm_pendulum/ (see its README). There is
+(MIT license), shipped with lagsindy (lagsindy/data/multiarm_pendulum/). There is
 no input, so this is case III: the fit fixes the Lagrangian's scale (here by the mean
 trace of the mass matrix, reported with phi_dot**2's coefficient set to 1) and the
 answer is the ratio of the potential to the kinetic term, which for a rigid pendulum
@@ -24,30 +24,15 @@ The full study of both recordings: python -m benchmarks.measured
 """
 
 import os
-import sys
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy.io import loadmat
 
 from lagsindy import CandidateLibrary, LagrangianSINDy, diagnose
 from lagsindy.differentiation import derivatives
-from lagsindy.io import load_multiarm_pendulum
+from lagsindy.io import load_multiarm_parameters, load_multiarm_pendulum
 
 QUICK = os.environ.get("LAGSINDY_EXAMPLE_QUICK") == "1"
-DATA = (
-    Path(__file__).resolve().parents[1].parent / "shared" / "data" / "multiarm_pendulum"
-)
-if not DATA.is_dir():
-    # A checkout elsewhere: lagsindy.io looks in the parents of the current folder
-    # and in $LAGSINDY_MULTIARM_DIR.
-    try:
-        from lagsindy.io import find_multiarm_pendulum
-
-        DATA = find_multiarm_pendulum()
-    except FileNotFoundError as exc:
-        sys.exit(f"measured_pendulum.py: {exc}")
 
 
 def to_X(frame, step=10):
@@ -60,8 +45,9 @@ def to_X(frame, step=10):
     return pd.DataFrame(X, columns=["phi", "phi_dot", "phi_ddot"]), frame
 
 
-train = load_multiarm_pendulum(DATA, which="single", split="id")
-valid = load_multiarm_pendulum(DATA, which="single", split="vad")
+# The recordings ship with lagsindy ($LAGSINDY_MULTIARM_DIR overrides the folder).
+train = load_multiarm_pendulum(which="single", split="id")
+valid = load_multiarm_pendulum(which="single", split="vad")
 print(
     f"identification: {train.trajectory.nunique()} segments, "
     f"{len(train)} samples at 1 kHz"
@@ -92,10 +78,9 @@ print(
 )
 print(f"equivalent simple pendulum length 2 g / ratio = {2 * 9.81 / ratio:.4f} m")
 
-# The authors' own estimate [a1, m1, I1, k1, g] for comparison.
-a1, m1, i1, k1, g = loadmat(DATA / "EstimatedParameters_SinglePendulum.mat")[
-    "EstimatedParameters"
-].ravel()
+# The authors' own estimate for comparison.
+authors = load_multiarm_parameters("single")
+a1, m1, i1, g = (authors[k] for k in ("a1", "m1", "I1", "g"))
 print(
     "authors' parameters give 2 m g a / (I + m a^2) = "
     f"{2 * m1 * g * a1 / (i1 + m1 * a1**2):.2f}"

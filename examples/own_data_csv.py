@@ -25,7 +25,9 @@ from lagsindy.library import CandidateLibrary
 from lagsindy.systems import cart_pendulum, make_dataset
 
 QUICK = os.environ.get("LAGSINDY_EXAMPLE_QUICK") == "1"
-folder = Path(tempfile.mkdtemp(prefix="lagsindy_"))
+# Everything is written into a temporary folder that is removed at the end.
+workspace = tempfile.TemporaryDirectory(prefix="lagsindy_")
+folder = Path(workspace.name)
 csv = folder / "positions.csv"
 
 # --- 1. a stand-in for your recordings: trajectory, t, x, theta, tau_x, tau_theta
@@ -63,4 +65,5 @@ print("true:   ", cart_pendulum().equation())
 print("R^2 of the forces:", round(est.score(X, tau), 5))
 print(est.predict(X.head(3)))  # DataFrame in, named columns out
 est.save(folder / "model.json")
-print("saved", folder / "model.json")
+print("saved", folder / "model.json", "(a temporary folder, removed now)")
+workspace.cleanup()

@@ -1,27 +1,66 @@
-"""lagsindy: sparse identification of Lagrangians from trajectories (xL-SINDy)."""
+"""lagsindy: sparse identification of Lagrangians from trajectories (xL-SINDy).
 
-from .diagnostics import DiagnosisReport, diagnose
-from .differentiation import Derivatives, derivatives
-from .dissipation import DissipationLibrary
-from .dynamics import MechanicalModel, SingularMassMatrixError, rollout_error
-from .estimator import LagrangianSINDy
-from .io import load_model, save_model
-from .library import CandidateLibrary
+The public names below are imported on first use (PEP 562), so ``import lagsindy``
+and the ``lagsindy`` command's ``--help`` do not pay for torch, sympy and
+scikit-learn until a name that needs them is used.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
 
 __version__ = "0.1.0"
 
-__all__ = [
-    "CandidateLibrary",
-    "Derivatives",
-    "DiagnosisReport",
-    "DissipationLibrary",
-    "LagrangianSINDy",
-    "MechanicalModel",
-    "SingularMassMatrixError",
-    "derivatives",
-    "diagnose",
-    "load_model",
-    "rollout_error",
-    "save_model",
-    "__version__",
-]
+# public name -> submodule that defines it
+_EXPORTS = {
+    "BootstrapReport": "uncertainty",
+    "CandidateLibrary": "library",
+    "DelayEstimate": "delay",
+    "Derivatives": "differentiation",
+    "DiagnosisReport": "diagnostics",
+    "DissipationLibrary": "dissipation",
+    "LagrangianSINDy": "estimator",
+    "LibraryBaggingLagrangianSINDy": "uncertainty",
+    "MechanicalModel": "dynamics",
+    "SingularMassMatrixError": "dynamics",
+    "bootstrap": "uncertainty",
+    "derivatives": "differentiation",
+    "diagnose": "diagnostics",
+    "estimate_delay": "delay",
+    "load_model": "io",
+    "rollout_error": "dynamics",
+    "save_model": "io",
+    "shift_input": "delay",
+}
+
+__all__ = [*sorted(_EXPORTS), "__version__"]
+
+
+def __getattr__(name):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'lagsindy' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))
+
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
+    from .diagnostics import DiagnosisReport, diagnose
+    from .differentiation import Derivatives, derivatives
+    from .dissipation import DissipationLibrary
+    from .dynamics import MechanicalModel, SingularMassMatrixError, rollout_error
+    from .estimator import LagrangianSINDy
+    from .io import load_model, save_model
+    from .delay import DelayEstimate, estimate_delay, shift_input
+    from .library import CandidateLibrary
+    from .uncertainty import (
+        BootstrapReport,
+        LibraryBaggingLagrangianSINDy,
+        bootstrap,
+    )

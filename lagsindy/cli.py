@@ -4,6 +4,10 @@ Subcommands: ``demo``, ``simulate``, ``simulate-model``, ``fit`` and ``predict``
 has ``--help``. Bad input (a missing file, an unknown column, a wrong shape, NaN, an
 invalid model file) ends with ONE line on stderr and exit status 2, never a traceback
 (``--debug`` shows it).
+
+The module imports only the standard library and numpy at import time: torch, sympy,
+scikit-learn and pandas are imported inside the commands that need them, so
+``lagsindy --help`` answers at once.
 """
 
 from __future__ import annotations
@@ -18,12 +22,53 @@ from pathlib import Path
 import numpy as np
 
 
+# The built-in systems (lagsindy.systems.SYSTEMS), named here so that --help does not
+# import sympy; tests/test_cli.py checks that the two lists agree.
+SYSTEM_NAMES = (
+    "cart_pendulum",
+    "double_pendulum",
+    "elastic_pendulum",
+    "planar_chain",
+    "single_pendulum",
+    "spherical_pendulum",
+    "spring_chain",
+    "triple_pendulum",
+)
+
+# Warnings that are information, not a doubt about the result: --quiet drops them.
+_INFO_WARNINGS = (
+    "it will compute on the CPU",
+    "they used the longest odd window they hold",
+)
+
+
+class _Formatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows each option's default, except for flags and options without one."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (
+            "%(default)" in text
+            or "default" in text
+            or action.default is None
+            or action.default is False
+            or action.default == argparse.SUPPRESS
+            or not action.option_strings
+        ):
+            return text
+        return text + " (default: %(default)s)"
+
+
 class CLIError(Exception):
     """A user error: printed as one line, exit status 2."""
 
 
 class _Parser(argparse.ArgumentParser):
     """argparse with usage errors on one line (exit status 2)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", _Formatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
@@ -49,6 +94,21 @@ def _read_csv(path):
         raise CLIError(f"{path} is empty") from None
     except (pd.errors.ParserError, UnicodeDecodeError) as exc:
         raise CLIError(f"{path} is not a readable CSV file: {exc}") from None
+    if df.shape[1] == 1 and ";" in str(df.columns[0]):
+        # A semicolon-separated file (common where the decimal mark is a comma).
+        try:
+            df = pd.read_csv(p, sep=";")
+        except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+            raise CLIError(
+                f"{path} looks semicolon-separated but could not be read as such: "
+                f"{exc}; save it with commas as separators"
+            ) from None
+        warnings.warn(
+            f"{path} is semicolon-separated; read it with ';' as the separator "
+            "(decimal marks must be dots)",
+            UserWarning,
+            stacklevel=2,
+        )
     if df.shape[0] == 0:
         raise CLIError(f"{path} has a header but no rows")
     df.columns = [str(c).strip() for c in df.columns]
@@ -59,8 +119,13 @@ def _split(text):
     return [s.strip() for s in text.split(",") if s.strip()] if text else []
 
 
+def _line(i):
+    """The file line of data row ``i`` (0-based; the header is line 1)."""
+    return f"line {i + 2}"
+
+
 def _numeric(df, columns, source):
-    """The named columns as a float array; names the column/row of bad values."""
+    """The named columns as a float array; names the column and line of bad values."""
     missing = [c for c in columns if c not in df.columns]
     if missing:
         raise CLIError(
@@ -75,16 +140,22 @@ def _numeric(df, columns, source):
             out[:, j] = values.to_numpy(dtype=float)
         except (TypeError, ValueError):
             bad = next((i for i, v in enumerate(values) if not _is_float(v)), 0)
+            value = values.iloc[bad]
+            hint = (
+                "; decimal commas are not supported: use a dot (1.5, not 1,5)"
+                if re.fullmatch(r"\s*[-+]?\d*,\d+\s*", str(value))
+                else ""
+            )
             raise CLIError(
-                f"column {c!r} of {source} is not numeric: row {bad} holds "
-                f"{values.iloc[bad]!r}"
+                f"column {c!r} of {source} is not numeric: {_line(bad)} holds "
+                f"{value!r}{hint}"
             ) from None
         finite = np.isfinite(out[:, j])
         if not finite.all():
             row = int(np.flatnonzero(~finite)[0])
             raise CLIError(
                 f"column {c!r} of {source} has {int((~finite).sum())} NaN or infinite "
-                f"value(s), the first at row {row}; drop or fill those rows"
+                f"value(s), the first on {_line(row)}; drop or fill those rows"
             )
     return out
 
@@ -99,6 +170,16 @@ def _is_float(v):
 
 def _state_frame(df, coords, args, source):
     """X as a DataFrame ``[q, q_dot, q_ddot]``; derivatives estimated if absent."""
+    return _state_and_groups(df, coords, args, source)[0]
+
+
+def _state_and_groups(df, coords, args, source, angles=()):
+    """X ``[q, q_dot, q_ddot]`` and the trajectory labels to fit with.
+
+    When derivatives are estimated, ``angles`` are unwrapped per trajectory (as
+    ``Derivatives(angles=...)`` does in the API) and trajectories are cut at gaps in
+    ``t`` (one warning says where); the labels returned are then the segments.
+    """
     import pandas as pd
 
     from ._expr import state_names
@@ -107,8 +188,10 @@ def _state_frame(df, coords, args, source):
     q = _numeric(df, coords, source)
     have_derivatives = all(n in df.columns for n in names)
     method = getattr(args, "derivatives", None)
+    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
     if have_derivatives and method is None:
-        return pd.DataFrame(_numeric(df, names, source), columns=names, index=df.index)
+        X = pd.DataFrame(_numeric(df, names, source), columns=names, index=df.index)
+        return X, groups
     from .differentiation import derivatives
 
     if "t" in df.columns:
@@ -120,7 +203,6 @@ def _state_frame(df, coords, args, source):
             f"{source} has positions only and no 't' column: add a time column 't' or "
             "pass --dt SECONDS (the sampling interval)"
         )
-    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
     for idx in _group_rows(groups, len(df)):
         if idx.size < 5:
             raise CLIError(
@@ -132,21 +214,41 @@ def _state_frame(df, coords, args, source):
                 f"'t' must increase within each trajectory in {source} (sort the rows, "
                 "and give separate trajectories a 'trajectory' column)"
             )
-    kwargs = {"groups": groups}
+    kwargs = {"groups": groups, "return_groups": True}
     if method is not None:
         kwargs["method"] = method
+    mask = [c in angles for c in coords]
+    if any(mask):
+        kwargs["angles"] = mask
     _say(
         args,
         f"estimating velocities and accelerations of {coords} "
-        f"({method or 'default method'}) ...",
+        f"({method or 'default method'}"
+        + (f"; angles {list(angles)} unwrapped" if any(mask) else "")
+        + ") ...",
     )
-    X = np.asarray(derivatives(q, t, **kwargs), dtype=float)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        X, segments = derivatives(q, t, **kwargs)
+    for w in caught:
+        text = str(w.message)
+        if "gap(s) in the time stamps" in text:
+            text = (
+                text.split(" Fit with the segments")[0]
+                + " The fit uses these segments as separate trajectories."
+            )
+        warnings.warn_explicit(text, w.category, w.filename, w.lineno)
+    n_segments = len(np.unique(segments))
+    n_before = 1 if groups is None else len(np.unique(groups))
+    if n_segments > n_before:
+        groups = segments
+    X = np.asarray(X, dtype=float)
     if X.shape != (len(df), 3 * len(coords)):
         raise CLIError(
             f"derivative estimation returned shape {X.shape}, expected "
             f"{(len(df), 3 * len(coords))}"
         )
-    return pd.DataFrame(X, columns=names, index=df.index)
+    return pd.DataFrame(X, columns=names, index=df.index), groups
 
 
 def _group_rows(groups, n):
@@ -275,6 +377,9 @@ def _demo(args) -> int:
                 check["states_b"],
                 system.coordinates,
                 velocities=True,
+                units=[
+                    "rad" if c in system.angles else "m" for c in system.coordinates
+                ],
                 title=f"{system.name}: true vs learned (unforced)",
                 path=args.plot,
             )
@@ -302,6 +407,8 @@ def _simulate(args) -> int:
     system = get_system(args.system)
     if args.trajectories < 1:
         raise CLIError("--trajectories must be at least 1")
+    if not (args.duration > 0 and args.rate > 0 and args.noise >= 0):
+        raise CLIError("--duration and --rate must be positive, --noise >= 0")
     _check_out(args.out)
     excitation = None if args.passive else args.excitation
     data = make_dataset(
@@ -435,6 +542,72 @@ def _library(args, coords, angles):
     )
 
 
+def _check_numbers(args):
+    """Range checks of the numeric fit options (cheap, before any data work)."""
+    if not (np.isfinite(args.lam) and args.lam >= 0):
+        raise CLIError(f"--lam must be a number >= 0 (the L1 weight), got {args.lam}")
+    if not (np.isfinite(args.threshold) and 0 <= args.threshold < 1):
+        raise CLIError(
+            f"--threshold must be in [0, 1) (relative to the largest coefficient), "
+            f"got {args.threshold}"
+        )
+    if getattr(args, "dt", None) is not None and not (
+        np.isfinite(args.dt) and args.dt > 0
+    ):
+        raise CLIError(f"--dt must be a positive number of seconds, got {args.dt}")
+
+
+def _warn_missing_coupling(library, coords, angles, args):
+    """Warn when no candidate term can couple an angle with another coordinate.
+
+    A cart-pendulum's kinetic energy holds ``x_dot*theta_dot*cos(theta)``; a double
+    pendulum's ``theta1_dot*theta2_dot*cos(theta1 - theta2)``, which expands into
+    products of both angles' sin/cos. A library without such a term (``poly2`` has
+    none; ``poly3`` lacks the double pendulum's) cannot express the coupling, and the
+    fit returns a wrong Lagrangian without any other sign.
+    """
+    import sympy as sp
+
+    trig = (sp.sin, sp.cos)
+    found = []
+    for term in library.terms_:
+        names = {str(v) for v in term.free_symbols}
+        trig_of = {
+            str(v) for f in term.atoms(*trig) for v in f.args[0].free_symbols
+        }
+        found.append((names, trig_of))
+    missing = []
+    for i, a in enumerate(coords):
+        for b in coords[i + 1 :]:
+            need = [c for c in (a, b) if c in angles]
+            if not need:
+                continue
+            if not any(
+                f"{a}_dot" in names and f"{b}_dot" in names and set(need) <= trig_of
+                for names, trig_of in found
+            ):
+                missing.append((a, b, need))
+    if not missing:
+        return
+    a, b, need = missing[0]
+    example = (
+        f"{a}_dot*{b}_dot*cos({need[0]})"
+        if len(need) == 1
+        else f"{a}_dot*{b}_dot*cos({a} - {b})"
+    )
+    degree = 3 if len(need) == 1 else 4
+    warnings.warn(
+        f"the library {args.library} has no term coupling the velocities of {a} and "
+        f"{b} with the angle(s) {need} (such as {example}, as in a cart-pendulum or "
+        f"a double pendulum), so it cannot express that coupling"
+        + (f" ({len(missing)} such pairs)" if len(missing) > 1 else "")
+        + f"; use --library poly{degree} or add it with --terms '{example}' if the "
+        "coordinates are coupled",
+        UserWarning,
+        stacklevel=2,
+    )
+
+
 def _fit(args) -> int:
     _check_out(args.out)
     est, X, tau, inputs, elapsed = _fit_csv(args)
@@ -466,8 +639,10 @@ def _fit_csv(args):
     unknown = [a for a in angles if a not in coords]
     if unknown:
         raise CLIError(f"--angles {unknown} are not among --coordinates {coords}")
+    _check_numbers(args)
+    # Everything cheap is checked before the (slow) derivative estimation.
+    library = _library(args, coords, angles)
     df = _read_csv(args.data)
-    X = _state_frame(df, coords, args, args.data)
     inputs = _input_columns(df, coords, args)
     if inputs is not None and args.fixed_term is not None:
         raise CLIError(
@@ -476,7 +651,9 @@ def _fit_csv(args):
             "were found; pass --passive to ignore them, or drop --fixed-term"
         )
     tau = None if inputs is None else _numeric(df, inputs, args.data)
-    library = _library(args, coords, angles)
+    _numeric(df, coords, args.data)
+    _warn_missing_coupling(library, coords, angles, args)
+    X, groups = _state_and_groups(df, coords, args, args.data, angles)
     est = LagrangianSINDy(
         library,
         lam=args.lam,
@@ -488,17 +665,56 @@ def _fit_csv(args):
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
     )
+    tau = _apply_delay(args, df, X, tau, groups, est)
     _say(
         args,
         f"fitting {len(X)} samples of {coords}: "
         + (f"forces from {inputs}" if inputs else "passive (no input columns)")
         + f", library {args.library} ({len(library)} terms after reduction)",
     )
-    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
     start = time.perf_counter()
     est.fit(X, tau, groups=groups)
     elapsed = time.perf_counter() - start
+    args._groups = groups  # the segments, for diagnose
     return est, X, tau, inputs, elapsed
+
+
+def _apply_delay(args, df, X, tau, groups, est):
+    """Shift the inputs by ``--delay`` (seconds, or ``auto``: estimated with ``est``)."""
+    value = getattr(args, "delay", None)
+    if value is None:
+        return tau
+    if tau is None:
+        raise CLIError(
+            "--delay shifts the input columns, but the data have none (passive data); "
+            "drop --delay or give the input with --input"
+        )
+    from .delay import estimate_delay, shift_input
+
+    if "t" in df.columns:
+        t = _numeric(df, ["t"], args.data)[:, 0]
+    elif getattr(args, "dt", None):
+        t = np.arange(len(df)) * float(args.dt)
+    else:
+        raise CLIError("--delay needs a 't' column or --dt SECONDS")
+    if value == "auto":
+        if est is None:
+            raise CLIError(
+                "--delay auto estimates the delay by refitting; with --model give the "
+                "delay in seconds (e.g. the one `lagsindy fit --delay auto` printed)"
+            )
+        _say(args, "estimating the input delay (held-out fits over sample shifts) ...")
+        result = estimate_delay(est, X, tau, t, groups=groups)
+        _say(args, f"{result}; the inputs are shifted by it")
+        delay = result.delay
+    else:
+        try:
+            delay = float(value)
+        except ValueError:
+            raise CLIError(
+                f"--delay must be a number of seconds or 'auto', got {value!r}"
+            ) from None
+    return shift_input(tau, t, delay, groups)
 
 
 # ----------------------------------------------------------------------------- diagnose
@@ -512,7 +728,7 @@ def _diagnose(args) -> int:
         est = _load(args.model)
         df = _read_csv(args.data)
         coords = list(est.coordinates_)
-        X = _state_frame(df, coords, args, args.data)
+        angles = est.library._angle_names(coords) if est.library is not None else []
         inputs = _input_columns(df, coords, args)
         tau = None if inputs is None else _numeric(df, inputs, args.data)
         if (tau is None) != (est.case_ != "forces"):
@@ -522,13 +738,16 @@ def _diagnose(args) -> int:
                 + " input forces; diagnose it on data of the same kind (--input or "
                 "tau_<q> columns for forced data, --passive for passive data)"
             )
+        # The cheap checks above run before the (slow) derivative estimation.
+        X, groups = _state_and_groups(df, coords, args, args.data, angles)
+        tau = _apply_delay(args, df, X, tau, groups, None)
     else:
         if not args.coordinates:
             raise CLIError("give --model model.json, or --coordinates to fit one first")
         est, X, tau, inputs, _ = _fit_csv(args)
-        df = _read_csv(args.data)
+        groups = args._groups
         _say(args, f"fitted: {est.equation(args.precision).splitlines()[0]}")
-    groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
+    est.set_params(verbose=0)  # diagnose's refits print no stage lines
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="X has feature names")
         report = diagnose(
@@ -539,6 +758,11 @@ def _diagnose(args) -> int:
             min_explained=args.min_explained,
             max_effects=args.max_effects,
             n_splits=args.splits,
+            **(
+                {"catalogue": tuple(k.strip() for k in args.catalogue.split(","))}
+                if args.catalogue
+                else {}
+            ),
         )
     print(report)
     if args.plot:
@@ -559,9 +783,9 @@ def _predict(args) -> int:
     est = _load(args.model)
     df = _read_csv(args.data)
     coords = list(est.coordinates_)
-    X = _state_frame(df, coords, args, args.data)
     inputs = _input_columns(df, coords, args)
     tau = None if inputs is None else _numeric(df, inputs, args.data)
+    X = _state_frame(df, coords, args, args.data)
     with warnings.catch_warnings():
         # Columns are matched by name even for a model fit on arrays, so sklearn's
         # "fitted without feature names" warning says nothing useful here.
@@ -635,14 +859,26 @@ def _add_fit_options(p, *, required):
         "--passive", action="store_true", help="ignore input columns (case III)"
     )
     p.add_argument(
-        "--library", default="poly2", help="polyN, separatedN or terms (default poly2)"
+        "--library",
+        default="poly3",
+        help="candidate terms: polyN (all monomials of degree 1..N over q, q_dot and "
+        "sin/cos of the angles), separatedN (the paper's trigonometric x "
+        "non-trigonometric products) or terms (only --terms). poly3 holds a "
+        "cart-pendulum's x_dot*theta_dot*cos(theta); two coupled angles (a double "
+        "pendulum's cos(theta1 - theta2)) need poly4; a warning says when the "
+        "library cannot couple the coordinates (default: poly3)",
     )
     p.add_argument(
         "--raw-angles",
         action="store_true",
         help="also use the angles themselves as polynomial variables",
     )
-    p.add_argument("--terms", default="", help="extra candidate terms, comma-separated")
+    p.add_argument(
+        "--terms",
+        default="",
+        help="extra candidate terms, comma-separated, e.g. "
+        "'x_dot*theta_dot*cos(theta)'",
+    )
     p.add_argument(
         "--fixed-term",
         default=None,
@@ -650,18 +886,33 @@ def _add_fit_options(p, *, required):
         "theta_dot**2, or 'mass' to fix the mean trace of the mass matrix "
         "(default: try both and every term)",
     )
-    p.add_argument("--unpenalized", default="", help="terms known to be present")
     p.add_argument(
-        "--case", default="auto", choices=["auto", "forces", "fixed", "acceleration"]
+        "--unpenalized",
+        default="",
+        help="terms known to be present (never shrunk or thresholded), comma-separated",
     )
-    p.add_argument("--lam", type=float, default=1e-3, help="L1 weight (default 1e-3)")
+    p.add_argument(
+        "--case",
+        default="auto",
+        choices=["auto", "forces", "fixed", "acceleration"],
+        help="forces (case I, with inputs), fixed (case III: passive, one term fixed), "
+        "acceleration (case II: passive, no prior), or auto from the input columns",
+    )
+    p.add_argument(
+        "--lam",
+        type=float,
+        default=1e-3,
+        help="L1 weight of the first stage on the scaled problem, >= 0 (default 1e-3)",
+    )
     p.add_argument(
         "--threshold",
         type=float,
         default=0.05,
         help="relative hard threshold between stages (default 0.05)",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seed", type=int, default=0, help="random seed (case III search, case II)"
+    )
     p.add_argument(
         "--precision", type=int, default=4, help="digits in the printed Lagrangian"
     )
@@ -669,17 +920,27 @@ def _add_fit_options(p, *, required):
         "--formulation",
         default="strong",
         choices=["strong", "weak"],
-        help="weak: integral Euler-Lagrange equations with a noise correction (needs "
-        "time-ordered trajectories; see LagrangianSINDy)",
+        help="strong: the paper's pointwise residual; weak: integral Euler-Lagrange "
+        "equations with a noise correction (needs time-ordered trajectories; see "
+        "LagrangianSINDy)",
+    )
+    p.add_argument(
+        "--delay",
+        metavar="SECONDS|auto",
+        default=None,
+        help="input delay: the input recorded at t acts at t + SECONDS, so the inputs "
+        "are shifted by it (linear interpolation per trajectory; the first SECONDS "
+        "of each trajectory hold the first input). 'auto': estimate it by held-out "
+        "fits over whole-sample shifts (lagsindy.delay.estimate_delay; slow: about "
+        "40 fits)",
     )
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``lagsindy`` command."""
     from . import __version__
-    from .systems import SYSTEMS
 
-    systems = ", ".join(sorted(SYSTEMS))
+    systems = ", ".join(SYSTEM_NAMES)
     parser = _Parser(
         prog="lagsindy",
         description="Discover the Lagrangian of a mechanical system from trajectories "
@@ -728,7 +989,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--duration", type=float, default=5.0, help="seconds per trajectory (default 5)"
     )
-    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument(
+        "--seed", type=int, default=0, help="random seed of the data and the fit"
+    )
     demo.add_argument(
         "--plot",
         metavar="PNG",
@@ -743,7 +1006,11 @@ def build_parser() -> argparse.ArgumentParser:
         const=None,
         help="do not save a plot",
     )
-    demo.add_argument("--quiet", action="store_true", help="no progress output")
+    demo.add_argument(
+        "--quiet",
+        action="store_true",
+        help="no progress output (stage lines, notes): results and errors only",
+    )
     demo.set_defaults(func=_demo)
 
     sim = sub.add_parser(
@@ -757,7 +1024,12 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--system", default=None, help=f"one of: {systems}")
     sim.add_argument("--model", default=None, help="a saved model (JSON) to integrate")
     sim.add_argument("--out", required=True, help="output CSV")
-    sim.add_argument("--trajectories", type=int, default=100)
+    sim.add_argument(
+        "--trajectories",
+        type=int,
+        default=100,
+        help="number of trajectories, each from a random initial state",
+    )
     sim.add_argument(
         "--duration", type=float, default=5.0, help="seconds per trajectory"
     )
@@ -775,7 +1047,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--excitation",
         default="sincos",
         choices=["sincos", "paper"],
-        help="input: a sin(wt) + b cos(wt) (sincos) or the paper's form",
+        help="input: a sin(wt) + b cos(wt) (sincos) or the paper's form for the "
+        "system",
     )
     sim.add_argument("--passive", action="store_true", help="no input")
     sim.add_argument(
@@ -789,8 +1062,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="with --model: initial state q...,q_dot... (repeat for more)",
     )
-    sim.add_argument("--seed", type=int, default=0)
-    sim.add_argument("--quiet", action="store_true")
+    sim.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed of the initial states, inputs and noise",
+    )
+    sim.add_argument("--quiet", action="store_true", help="print nothing but errors")
     sim.set_defaults(func=_simulate)
 
     simm = sub.add_parser(
@@ -806,12 +1084,14 @@ def build_parser() -> argparse.ArgumentParser:
         required=True,
         help="initial state q...,q_dot..., e.g. 0,1,0,0 (repeat for more)",
     )
-    simm.add_argument("--duration", type=float, default=5.0)
+    simm.add_argument(
+        "--duration", type=float, default=5.0, help="seconds to integrate"
+    )
     simm.add_argument(
         "--rate", type=float, default=100.0, help="output samples per second"
     )
     simm.add_argument("--out", required=True, help="output CSV")
-    simm.add_argument("--quiet", action="store_true")
+    simm.add_argument("--quiet", action="store_true", help="print nothing but errors")
     simm.set_defaults(func=_simulate_model, system=None)
 
     fit = sub.add_parser(
@@ -829,7 +1109,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_fit_options(fit, required=True)
     fit.add_argument("--out", required=True, help="where to save the model (JSON)")
     _add_derivative_options(fit)
-    fit.add_argument("--quiet", action="store_true", help="print only the Lagrangian")
+    fit.add_argument(
+        "--quiet",
+        action="store_true",
+        help="print only the Lagrangian (and errors, and warnings that the result "
+        "may be wrong)",
+    )
     fit.set_defaults(func=_fit)
 
     diag = sub.add_parser(
@@ -838,9 +1123,9 @@ def build_parser() -> argparse.ArgumentParser:
         "and add it",
         description="Residual diagnosis: fit a Lagrangian (or load --model), test "
         "candidate missing effects (viscous, joint and quadratic damping, Coulomb "
-        "friction, offsets, input gain errors, missing conservative terms) for how much "
-        "of the residual each explains on held-out trajectories, add the best, refit, "
-        "and repeat. Prints the report; --plot saves the residual figure.",
+        "friction, offsets, input gain errors, missing conservative terms) jointly with "
+        "the Lagrangian's terms, keep those that improve the prediction of held-out "
+        "trajectories, and report the errors before and after. Prints the report; --plot saves the residual figure.",
     )
     diag.add_argument("data", help="CSV file")
     diag.add_argument("--model", default=None, help="a saved model (JSON) to diagnose")
@@ -848,18 +1133,34 @@ def build_parser() -> argparse.ArgumentParser:
     diag.add_argument(
         "--min-explained",
         type=float,
-        default=0.02,
-        help="smallest held-out share of the residual an effect must "
-        "explain (default 0.02)",
+        default=0.05,
+        help="smallest share of the held-out trajectory residual an effect must "
+        "explain (default 0.05)",
     )
-    diag.add_argument("--max-effects", type=int, default=3)
     diag.add_argument(
-        "--splits", type=int, default=3, help="held-out folds of trajectories"
+        "--max-effects", type=int, default=4, help="add at most this many effects"
+    )
+    diag.add_argument(
+        "--splits",
+        type=int,
+        default=3,
+        help="held-out folds of trajectories (time blocks when there are fewer)",
+    )
+    diag.add_argument(
+        "--catalogue",
+        default=None,
+        help="comma-separated candidate kinds (default: all): viscous, relative, "
+        "drag, coulomb, bias, gain, conservative",
     )
     diag.add_argument("--plot", default=None, help="save the residual figure (PNG)")
     diag.add_argument("--out-model", default=None, help="save the final model (JSON)")
     _add_derivative_options(diag)
-    diag.add_argument("--quiet", action="store_true")
+    diag.add_argument(
+        "--quiet",
+        action="store_true",
+        help="print only the report (and errors, and warnings that the result may "
+        "be wrong)",
+    )
     diag.set_defaults(func=_diagnose)
 
     pred = sub.add_parser(
@@ -878,7 +1179,7 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("--passive", action="store_true", help="ignore input columns")
     pred.add_argument("--out", required=True, help="output CSV")
     _add_derivative_options(pred)
-    pred.add_argument("--quiet", action="store_true")
+    pred.add_argument("--quiet", action="store_true", help="print nothing but errors")
     pred.set_defaults(func=_predict)
     return parser
 
@@ -897,8 +1198,13 @@ def main(argv=None) -> int:
         return int(exc.code or 0)
     prog = f"lagsindy {args.command}"
 
+    quiet = getattr(args, "quiet", False)
+
     def show(message, category, filename, lineno, file=None, line=None):
-        print(f"{prog}: warning: {_one_line(message)}", file=sys.stderr)
+        text = _one_line(message)
+        if quiet and any(s in text for s in _INFO_WARNINGS):
+            return
+        print(f"{prog}: warning: {text}", file=sys.stderr)
 
     try:
         with warnings.catch_warnings():

@@ -1,25 +1,55 @@
 r"""Close the loop: find what a fitted Lagrangian leaves unexplained, and add it.
 
-:func:`diagnose` takes a fitted :class:`~lagsindy.LagrangianSINDy` and data, computes
-the residual of the Euler-Lagrange equations, and tests a catalogue of candidate
-missing effects for how much of that residual each explains **on held-out
-trajectories**: viscous damping, relative (joint) damping, quadratic drag and Coulomb
-friction on every coordinate, a constant offset force, an input gain error (when
-several coordinates are driven) and missing conservative terms (a spring ``q**2`` on
-every coordinate, ``cos``/``sin`` of angles, or terms you pass). The best effect that
-explains a significant share of the held-out residual is added, the model is refitted
-(the Lagrangian's sparse search runs again, with the found effects kept as known,
-unpenalised terms), and the search repeats until nothing significant is left.
+:func:`diagnose` takes a fitted :class:`~lagsindy.LagrangianSINDy` and data and looks
+for missing effects in a catalogue: viscous damping, relative (joint) damping,
+quadratic drag and Coulomb friction on every coordinate, a constant offset force, an
+input gain error (when several coordinates are driven) and missing conservative terms
+(a spring ``q**2`` on every coordinate, ``cos``/``sin`` of angles, or terms you pass).
 
-How a candidate is scored. The data are split by trajectory into ``n_splits`` folds.
-For every fold the Gram statistics of the current model's terms, all candidates and
-the target are accumulated once (strong or weak form, as the estimator was fitted).
-For a candidate ``j`` and fold ``f``, the current terms are refitted by least squares
-with and without ``j`` on the other folds, and the residual sum of squares is
-evaluated on fold ``f``; the *explained share* is ``1 - SSE(with j) / SSE(without)``.
-A candidate is accepted when its mean share reaches ``min_explained``, it improves
-every fold (so it does not just fit noise), and the refitted model predicts the
-accelerations of held-out trajectories better than before; the best-scoring first.
+The loop
+--------
+1. **Revise the Lagrangian jointly with the effects.** A conservative fit of damped
+   data absorbs the damping into wrong Lagrangian terms; adding effects on top of it
+   cannot undo that. So the sparse search is first run again over the Lagrangian
+   library *and* the dissipative catalogue together; the dissipative terms it keeps
+   are pruned one by one while removing them does not worsen the held-out criterion,
+   and the Lagrangian's sparse search is run once more with the survivors as known
+   (unpenalized) terms.
+2. **Add effects one at a time.** The remaining candidates are ranked by how much of
+   the held-out criterion they explain when added to the current support (least
+   squares refit on the other folds); the best is kept only if it improves every
+   fold and, after the Lagrangian's sparse search is rerun with it, the new model
+   improves the held-out criterion by at least ``min_improvement``.
+3. **Never make things worse.** The final model is compared with the starting one on
+   the same held-out criterion; if it is not better, the starting model is kept.
+
+The criterion: held-out trajectory prediction
+---------------------------------------------
+Small damping changes trajectories over seconds but is a tiny share of the
+pointwise acceleration residual, where differentiation noise dominates. The
+criterion is therefore the **integrated (weak-form) residual**: the Euler-Lagrange
+equations integrated against smooth bump functions over windows of the held-out
+trajectories (integration by parts removes the accelerations; see
+:meth:`lagsindy.euler_lagrange.EulerLagrangeOperator.weak_gram`). Each model's
+coefficients are refitted by least squares on the other folds (with the weak form's
+noise correction), and the residual of the held-out fold is measured. Damping and
+Coulomb coefficients are kept non-negative in these refits (active-set least
+squares). The pointwise (strong-form) criterion is computed the same way and
+reported beside it. When the rows are not time-ordered trajectories long enough for
+the windows, the pointwise criterion is used (the report says so).
+
+Every coordinate counts: each equation is weighted by the inverse energy of the
+starting model's force contributions on that coordinate (the sum of the magnitudes
+of its terms, or the measured force when larger), not by its residual or its
+measured force alone, so an undriven coordinate whose forces nearly cancel does
+not drown the others, nor is it drowned.
+
+Folds are whole trajectories (``groups``); with fewer trajectories than
+``n_splits`` each trajectory is cut into ``n_splits`` contiguous time blocks. A fold
+whose refit has a singular or indefinite mass matrix on its held-out samples cannot
+predict accelerations there; it is excluded from that model's score and listed in
+the report. A model whose full-data mass matrix is singular or indefinite is never
+accepted.
 """
 
 from __future__ import annotations
@@ -35,11 +65,15 @@ from sklearn.base import clone
 from sklearn.model_selection import GroupKFold
 from sklearn.utils.validation import check_is_fitted
 
-from ._expr import symbols_for
+from ._expr import canonical, symbols_for
 from ._torch import to_numpy, to_tensor
-from .dissipation import DEFAULT_EPS, DissipationLibrary, ForceTerm, make_term
-from .euler_lagrange import EulerLagrangeOperator, trajectory_segments
-from .solvers import BalancedGram
+from .dissipation import DEFAULT_EPS, DissipationLibrary, make_term
+from .euler_lagrange import (
+    EulerLagrangeOperator,
+    estimate_noise_covariance,
+    estimate_sampling_interval,
+    trajectory_segments,
+)
 
 DEFAULT_CATALOGUE = (
     "viscous",
@@ -51,9 +85,19 @@ DEFAULT_CATALOGUE = (
     "conservative",
 )
 _DISSIPATIVE = ("viscous", "relative", "drag", "coulomb", "bias")
-# Held-out residual below this fraction of the target's sum of squares is rounding
-# (the Gram-matrix arithmetic of the scores cannot resolve less).
+# Kinds whose coefficient must be non-negative (they only remove energy).
+_NONNEGATIVE = ("viscous", "relative", "drag", "coulomb")
+# Held-out residual below this fraction of the scale is rounding.
 _PRECISION = 1e-10
+# A refit whose mass matrix is singular or indefinite at more than this fraction of
+# the checked samples cannot predict accelerations: the fold (or model) is degenerate.
+_MASS_BAD_FRACTION = 0.01
+# Samples per fold at which mass matrices are checked.
+_MASS_ROWS = 150
+# Samples for the noise correction of each fold's weak statistics.
+_NOISE_ROWS = 4000
+# Coulomb smoothing velocity, relative to the 99th percentile of |q_dot|.
+_EPS_FRACTION = 0.01
 _KIND_TEXT = {
     "viscous": "viscous damping",
     "relative": "relative (joint) damping",
@@ -81,7 +125,22 @@ class Candidate:
 
 @dataclass
 class Step:
-    """One accepted effect and the model after adding it."""
+    """One effect of the final model.
+
+    Attributes
+    ----------
+    candidate : Candidate
+    coefficient : float
+        Its coefficient in the **final** model.
+    units : str
+    explained : float
+        Share of the final model's held-out criterion (squared) that removing this
+        effect would add back: ``1 - J(final)**2 / J(final without it)**2``.
+    heldout_error : float
+        Held-out criterion of the model right after this effect was accepted.
+    how : str
+        ``"joint"`` (kept by the joint sparse search of step 1) or ``"added"``.
+    """
 
     candidate: Candidate
     coefficient: float
@@ -92,6 +151,8 @@ class Step:
     heldout_error: float
     equation: str
     ranking: pd.DataFrame
+    how: str = "added"
+    coefficient_when_added: float = float("nan")
 
 
 @dataclass
@@ -103,19 +164,29 @@ class DiagnosisReport:
     initial : LagrangianSINDy
         The model that was diagnosed (unchanged).
     final : LagrangianSINDy
-        The model refitted with every effect found.
-    residual_rms_before : ndarray of shape (n_dof,)
-        RMS of the Euler-Lagrange (force) residual per coordinate, before.
+        The model refitted with every effect found (``initial`` itself when nothing
+        improved the held-out criterion).
+    residual_rms_before, residual_rms_after : ndarray of shape (n_dof,)
+        RMS of the Euler-Lagrange (force) residual per coordinate, on all the data.
     force_rms : ndarray of shape (n_dof,)
-        RMS of the generalized forces the model explains (the scale of the residual).
-    heldout_error_before : float
-        Held-out relative RMS error of predicted accelerations, before.
+        The scale the residual is compared with: the RMS of the measured force on each
+        coordinate (forced data), else of the model's force contributions.
+    heldout_error_before, heldout_error_after : float
+        The held-out criterion (relative RMS residual, every coordinate weighted
+        equally) of the starting and the final model.
+    pointwise_before, pointwise_after : float
+        The held-out pointwise (acceleration-level) criterion, for comparison.
+    criterion : str
+        ``"trajectory (weak form)"`` or ``"pointwise"``: what effects were accepted on.
     steps : list of Step
-        Effects in the order they were added, each with its coefficient and units,
-        held-out explained share, the residual and the held-out error after it.
+        The effects of the final model, in the order they were found.
     rankings : list of DataFrame
-        The candidates' scores in every round (the last round found nothing
-        significant, unless ``max_effects`` was reached).
+        The candidates' scores in every round of the forward search.
+    lagrangian_changes : dict
+        ``{"removed": [...], "added": [...]}``: Lagrangian terms the revision
+        removed from or added to the starting model's support.
+    degenerate_folds : list of str
+        Folds excluded from some model's score (singular or indefinite mass matrix).
     coordinates : list of str
     passive : bool
         Passive data fix the model only up to scale: coefficients are relative to the
@@ -131,6 +202,14 @@ class DiagnosisReport:
     rankings: list
     coordinates: list
     passive: bool
+    residual_rms_after: np.ndarray = None
+    heldout_error_after: float = float("nan")
+    pointwise_before: float = float("nan")
+    pointwise_after: float = float("nan")
+    criterion: str = "trajectory (weak form)"
+    lagrangian_changes: dict = field(default_factory=dict)
+    degenerate_folds: list = field(default_factory=list)
+    stop_reason: str = ""
     settings: dict = field(default_factory=dict)
     _data: dict = field(default_factory=dict, repr=False)
 
@@ -140,7 +219,7 @@ class DiagnosisReport:
         return [s.candidate.name for s in self.steps]
 
     def to_frame(self) -> pd.DataFrame:
-        """One row per step: effect, coefficient, units, shares, residual, error."""
+        """One row per effect: kind, final coefficient, units, share, criterion."""
         rows = []
         for k, s in enumerate(self.steps, 1):
             rows.append(
@@ -152,7 +231,7 @@ class DiagnosisReport:
                     "coefficient": s.coefficient,
                     "units": s.units,
                     "explained": s.explained,
-                    "residual_rms": float(np.sqrt(np.mean(s.residual_rms**2))),
+                    "how": s.how,
                     "heldout_error": s.heldout_error,
                 }
             )
@@ -167,56 +246,82 @@ class DiagnosisReport:
         )
         lines.append(
             f"Residual diagnosis over {self.settings.get('n_splits')} held-out folds of "
-            f"trajectories{scale}"
+            f"{self.settings.get('fold_kind', 'trajectories')}; criterion: held-out "
+            f"{self.criterion} residual{scale}"
         )
-        rel = self.residual_rms_before / np.maximum(self.force_rms, 1e-300)
-        per = ", ".join(
-            f"{c}: {r:.3g} ({p:.2%} of the model's forces)"
-            for c, r, p in zip(self.coordinates, self.residual_rms_before, rel)
+        of = (
+            "the model's forces"
+            if self.passive
+            else "the force scale (measured force, or the model's forces if larger)"
         )
-        lines.append(f"before: residual RMS {per}")
         lines.append(
-            f"        held-out acceleration error {self.heldout_error_before:.3g} (relative RMS)"
-        )
-        if not self.steps:
-            lines.append(
-                "no candidate explains a significant share of the held-out residual"
+            "before: residual RMS "
+            + ", ".join(
+                f"{c}: {r:.3g} ({r / max(f, 1e-300):.1%} of {of})"
+                for c, r, f in zip(
+                    self.coordinates, self.residual_rms_before, self.force_rms
+                )
             )
+        )
+        if self.residual_rms_after is not None:
+            lines.append(
+                "after:  residual RMS "
+                + ", ".join(
+                    f"{c}: {r:.3g} ({r / max(f, 1e-300):.1%} of {of})"
+                    for c, r, f in zip(
+                        self.coordinates, self.residual_rms_after, self.force_rms
+                    )
+                )
+            )
+        if not self.settings.get("start_valid", True):
+            lines.append(
+                "the starting model's mass matrix is singular or indefinite on the "
+                "data: it cannot predict some accelerations"
+            )
+        lines.append(
+            f"held-out trajectory (weak-form) error: {self.heldout_error_before:.4g} -> "
+            f"{self.heldout_error_after:.4g}"
+            if self.criterion.startswith("trajectory")
+            else "held-out trajectory (weak-form) error: not available (rows are not "
+            "time-ordered trajectories long enough for the windows)"
+        )
+        lines.append(
+            f"held-out pointwise error:              {self.pointwise_before:.4g} -> "
+            f"{self.pointwise_after:.4g}   (relative RMS, every coordinate weighted equally)"
+        )
+        changes = self.lagrangian_changes or {}
+        if changes.get("removed") or changes.get("added"):
+            lines.append(
+                "the Lagrangian was revised jointly with the effects: "
+                f"removed {changes.get('removed') or 'nothing'}, "
+                f"added {changes.get('added') or 'nothing'}"
+            )
+        if not self.steps:
+            lines.append("no effect improves the held-out criterion")
         else:
             head = (
-                f"{'step':>4}  {'effect':<26} {'term':<24} {'coefficient':>13} "
-                f"{'units':<14} {'explained':>9}  {'residual RMS':>12}  {'held-out error':>14}"
+                f"{'step':>4}  {'effect':<26} {'term':<24} {'final coef.':>12} "
+                f"{'units':<24} {'explained':>9}  {'held-out error':>14}"
             )
             lines.append(head)
             lines.append("-" * len(head))
-            previous = self.heldout_error_before
             for k, s in enumerate(self.steps, 1):
-                gain = previous / s.heldout_error if s.heldout_error > 0 else np.inf
                 lines.append(
                     f"{k:>4}  {s.candidate.description:<26} {s.candidate.name:<24} "
-                    f"{s.coefficient:>13.5g} {s.units:<14} {s.explained:>9.1%}  "
-                    f"{float(np.sqrt(np.mean(s.residual_rms**2))):>12.3g}  "
-                    f"{s.heldout_error:>8.3g} (x{gain:.3g})"
+                    f"{s.coefficient:>12.5g} {s.units:<24} {s.explained:>9.1%}  "
+                    f"{s.heldout_error:>14.4g}"
                 )
-                previous = s.heldout_error
-        last = self.rankings[-1] if self.rankings else None
-        if last is not None and "rejected" in last.attrs:
-            name, before, after = last.attrs["rejected"]
             lines.append(
-                f"stopped: {name} explains part of the residual but does not improve "
-                f"held-out predictions ({before:.3g} -> {after:.3g})"
+                "  explained: share of the final model's held-out residual (squared) "
+                "that removing the effect would add back"
             )
-        elif last is not None and not len(last):
-            lines.append("stopped: the remaining residual is at rounding level")
-        elif last is not None and (
-            not self.steps or len(self.rankings) > len(self.steps)
-        ):
-            top = last.iloc[0]
+        if self.degenerate_folds:
             lines.append(
-                f"stopped: the best remaining candidate, {top['term']}, explains "
-                f"{top['explained']:.2%} of the held-out residual "
-                f"(needs {self.settings.get('min_explained'):.0%} and every fold better)"
+                "excluded degenerate folds (refit mass matrix singular or indefinite, "
+                "cannot predict accelerations): " + "; ".join(self.degenerate_folds)
             )
+        if self.stop_reason:
+            lines.append(f"stopped: {self.stop_reason}")
         lines.append("final model:")
         lines.extend("  " + line for line in self.final.equation(4).splitlines())
         return "\n".join(lines)
@@ -246,20 +351,21 @@ class DiagnosisReport:
         X = self._data["X"]
         n = len(self.coordinates)
         before = self._data["residual_before"]
-        panels = self.steps or [None]
+        after = self._data["residual_after"]
+        # Nothing found: one panel per coordinate, its residual against its velocity.
+        panels = self.steps or [(None, i) for i in range(n)]
         fig, axes = plt.subplots(
             1, len(panels), figsize=(4.5 * len(panels), 3.6), squeeze=False
         )
         rng = np.random.default_rng(0)
         idx = rng.choice(X.shape[0], size=min(X.shape[0], 4000), replace=False)
         for ax, step in zip(axes[0], panels):
-            if step is None:
-                i, var, label = 0, X[:, n], f"{self.coordinates[0]}_dot"
-                after = None
+            if isinstance(step, tuple):
+                step, i = step
+                var, label = X[:, n + i], f"{self.coordinates[i]}_dot"
             else:
                 cand = step.candidate
                 i = self.coordinates.index(cand.coordinates[0])
-                after = self._data["residuals"][self.steps.index(step)]
                 if cand.kind == "relative":
                     j = self.coordinates.index(cand.coordinates[1])
                     var = X[:, n + i] - X[:, n + j]
@@ -271,7 +377,7 @@ class DiagnosisReport:
                 else:
                     var, label = X[:, n + i], f"{cand.coordinates[0]}_dot"
             ax.scatter(var[idx], before[idx, i], s=2, alpha=0.4, label="before")
-            if after is not None:
+            if step is not None:
                 ax.scatter(var[idx], after[idx, i], s=2, alpha=0.4, label="after")
             ax.set_xlabel(label)
             ax.set_ylabel(f"residual on {self.coordinates[i]}")
@@ -284,44 +390,67 @@ class DiagnosisReport:
 
 
 # ----------------------------------------------------------------------------- helpers
-def _units(est, cand, angles, passive):
-    if passive:
-        return "rel. to fixed"
-    unit = {
-        c: (("rad", "N*m") if c in angles else ("m", "N")) for c in est.coordinates_
-    }
+def _units(cand, units, passive):
+    """Units of a coefficient: from the user's ``units`` only, else in words."""
     if cand.kind == "gain":
         return "(factor - 1)"
-    if cand.kind == "conservative":
-        return (
-            "J"
-            if not any(str(s).endswith("_dot") for s in cand.term.free_symbols)
-            else "J*..."
-        )
-    return cand.term.units(unit)
+    if passive:
+        return "rel. to fixed term"
+    c = cand.coordinates[0]
+    if units is not None and c in units:
+        q_unit, f_unit = units[c]
+        if cand.kind == "conservative":
+            return f"energy ({f_unit}*{q_unit})"
+        return cand.term.units(units)
+    if cand.kind == "viscous":
+        return f"per unit of {c}_dot"
+    if cand.kind == "relative":
+        return f"per unit of {c}_dot-{cand.coordinates[1]}_dot"
+    if cand.kind == "drag":
+        return f"per unit of {c}_dot^2"
+    if cand.kind in ("coulomb", "bias"):
+        return f"force units of {c}"
+    return "energy units"
+
+
+def velocity_eps(X, n_dof, coordinates) -> dict:
+    """Coulomb smoothing velocity per coordinate from the data's velocity scale.
+
+    ``eps = 0.01 * (99th percentile of |q_dot|)``: the smoothed sign reaches 76 % of
+    its full value at 1 % of the top speed, so a viscous coefficient fitted beside it
+    is not biased (a fixed ``eps=0.01`` biased it by -6 % on an axis whose top speed
+    was 0.1 m/s).
+    """
+    qd = np.abs(np.asarray(X, dtype=float)[:, n_dof : 2 * n_dof])
+    top = np.quantile(qd, 0.99, axis=0)
+    return {
+        c: float(f"{_EPS_FRACTION * t:.3g}") if t > 0 else DEFAULT_EPS
+        for c, t in zip(coordinates, top)
+    }
+
+
+def _pairs(coords):
+    return [(a, b) for k, a in enumerate(coords) for b in coords[k + 1 :]]
 
 
 def _catalogue(est, kinds, extra_terms, angles, tau, eps):
-    """Candidate effects not already in the model."""
+    """Candidate effects not already in the model's candidate set."""
     coords = est.coordinates_
-    present_forces = {
-        t.name for t, d in zip(est.dissipation_terms_, est.dissipation_coef_) if d != 0
-    }
-    present_terms = {str(t) for t, c in zip(est.library_.terms_, est.coef_) if c != 0}
+    present_forces = {t.name for t in est.dissipation_terms_}
+    present_terms = {str(t) for t in est.library_.terms_}
     out = []
     for kind in kinds:
         if kind in _DISSIPATIVE:
-            targets = (
-                [tuple(p) for p in _pairs(coords)]
-                if kind == "relative"
-                else [(c,) for c in coords]
-            )
+            targets = _pairs(coords) if kind == "relative" else [(c,) for c in coords]
             for tgt in targets:
                 term = make_term(
-                    kind, tgt if kind == "relative" else tgt[0], coords, eps=eps
+                    kind,
+                    tgt if kind == "relative" else tgt[0],
+                    coords,
+                    eps=eps.get(tgt[0], DEFAULT_EPS),
                 )
                 if term.name not in present_forces:
-                    out.append(Candidate(kind, term.name, tgt, term))
+                    out.append(Candidate(kind, term.name, tuple(tgt), term))
         elif kind == "gain":
             if tau is None:
                 continue
@@ -337,16 +466,15 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps):
                 terms.append(s**2)
                 if c in angles:
                     terms += [sp.cos(s), sp.sin(s)]
-            from ._expr import canonical
-
             terms += [canonical(t, coords) for t in (extra_terms or [])]
+            seen = set()
             for t in terms:
-                if str(t) not in present_terms:
-                    names = tuple(sorted({str(s) for s in t.free_symbols}))
-                    own = tuple(c for c in coords if c in names or f"{c}_dot" in names)
-                    out.append(
-                        Candidate("conservative", str(t), own or (coords[0],), t)
-                    )
+                if str(t) in present_terms or str(t) in seen:
+                    continue
+                seen.add(str(t))
+                names = {str(s) for s in t.free_symbols}
+                own = tuple(c for c in coords if c in names or f"{c}_dot" in names)
+                out.append(Candidate("conservative", str(t), own or (coords[0],), t))
         else:
             raise ValueError(
                 f"unknown candidate kind {kind!r}; use some of {DEFAULT_CATALOGUE}"
@@ -354,213 +482,205 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps):
     return out
 
 
-def _pairs(coords):
-    return [(a, b) for k, a in enumerate(coords) for b in coords[k + 1 :]]
+def _segments(Xt, d, groups, dt):
+    """Time-ordered row blocks of every trajectory."""
+    if groups is not None:
+        return [s.cpu().numpy() for s in trajectory_segments(Xt, d, groups)]
+    return [s.cpu().numpy() for s in trajectory_segments(Xt, d, None, dt=dt)]
 
 
-def _folds(n, groups, n_splits):
-    if groups is None:
-        # No trajectory labels: contiguous blocks keep neighbouring samples together.
-        groups = np.repeat(np.arange(4 * n_splits), int(np.ceil(n / (4 * n_splits))))[
-            :n
-        ]
-    groups = np.asarray(groups)
-    if len(np.unique(groups)) < n_splits:
+def _make_folds(segments, n_splits):
+    """Folds as lists of row blocks: whole trajectories, else time blocks."""
+    if len(segments) >= n_splits:
+        labels = np.concatenate([np.full(len(s), k) for k, s in enumerate(segments)])
+        rows = np.concatenate(segments)
+        folds = []
+        for _, test in GroupKFold(n_splits).split(rows, groups=labels):
+            ids = np.unique(labels[test])
+            folds.append([segments[k] for k in ids])
+        return folds, "trajectories"
+    longest = max(len(s) for s in segments)
+    if longest < 2 * n_splits:
         raise ValueError(
-            f"need at least n_splits={n_splits} trajectories (groups) to hold some out, "
-            f"got {len(np.unique(groups))}"
+            f"need at least n_splits={n_splits} trajectories, or trajectories of at "
+            f"least {2 * n_splits} samples to cut into time blocks; got "
+            f"{len(segments)} trajector(ies) of at most {longest} samples"
         )
-    return [test for _, test in GroupKFold(n_splits).split(np.zeros(n), groups=groups)]
+    folds = [[] for _ in range(n_splits)]
+    for seg in segments:
+        for k, block in enumerate(np.array_split(seg, n_splits)):
+            if len(block):
+                folds[k].append(block)
+    return folds, "time blocks"
 
 
-class _Problem:
-    """Per-fold Gram statistics of the current terms, the candidates and the target."""
+class _Statistics:
+    """Per-fold Gram statistics of every library term, candidate and the target.
 
-    def __init__(self, est, Xt, tau_t, groups, folds, candidates):
-        self.est = est
-        lib_terms = [t for t, c in zip(est.library_.terms_, est.coef_) if c != 0]
-        base_forces = [
-            t for t, d in zip(est.dissipation_terms_, est.dissipation_coef_) if d != 0
-        ]
-        cons = [c for c in candidates if c.kind == "conservative"]
-        diss = [c for c in candidates if c.kind in _DISSIPATIVE]
-        gain = [c for c in candidates if c.kind == "gain"]
-        terms = lib_terms + [c.term for c in cons]
-        forces = [t.forces for t in base_forces] + [c.term.forces for c in diss]
-        op = EulerLagrangeOperator(
-            est.coordinates_, terms, forces=forces, dtype=Xt.dtype, device=Xt.device
-        )
-        # Column layout of A: [lib terms | conservative cands | base forces | diss cands
-        #                      | gain cands | target]
-        n_l, n_c, n_b, n_d = len(lib_terms), len(cons), len(base_forces), len(diss)
-        self.base = list(range(n_l)) + list(range(n_l + n_c, n_l + n_c + n_b))
-        self.cand_index = {}
-        for k, c in enumerate(cons):
-            self.cand_index[c.name] = n_l + k
-        for k, c in enumerate(diss):
-            self.cand_index[c.name] = n_l + n_c + n_b + k
-        for k, c in enumerate(gain):
-            self.cand_index[c.name] = n_l + n_c + n_b + n_d + k
-        d = est.n_dof_
-        extra = None
-        if gain:
-            extra = Xt.new_zeros((Xt.shape[0], d, len(gain)))
-            for k, c in enumerate(gain):
-                extra[:, c.term, k] = -tau_t[:, c.term]
-        self.width = op.n_columns + len(gain)
-        self.passive = tau_t is None
-        fixed = est.fixed_term_
-        if self.passive:
-            if fixed is None:  # case II: the largest scaled term sets the scale
-                big = int(np.argmax(np.abs(np.asarray(est.coef_)[est.coef_ != 0])))
-                self.fixed_col = big
-            else:
-                self.fixed_col = [str(t) for t in lib_terms].index(fixed)
-            self.base.remove(self.fixed_col)
-        grams, noises = [], []
-        for rows in folds:
-            rows_t = torch.as_tensor(rows, device=Xt.device)
-            sub_x = Xt[rows_t]
-            sub_tau = None if tau_t is None else tau_t[rows_t]
-            sub_extra = None if extra is None else extra[rows_t]
-            if est.formulation == "weak":
-                segs = trajectory_segments(
-                    sub_x, d, None if groups is None else groups[rows], dt=est.dt_
-                )
-                segs = [s for s in segs if len(s) >= est.window]
-                cov = (
-                    None
-                    if est.noise_cov_ is None
-                    else to_tensor(est.noise_cov_, dtype=Xt.dtype, device=Xt.device)
-                )
-                g, noise, _ = op.weak_gram(
-                    sub_x,
-                    sub_tau,
+    Column layout: ``[library terms + conservative candidates | model forces +
+    dissipative candidates | gain candidates | target]``. ``kind`` is ``"weak"``
+    (integrated residual over windows) or ``"strong"`` (pointwise).
+    """
+
+    def __init__(self, op, Xt, tau_t, extra, folds, kind, *, window=None, dt=None):
+        d = op.n_dof
+        self.kind = kind
+        raw, fit = [], []
+        for blocks in folds:
+            if kind == "weak":
+                segs = [torch.as_tensor(b) for b in blocks if len(b) >= window]
+                if not segs:
+                    raise _NoWindows()
+                cov = estimate_noise_covariance(Xt, segs, d)
+                g, noise, n_w = op.weak_gram(
+                    Xt,
+                    tau_t,
                     segs,
-                    window=int(est.window),
-                    stride=max(1, int(est.window) // 4),
-                    dt=est.dt_,
+                    window=window,
+                    stride=max(1, window // 4),
+                    dt=dt,
                     noise_cov=cov,
-                    extra=sub_extra,
+                    noise_rows=_NOISE_ROWS,
+                    extra=extra,
                     return_noise=True,
                 )
+                if n_w == 0:
+                    raise _NoWindows()
+                raw.append(to_numpy(g))
+                fit.append(to_numpy(g - noise))
             else:
-                g = op.gram(sub_x, sub_tau, extra=sub_extra)
-                noise = torch.zeros_like(g)
-            grams.append(g)
-            noises.append(noise)
-        total = sum(grams)
-        self.target = None if self.passive else self.width
-        n_feat = self.width
-        scaler = BalancedGram(total, 1, n_feat, normalize=True)
-        w = 1.0 / scaler.row_scale**2
-        scale = torch.ones(total.shape[1], dtype=total.dtype, device=total.device)
-        scale[:n_feat] = torch.where(
-            scaler.col_scale > 0, scaler.col_scale, torch.ones_like(scaler.col_scale)
-        )
+                rows = torch.as_tensor(np.concatenate(blocks))
+                g = op.gram(
+                    Xt[rows],
+                    None if tau_t is None else tau_t[rows],
+                    extra=None if extra is None else extra[rows],
+                )
+                raw.append(to_numpy(g))
+                fit.append(raw[-1])
+        self.raw = np.stack(raw)  # (K, d, P, P)
+        self.fit = np.stack(fit)
 
-        def combine(g):
-            return to_numpy(
-                (g * w[:, None, None]).sum(0) / (scale[:, None] * scale[None, :])
-            )
 
-        # Coefficients are fitted on noise-corrected statistics (unbiased), held-out
-        # errors measured on the raw ones (the error the data really show).
-        self.grams = [combine(g) for g in grams]
-        self.fit_grams = [combine(g - nz) for g, nz in zip(grams, noises)]
-        self.scale = to_numpy(scale)
+class _NoWindows(Exception):
+    pass
 
-    def heldout(self, features):
-        """Per-fold held-out SSE and the all-data LS coefficients (scaled) of ``features``."""
-        # Case I: tau ~ A c. Passive: -A[:, fixed] ~ A c (the fixed term's coefficient is 1).
-        t = self.fixed_col if self.passive else self.target
-        sign = -1.0 if self.passive else 1.0
-        f = list(features)
-        sse = []
-        for k, test in enumerate(self.grams):
-            train = sum(g for j, g in enumerate(self.fit_grams) if j != k)
-            coef = _lstsq(train[np.ix_(f, f)], sign * train[f, t])
-            yy = test[t, t]
-            b = sign * test[f, t]
-            sse.append(max(yy - 2 * coef @ b + coef @ test[np.ix_(f, f)] @ coef, 0.0))
-        full = sum(self.fit_grams)
-        coef = _lstsq(full[np.ix_(f, f)], sign * full[f, t])
-        return np.array(sse), coef
+
+class _Scorer:
+    """Held-out score of any support over the columns of :class:`_Statistics`."""
+
+    def __init__(self, stats, n_features, target, fixed_col, nonneg, weights, mass):
+        self.stats = stats
+        self.n_features = n_features
+        self.target = target  # column index (case I) or None
+        self.fixed_col = fixed_col  # passive: column with coefficient 1
+        self.nonneg = nonneg  # bool per feature
+        self.w = weights  # (d,)
+        self.mass = mass  # per fold (rows, n_lib, d, d) mass matrices, or None
+        full = np.einsum("i,kipq->pq", weights, stats.fit)
+        diag = np.sqrt(np.clip(np.diag(full), 0, None))
+        self.col = np.where(diag > 0, diag, 1.0)
+        # The target (or the fixed term) keeps its units, so the SSE is in force
+        # units squared, comparable with the reference scales, and coefficients
+        # unscale by their own column alone.
+        self.col[fixed_col if target is None else target] = 1.0
+        self._cache = {}
+
+    def _combine(self, g):
+        return np.einsum("i,ipq->pq", self.w, g) / np.outer(self.col, self.col)
+
+    def _solve(self, g, free):
+        """LS coefficients (scaled) over ``free``; non-negative where required."""
+        t = self.fixed_col if self.target is None else self.target
+        sign = -1.0 if self.target is None else 1.0
+        active = list(free)
+        for _ in range(len(free) + 1):
+            coef = _lstsq(g[np.ix_(active, active)], sign * g[active, t])
+            neg = [
+                (c, j) for c, j in zip(coef, active) if self.nonneg[j] and c < 0
+            ]
+            if not neg:
+                return active, coef
+            active.remove(min(neg)[1])
+        return active, coef
+
+    def _sse(self, g_test, active, coef):
+        """Weighted SSE per coordinate of the held-out residual."""
+        t = self.fixed_col if self.target is None else self.target
+        sign = -1.0 if self.target is None else 1.0
+        out = []
+        for gi in g_test:
+            gs = gi / np.outer(self.col, self.col)
+            yy = gs[t, t]
+            b = sign * gs[active, t]
+            out.append(max(yy - 2 * coef @ b + coef @ gs[np.ix_(active, active)] @ coef, 0))
+        return np.asarray(out)
+
+    def coefficients(self, support):
+        """Full-data LS coefficients (unscaled) of ``support``, as {column: value}."""
+        free = [j for j in support if j != self.fixed_col]
+        g = self._combine(self.stats.fit.sum(0))
+        active, coef = self._solve(g, free)
+        out = {j: c / self.col[j] for j, c in zip(active, coef)}
+        if self.fixed_col is not None:
+            out[self.fixed_col] = 1.0
+        return out
+
+    def score(self, support):
+        """Held-out relative RMS residual, per-fold values and degenerate folds."""
+        key = tuple(sorted(support))
+        if key in self._cache:
+            return self._cache[key]
+        free = [j for j in key if j != self.fixed_col]
+        K = self.stats.raw.shape[0]
+        total = self._combine(self.stats.fit.sum(0))
+        sse, ref, bad = np.zeros(K), np.zeros(K), []
+        for k in range(K):
+            train = total - self._combine(self.stats.fit[k])
+            active, coef = self._solve(train, free)
+            if self.mass is not None and not self._mass_ok(k, active, coef):
+                bad.append(k)
+            sse[k] = float(self.w @ self._sse(self.stats.raw[k], active, coef))
+            ref[k] = float(self.w @ self.reference[k])
+        # Degenerate folds are left out, unless every fold is degenerate (the
+        # support itself cannot predict accelerations; valid() then rejects it).
+        keep = np.ones(K, dtype=bool)
+        if len(bad) < K:
+            keep[bad] = False
+        folds = np.where(keep, sse / np.maximum(ref, 1e-300), np.nan)
+        den = ref[keep].sum()
+        value = np.sqrt(sse[keep].sum() / den) if den > 0 else np.inf
+        out = (float(value), folds, bad if len(bad) < K else [])
+        self._cache[key] = out
+        return out
+
+    def _mass_ok(self, k, active, coef):
+        n_lib = self.mass[k].shape[1]
+        c = np.zeros(n_lib)
+        for j, v in zip(active, coef):
+            if j < n_lib:
+                c[j] = v / self.col[j]
+        if self.fixed_col is not None and self.fixed_col < n_lib:
+            c[self.fixed_col] = 1.0
+        return _mass_definite(self.mass[k], c)
+
+
+def _mass_definite(mass, c):
+    m = np.einsum("skij,k->sij", mass, c)
+    eig = np.linalg.eigvalsh((m + np.swapaxes(m, 1, 2)) / 2)
+    big = np.maximum(np.abs(eig).max(axis=1), 1e-300)
+    definite = (eig > 1e-8 * big[:, None]).all(axis=1) | (
+        eig < -1e-8 * big[:, None]
+    ).all(axis=1)
+    return (1.0 - definite.mean()) <= _MASS_BAD_FRACTION
 
 
 def _lstsq(g, b):
+    if len(b) == 0:
+        return np.zeros(0)
     evals, evecs = np.linalg.eigh((g + g.T) / 2)
     keep = evals > 1e-12 * max(evals[-1], 1e-300)
     inv = np.where(keep, 1.0 / np.where(keep, evals, 1.0), 0.0)
     return evecs @ (inv * (evecs.T @ b))
-
-
-def _score(problem, candidates):
-    base_sse, _ = problem.heldout(problem.base)
-    t = problem.fixed_col if problem.passive else problem.target
-    total = sum(g[t, t] for g in problem.grams)
-    if base_sse.sum() <= _PRECISION * total:
-        # The model already explains the data to rounding: nothing left to attribute.
-        return pd.DataFrame(
-            columns=["kind", "term", "explained", "worst_fold", "coefficient"]
-        ), base_sse
-    rows = []
-    for cand in candidates:
-        j = problem.cand_index[cand.name]
-        sse, coef = problem.heldout(problem.base + [j])
-        share = 1.0 - sse / np.maximum(base_sse, 1e-300)
-        raw = coef[-1] / problem.scale[j]
-        if problem.passive:
-            raw = raw * problem.scale[problem.fixed_col]
-        rows.append(
-            {
-                "kind": cand.kind,
-                "term": cand.name,
-                "explained": float(np.mean(share)),
-                "worst_fold": float(np.min(share)),
-                "coefficient": float(raw),
-            }
-        )
-    table = pd.DataFrame(rows)
-    if len(table):
-        table = table.sort_values(
-            "explained", ascending=False, kind="stable"
-        ).reset_index(drop=True)
-    return table, base_sse
-
-
-def _refit(est, effects, X, tau, groups):
-    """Refit ``est``'s configuration with the effects added as known terms."""
-    new = clone(est)
-    unpenalized = list(est.unpenalized or [])
-    library = clone(est.library_)
-    cons = [c for c in effects if c.kind == "conservative"]
-    if cons:
-        library.set_params(terms=list(library.terms or []) + [c.term for c in cons])
-        unpenalized += [str(c.term) for c in cons]
-    diss = [c for c in effects if c.kind in _DISSIPATIVE]
-    if diss:
-        base = est.dissipation
-        if base is None:
-            dlib = DissipationLibrary(
-                kinds=(), coordinates=est.coordinates_, eps=_eps(diss)
-            )
-        else:
-            dlib = clone(base)
-        specs = list(dlib.terms or [])
-        for c in diss:
-            spec = (c.kind, c.coordinates if c.kind == "relative" else c.coordinates[0])
-            specs.append(spec)
-        dlib.set_params(terms=specs)
-        new.set_params(dissipation=dlib)
-        unpenalized += [c.name for c in diss]
-    new.set_params(library=library, unpenalized=unpenalized or None)
-    if est.case_ == "fixed":
-        new.set_params(fixed_term=_normalization(est))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        new.fit(X, tau, groups=groups)
-    return new
 
 
 def _normalization(est):
@@ -568,19 +688,52 @@ def _normalization(est):
     return "mass" if getattr(est, "normalization_", None) == "mass" else est.fixed_term_
 
 
-def _eps(cands):
-    for c in cands:
-        if c.kind == "coulomb":
-            return _coulomb_eps(c.term)
-    return DEFAULT_EPS
+def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None):
+    """Refit ``est``'s configuration: the Lagrangian's sparse search runs again.
 
-
-def _coulomb_eps(term: ForceTerm) -> float:
-    """The smoothing velocity of a Coulomb term, read off its tanh(qdot / eps)."""
-    expr = [f for f in term.forces if f != 0][0]
-    tanh = next(iter(expr.atoms(sp.tanh)))
-    coeff = tanh.args[0].as_coeff_Mul()[0]
-    return float(1.0 / coeff)
+    ``effects`` enter as known (unpenalized) terms, ``penalized`` as candidates.
+    """
+    new = clone(est)
+    unpenalized = list(est.unpenalized or [])
+    library = clone(est.library_)
+    cons = [c for c in list(effects) + list(penalized) if c.kind == "conservative"]
+    if cons:
+        library.set_params(terms=list(library.terms or []) + [c.term for c in cons])
+        unpenalized += [str(c.term) for c in effects if c.kind == "conservative"]
+    diss = [c for c in list(effects) + list(penalized) if c.kind in _DISSIPATIVE]
+    if diss:
+        base = est.dissipation
+        dlib = (
+            DissipationLibrary(kinds=(), coordinates=est.coordinates_)
+            if base is None
+            else clone(base)
+        )
+        old = dlib.eps
+        merged = {
+            c: (old.get(c, DEFAULT_EPS) if isinstance(old, dict) else float(old))
+            for c in est.coordinates_
+        }
+        for c in diss:
+            if c.kind == "coulomb":
+                merged[c.coordinates[0]] = (eps or {}).get(
+                    c.coordinates[0], DEFAULT_EPS
+                )
+        specs = list(dlib.terms or [])
+        specs += [
+            (c.kind, c.coordinates if c.kind == "relative" else c.coordinates[0])
+            for c in diss
+        ]
+        dlib.set_params(terms=specs, eps=merged)
+        new.set_params(dissipation=dlib)
+        unpenalized += [c.name for c in effects if c.kind in _DISSIPATIVE]
+    new.set_params(library=library, unpenalized=unpenalized or None)
+    if est.case_ == "fixed":
+        new.set_params(fixed_term=_normalization(est))
+    new.set_params(verbose=0)  # refits are quiet; the result keeps est's verbose
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        new.fit(X, tau, groups=groups)
+    return new.set_params(verbose=est.verbose)
 
 
 def _adjusted_tau(tau, gains):
@@ -592,29 +745,10 @@ def _adjusted_tau(tau, gains):
     return out
 
 
-def _heldout_error(est, X, tau, groups, folds):
-    """Held-out relative RMS error of predicted accelerations (refit per fold)."""
-    n = est.n_dof_
-    num = den = 0.0
-    for test in folds:
-        train = np.setdiff1d(np.arange(len(X)), test)
-        model = clone(est)
-        if est.case_ == "fixed":
-            model.set_params(fixed_term=_normalization(est))
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            model.fit(
-                _take(X, train),
-                None if tau is None else tau[train],
-                groups=None if groups is None else groups[train],
-            )
-            pred = model.predict_acceleration(
-                _take(X, test), None if tau is None else tau[test]
-            )
-        true = np.asarray(X)[test, 2 * n : 3 * n]
-        num += float(np.sum((np.asarray(pred) - true) ** 2))
-        den += float(np.sum((true - true.mean(axis=0)) ** 2))
-    return float(np.sqrt(num / max(den, 1e-300)))
+def _residual(est, X, tau):
+    """Euler-Lagrange (force) residual per sample: tau - Theta c (or -Theta c)."""
+    pred = np.asarray(est.predict(X), dtype=float).reshape(len(X), -1)
+    return (np.zeros_like(pred) if tau is None else tau) - pred
 
 
 def _force_scale(est, Xt):
@@ -628,16 +762,6 @@ def _force_scale(est, Xt):
     return np.sqrt(np.mean(to_numpy(size) ** 2, axis=0))
 
 
-def _take(X, rows):
-    return X.iloc[rows] if isinstance(X, pd.DataFrame) else X[rows]
-
-
-def _residual(est, X, tau):
-    """Euler-Lagrange (force) residual per sample: tau - Theta c (or -Theta c)."""
-    pred = np.asarray(est.predict(X), dtype=float).reshape(len(X), -1)
-    return (np.zeros_like(pred) if tau is None else tau) - pred
-
-
 # ----------------------------------------------------------------------------- API
 def diagnose(
     est,
@@ -648,27 +772,34 @@ def diagnose(
     catalogue=DEFAULT_CATALOGUE,
     extra_terms=None,
     angles=None,
+    units=None,
     n_splits: int = 3,
-    min_explained: float = 0.02,
-    max_effects: int = 3,
-    min_improvement: float = 1e-3,
-    eps: float = DEFAULT_EPS,
+    min_explained: float = 0.05,
+    max_effects: int = 4,
+    min_improvement: float = 0.01,
+    eps="auto",
+    revise: bool = True,
+    window=None,
     verbose: int = 0,
 ) -> DiagnosisReport:
     """Find the missing effects a fitted model leaves in its residual, add and refit.
+
+    See the module documentation for the loop and the criterion.
 
     Parameters
     ----------
     est : LagrangianSINDy
         A fitted estimator (not modified).
     X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
-        Data in the estimator's layout (the data it was fitted on, or new data).
+        Data in the estimator's layout: time-ordered trajectories (the held-out
+        trajectory criterion integrates along them).
     tau : array-like of shape (n_samples, n_dof), default=None
         Generalized forces; ``None`` for passive data (the model's scale is then set by
         its fixed term).
     groups : array-like of shape (n_samples,), default=None
-        Trajectory labels; folds hold out whole trajectories. Without them, the rows
-        are cut into contiguous blocks.
+        Trajectory labels; folds hold out whole trajectories. Without them,
+        trajectories are split where the positions jump. With fewer trajectories
+        than ``n_splits``, each is cut into ``n_splits`` time blocks.
     catalogue : sequence of str, default=all kinds
         Candidate kinds: ``"viscous"``, ``"relative"``, ``"drag"``, ``"coulomb"``,
         ``"bias"``, ``"gain"``, ``"conservative"``.
@@ -676,19 +807,30 @@ def diagnose(
         More conservative candidates (Lagrangian terms), beside ``q**2`` for every
         coordinate and ``cos``/``sin`` of angles.
     angles : list of str, default=None
-        Angular coordinates (for candidates and units); default: the library's
-        ``angles``.
+        Angular coordinates (for candidates); default: the library's ``angles``.
+    units : dict, default=None
+        ``{coordinate: (position unit, force unit)}``, e.g. ``{"x": ("m", "N")}``,
+        to print coefficient units; without it units are given in words ("per unit
+        of x_dot").
     n_splits : int, default=3
-        Folds of trajectories for the held-out scores.
-    min_explained : float, default=0.02
-        Smallest mean held-out share of the residual an effect must explain (and it
-        must improve every fold).
-    max_effects : int, default=3
-    min_improvement : float, default=1e-3
-        An effect is kept only if the refitted model also predicts the accelerations
-        of held-out trajectories better, by at least this fraction.
-    eps : float, default=0.01
-        Smoothing velocity of Coulomb candidates.
+        Held-out folds.
+    min_explained : float, default=0.05
+        Smallest share of the held-out criterion (squared) a candidate must explain
+        to be tried (it must also improve every fold).
+    max_effects : int, default=4
+    min_improvement : float, default=0.01
+        A revision or an effect is kept only if the refitted model's held-out
+        criterion falls by at least this fraction.
+    eps : "auto", float or dict, default="auto"
+        Coulomb smoothing velocity of the candidates: ``"auto"`` takes 1 % of each
+        coordinate's top speed (99th percentile of ``|q_dot|``).
+    revise : bool, default=True
+        First run the Lagrangian's sparse search jointly with the dissipative
+        catalogue (step 1), so damping absorbed into wrong Lagrangian terms can be
+        undone.
+    window : int, default=None
+        Samples per test function of the trajectory criterion; ``None``: the
+        estimator's ``window`` (at most half the shortest time block).
     verbose : int, default=0
 
     Returns
@@ -704,7 +846,8 @@ def diagnose(
     >>> system = single_pendulum().with_damping(viscous={"theta": 0.2})
     >>> data = make_dataset(system, n_trajectories=12, duration=3.0,
     ...                     excitation="sincos", random_state=0)
-    >>> est = LagrangianSINDy(system.paper_library()).fit(data.X, data.tau)
+    >>> est = LagrangianSINDy(system.paper_library(), formulation="strong")
+    >>> est = est.fit(data.X, data.tau)
     >>> report = diagnose(est, data.X, data.tau, groups=data.groups)
     >>> report.effects
     ['viscous(theta)']
@@ -727,114 +870,447 @@ def diagnose(
             raise ValueError(
                 f"groups must have one label per row of X ({Xa.shape[0]}), got {groups.shape}"
             )
+    coords = list(est.coordinates_)
+    d = est.n_dof_
     lib_angles = getattr(est.library_, "angles", None)
     if angles is None:
-        angles = est.coordinates_ if lib_angles == "all" else list(lib_angles or [])
-    folds = _folds(Xa.shape[0], groups, n_splits)
+        angles = coords if lib_angles == "all" else list(lib_angles or [])
+    if isinstance(eps, str):
+        if eps != "auto":
+            raise ValueError(f"eps must be 'auto', a number or a dict, got {eps!r}")
+        eps = velocity_eps(Xa, d, coords)
+    elif not isinstance(eps, dict):
+        eps = {c: float(eps) for c in coords}
+    passive = tau_a is None
     Xt = to_tensor(Xa, dtype=torch.float64, device="cpu")
+    tau_t = None if passive else to_tensor(tau_a, dtype=torch.float64, device="cpu")
     # Refits and predictions see X as the estimator was fitted on it (named columns
     # for a DataFrame-fitted model), so scikit-learn's feature-name checks hold.
     names = getattr(est, "feature_names_in_", None)
     Xf = Xa if names is None else pd.DataFrame(Xa, columns=list(names))
-    passive = tau_a is None
 
-    before_residual = _residual(est, Xf, tau_a)
-    force_scale = _force_scale(est, Xt)
-    before_err = _heldout_error(est, Xf, tau_a, groups, folds)
-    if verbose:
-        print(f"[lagsindy] before: held-out acceleration error {before_err:.3g}")
+    # ------------------------------------------------------------ columns and folds
+    candidates = _catalogue(est, catalogue, extra_terms, angles, tau_a, eps)
+    cons = [c for c in candidates if c.kind == "conservative"]
+    diss = [c for c in candidates if c.kind in _DISSIPATIVE]
+    gain = [c for c in candidates if c.kind == "gain"]
+    lib_terms = list(est.library_.terms_) + [c.term for c in cons]
+    forces = list(est.dissipation_terms_) + [c.term for c in diss]
+    op = EulerLagrangeOperator(coords, lib_terms, forces=[f.forces for f in forces])
+    n_lib, n_force = len(lib_terms), len(forces)
+    n_features = n_lib + n_force + len(gain)
+    index = {str(t): k for k, t in enumerate(lib_terms)}
+    index.update({f.name: n_lib + k for k, f in enumerate(forces)})
+    index.update({c.name: n_lib + n_force + k for k, c in enumerate(gain)})
+    extra = None
+    if gain:
+        extra = Xt.new_zeros((Xt.shape[0], d, len(gain)))
+        for k, c in enumerate(gain):
+            extra[:, c.term, k] = -tau_t[:, c.term]
+    nonneg = np.zeros(n_features, dtype=bool)
+    for k, f in enumerate(forces):
+        nonneg[n_lib + k] = f.kind in _NONNEGATIVE
 
-    current, effects, steps, rankings, residuals = est, [], [], [], []
-    gains = {}
-    for _ in range(max_effects):
-        candidates = _catalogue(current, catalogue, extra_terms, angles, tau_a, eps)
-        candidates = [c for c in candidates if c.name not in {e.name for e in effects}]
-        if not candidates:
-            break
-        tau_now = _adjusted_tau(tau_a, gains)
-        tau_t = (
-            None
-            if tau_now is None
-            else to_tensor(tau_now, dtype=Xt.dtype, device=Xt.device)
+    dt = getattr(est, "dt_", None) or est.dt
+    if dt is None:
+        rough = _segments(Xt, d, groups, 0.0) if groups is not None else None
+        rough = (
+            [torch.as_tensor(s) for s in rough]
+            if rough is not None
+            else [torch.arange(Xt.shape[0])]
         )
-        problem = _Problem(current, Xt, tau_t, groups, folds, candidates)
-        table, _ = _score(problem, candidates)
+        try:
+            dt = estimate_sampling_interval(Xt, d, rough)
+        except ValueError:
+            dt = None
+    segments = _segments(Xt, d, groups, dt if dt and dt > 0 else 0.0)
+    folds, fold_kind = _make_folds(segments, n_splits)
+    shortest_block = min(max(len(b) for b in blocks) for blocks in folds)
+    win = int(window or getattr(est, "window", 81) or 81)
+    win = min(win, shortest_block // 2)
+    if win % 2 == 0:
+        win -= 1
+    stats_w = None
+    if dt and dt > 0 and win >= 9:
+        try:
+            stats_w = _Statistics(
+                op, Xt, tau_t, extra, folds, "weak", window=win, dt=float(dt)
+            )
+        except _NoWindows:
+            stats_w = None
+    stats_s = _Statistics(op, Xt, tau_t, extra, folds, "strong")
+
+    # The starting model's support and reference scales (fixed for the whole run).
+    start_coef = np.zeros(n_features)
+    for t, c in zip(est.library_.terms_, est.coef_):
+        start_coef[index[str(t)]] = c
+    for f, c in zip(est.dissipation_terms_, est.dissipation_coef_):
+        start_coef[index[f.name]] = c
+    fixed_col = None
+    if passive:
+        if est.fixed_term_ is not None:
+            fixed_col = index[str(est.fixed_term_)]
+        else:  # mass normalization or case II: the largest term sets the scale
+            fixed_col = int(np.argmax(np.abs(start_coef[:n_lib])))
+        start_coef = start_coef / start_coef[fixed_col]
+    target = None if passive else n_features
+
+    rng = np.random.default_rng(0)
+    mass = []
+    for blocks in folds:
+        rows = np.concatenate(blocks)
+        pick = np.sort(rng.choice(rows, size=min(len(rows), _MASS_ROWS), replace=False))
+        with torch.no_grad():
+            mass.append(
+                to_numpy(op.mass_matrices(Xt[pick, :d], Xt[pick, d : 2 * d]))
+            )
+    all_rows = np.sort(rng.choice(Xa.shape[0], size=min(Xa.shape[0], 400), replace=False))
+    mass_all = to_numpy(op.mass_matrices(Xt[all_rows, :d], Xt[all_rows, d : 2 * d]))
+
+    def make_scorer(stats):
+        full = stats.fit.sum(0)  # (d, P, P)
+        mag = np.sqrt(np.clip(np.einsum("ipp->ip", full)[:, :n_features], 0, None))
+        model = mag @ np.abs(start_coef)  # (d,)
+        meas = (
+            np.zeros(d)
+            if passive
+            else np.sqrt(np.clip(full[:, target, target], 0, None))
+        )
+        scale = np.maximum(model, meas) ** 2
+        w = 1.0 / np.where(scale > 0, scale, 1.0)
+        sc = _Scorer(stats, n_features, target, fixed_col, nonneg, w, mass)
+        ref = []
+        for g in stats.raw:
+            magk = np.sqrt(np.clip(np.einsum("ipp->ip", g)[:, :n_features], 0, None))
+            mk = magk @ np.abs(start_coef)
+            tk = (
+                np.zeros(d)
+                if passive
+                else np.sqrt(np.clip(g[:, target, target], 0, None))
+            )
+            ref.append(np.maximum(mk, tk) ** 2)
+        sc.reference = ref
+        return sc
+
+    scorer_s = make_scorer(stats_s)
+    scorer = make_scorer(stats_w) if stats_w is not None else scorer_s
+    criterion = "trajectory (weak form)" if stats_w is not None else "pointwise"
+    degenerate = set()
+
+    def support_of(model):
+        s = {index[str(t)] for t, c in zip(model.library_.terms_, model.coef_) if c}
+        s |= {
+            index[f.name]
+            for f, c in zip(model.dissipation_terms_, model.dissipation_coef_)
+            if c
+        }
+        return s
+
+    def valid(support):
+        coef = scorer.coefficients(support)
+        c = np.zeros(n_lib)
+        for j, v in coef.items():
+            if j < n_lib:
+                c[j] = v
+        return _mass_definite(mass_all, c)
+
+    def J(support):
+        value, per_fold, bad = scorer.score(support)
+        for k in bad:
+            degenerate.add(k)
+        return value, per_fold
+
+    s0 = support_of(est)
+    j0, _ = J(s0)
+    start_valid = valid(s0)
+    # A model that cannot predict some accelerations is beaten by any valid one.
+    value0 = j0 if start_valid else np.inf
+    p0 = scorer_s.score(s0)[0]
+    if verbose:
+        print(f"[lagsindy] before: held-out {criterion} error {j0:.4g}")
+
+    by_name = {c.name: c for c in candidates}
+    current, support, value = est, s0, value0
+    effects, gains, rankings, history = [], {}, [], {}
+    changes = {"removed": [], "added": []}
+    stop_reason = ""
+
+    def fit_with(effs, gns, penalized=()):
+        return _fit_model(
+            est,
+            Xf,
+            _adjusted_tau(tau_a, gns),
+            groups,
+            effects=effs,
+            penalized=penalized,
+            eps=eps,
+        )
+
+    def nonneg_ok(model, effs):
+        names_ = {e.name for e in effs if e.kind in _NONNEGATIVE}
+        return all(
+            c >= 0
+            for f, c in zip(model.dissipation_terms_, model.dissipation_coef_)
+            if f.name in names_
+        )
+
+    total_ref = float(sum(scorer.w @ r for r in scorer.reference))
+
+    def contributes(model, cand, gns):
+        """The effect's share of the force scale is above rounding in ``model``."""
+        c = _effect_coefficient(model, cand, gns)
+        size = abs(c) * scorer.col[index[cand.name]]
+        return size**2 > _PRECISION * total_ref
+
+    # ------------------------------------------------ step 1: joint revision of L
+    if revise and diss:
+        try:
+            joint = fit_with([], {}, penalized=diss)
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+            joint = None
+            if verbose:
+                print(f"[lagsindy] joint fit failed: {exc}")
+        if joint is not None:
+            sj = support_of(joint)
+            kept = [by_name[f.name] for f, c in zip(joint.dissipation_terms_,
+                                                    joint.dissipation_coef_)
+                    if c and f.name in by_name]
+            # Backward pruning: each kept effect must pass the test of an added one
+            # (explain min_explained of the held-out criterion, improve every fold,
+            # improve the criterion by min_improvement); drop the weakest until so.
+            while kept:
+                jj, folds_j = J(sj)
+                trials = []
+                for e in kept:
+                    v, folds_v = J(sj - {index[e.name]})
+                    ok = np.isfinite(folds_v) & np.isfinite(folds_j)
+                    share = 1 - jj**2 / v**2 if np.isfinite(v) and v > 0 else 1.0
+                    passes = (
+                        share >= min_explained
+                        and jj < (1 - min_improvement) * v
+                        and bool(ok.any() and np.all(folds_j[ok] < folds_v[ok]))
+                    )
+                    trials.append((passes, share, e))
+                failing = [t for t in trials if not t[0]]
+                if not failing:
+                    break
+                weakest = min(failing, key=lambda t: t[1])[2]
+                kept.remove(weakest)
+                sj = sj - {index[weakest.name]}
+            if verbose:
+                print(f"[lagsindy] joint revision keeps {[e.name for e in kept]}")
+            if kept:
+                revised = fit_with(kept, {})
+                sr = support_of(revised)
+                jr, _ = J(sr)
+                if (
+                    jr < (1 - min_improvement) * value
+                    and valid(sr)
+                    and nonneg_ok(revised, kept)
+                ):
+                    current, support, value, effects = revised, sr, jr, list(kept)
+                    for e in kept:
+                        history[e.name] = ("joint", jr)
+                elif verbose:
+                    print(
+                        f"[lagsindy] the revision does not improve the held-out "
+                        f"criterion ({value:.4g} -> {jr:.4g}); kept the model"
+                    )
+
+    # ------------------------------------------------ step 2: forward additions
+    for _ in range(max(0, max_effects - len(effects))):
+        if min(value, scorer_s.score(support)[0]) ** 2 <= _PRECISION:
+            stop_reason = "the remaining residual is at rounding level"
+            break
+        taken = {e.name for e in effects} | {f"gain({coords[i]})" for i in gains}
+        pool = [c for c in candidates if c.name not in taken]
+        if gains and len(gains) >= len(gain) - 1:
+            # Gains on every input would leave the model's scale free (all zero).
+            pool = [c for c in pool if c.kind != "gain"]
+        if not pool:
+            stop_reason = "every candidate is in the model"
+            break
+        base_value, base_folds = J(support)
+        rows = []
+        for c in pool:
+            j = index[c.name]
+            if j in support:
+                continue
+            v, folds_v = J(support | {j})
+            coef = scorer.coefficients(support | {j}).get(j, 0.0)
+            ok = np.isfinite(folds_v) & np.isfinite(base_folds)
+            rows.append(
+                {
+                    "kind": c.kind,
+                    "term": c.name,
+                    "explained": float(1 - v**2 / base_value**2)
+                    if np.isfinite(base_value) and base_value > 0
+                    else (1.0 if np.isfinite(v) else 0.0),
+                    "every_fold": bool(ok.any() and np.all(folds_v[ok] < base_folds[ok])),
+                    "criterion": v,
+                    "coefficient": float(coef),
+                }
+            )
+        table = pd.DataFrame(rows)
+        if not len(table):
+            stop_reason = "every candidate is in the model"
+            break
+        table = table.sort_values("explained", ascending=False, kind="stable")
+        table = table.reset_index(drop=True)
         rankings.append(table)
         if verbose:
             print(table.head(5).to_string())
-        if not len(table):
-            if verbose:
-                print(
-                    "[lagsindy] the residual is at rounding level: nothing left to explain"
-                )
-            break
-        top = table.iloc[0]
-        if top["explained"] < min_explained or top["worst_fold"] <= 0:
-            break
-        best = next(c for c in candidates if c.name == top["term"])
-        trial_gains, trial_effects = dict(gains), list(effects)
-        if best.kind == "gain":
-            trial_gains[best.term] = trial_gains.get(best.term, 0.0) + float(
-                top["coefficient"]
+        eligible = table[(table.explained >= min_explained) & table.every_fold]
+        if not len(eligible):
+            top = table.iloc[0]
+            stop_reason = (
+                f"the best remaining candidate, {top['term']}, explains "
+                f"{top['explained']:.2%} of the held-out residual (needs "
+                f"{min_explained:.0%} and every fold better)"
             )
-        else:
-            trial_effects.append(best)
-        tau_now = _adjusted_tau(tau_a, trial_gains)
-        trial = _refit(est, trial_effects, Xf, tau_now, groups)
-        err = _heldout_error(trial, Xf, tau_now, groups, folds)
-        previous = steps[-1].heldout_error if steps else before_err
-        if not err < (1 - min_improvement) * previous:
-            # It explains residual but does not predict held-out motion better: noise.
-            rejected = top["term"]
+            break
+        accepted = False
+        for _, top in eligible.head(3).iterrows():
+            best = by_name[top["term"]]
+            trial_effects, trial_gains = list(effects), dict(gains)
+            if best.kind == "gain":
+                trial_gains[best.term] = trial_gains.get(best.term, 0.0) + float(
+                    top["coefficient"]
+                )
+            else:
+                trial_effects.append(best)
+            try:
+                trial = fit_with(trial_effects, trial_gains)
+            except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                continue
+            st = support_of(trial)
+            if best.kind == "gain":
+                # The adjusted input carries the gain; score with its column too.
+                st = st | {index[best.name]}
+            jt, _ = J(st)
+            if (
+                jt < (1 - min_improvement) * value
+                and valid(st)
+                and nonneg_ok(trial, trial_effects)
+                and contributes(trial, best, trial_gains)
+            ):
+                current, support, value = trial, st, jt
+                effects, gains = trial_effects, trial_gains
+                if best.kind == "gain":
+                    effects_gain = best
+                    history[effects_gain.name] = ("added", jt)
+                else:
+                    history[best.name] = ("added", jt)
+                accepted = True
+                if verbose:
+                    print(f"[lagsindy] added {best.name}: held-out {jt:.4g}")
+                break
             if verbose:
                 print(
-                    f"[lagsindy] {rejected} does not improve held-out predictions "
-                    f"({previous:.3g} -> {err:.3g}): stop"
+                    f"[lagsindy] {best.name} does not improve held-out predictions "
+                    f"after the refit ({value:.4g} -> {jt:.4g})"
                 )
-            table.attrs["rejected"] = (rejected, previous, err)
+        if not accepted:
+            stop_reason = (
+                f"{eligible.iloc[0]['term']} explains part of the residual but the "
+                "refitted model does not predict held-out trajectories better"
+            )
+            table.attrs["rejected"] = eligible.iloc[0]["term"]
             break
-        current, gains, effects = trial, trial_gains, trial_effects
-        coefficient = _effect_coefficient(current, best, gains)
-        residual = _residual(current, Xf, tau_now)
-        residuals.append(residual)
+    else:
+        stop_reason = f"max_effects={max_effects} reached"
+
+    # ------------------------------------------------ step 3: never worse
+    final = current
+    if current is not est and not value < value0:
+        final, support, effects, gains = est, s0, [], {}
+        stop_reason = "the diagnosed model does not beat the starting one held out"
+    if final is est:
+        value = j0
+    p1 = scorer_s.score(support)[0]
+    lib_before = {str(t) for t, c in zip(est.library_.terms_, est.coef_) if c}
+    lib_after = {str(t) for t, c in zip(final.library_.terms_, final.coef_) if c}
+    effect_terms = {e.name for e in effects if e.kind == "conservative"}
+    changes = {
+        "removed": sorted(lib_before - lib_after),
+        "added": sorted(lib_after - lib_before - effect_terms),
+    }
+
+    tau_final = _adjusted_tau(tau_a, gains)
+    residual_before = _residual(est, Xf, tau_a)
+    residual_after = _residual(final, Xf, tau_final)
+    # The scale a residual is compared with: the measured force, or the model's
+    # force contributions where they are larger (an undriven coordinate).
+    force_rms = _force_scale(est, Xt)
+    if not passive:
+        force_rms = np.maximum(force_rms, np.sqrt(np.mean(tau_a**2, axis=0)))
+    steps = []
+    all_effects = list(effects) + [by_name[f"gain({coords[i]})"] for i in gains]
+    for e in all_effects:
+        how, after = history.get(e.name, ("added", value))
+        without = support - {index[e.name]}
+        v_without = J(without)[0]
+        explained = (
+            float(1 - value**2 / v_without**2) if np.isfinite(v_without) else 1.0
+        )
         steps.append(
             Step(
-                candidate=best,
-                coefficient=coefficient,
-                units=_units(current, best, angles, passive),
-                explained=float(top["explained"]),
+                candidate=e,
+                coefficient=_effect_coefficient(final, e, gains),
+                units=_units(e, units, passive),
+                explained=explained,
                 fold_explained=[],
-                residual_rms=np.sqrt(np.mean(residual**2, axis=0)),
-                heldout_error=err,
-                equation=current.equation(4),
-                ranking=table,
+                residual_rms=np.sqrt(np.mean(residual_after**2, axis=0)),
+                heldout_error=after,
+                equation=final.equation(4),
+                ranking=rankings[-1] if rankings else pd.DataFrame(),
+                how=how,
             )
         )
-        if verbose:
-            print(
-                f"[lagsindy] added {best.name}: coefficient {coefficient:.5g}, "
-                f"held-out error {err:.3g}"
-            )
+    fold_names = [
+        f"fold {k + 1} ({sum(len(b) for b in folds[k])} samples)"
+        for k in sorted(degenerate)
+    ]
+    if fold_names:
+        warnings.warn(
+            "diagnose excluded degenerate folds from some models' held-out scores "
+            "(their refits have a singular or indefinite mass matrix): "
+            + ", ".join(fold_names),
+            UserWarning,
+            stacklevel=2,
+        )
     return DiagnosisReport(
         initial=est,
-        final=current,
-        residual_rms_before=np.sqrt(np.mean(before_residual**2, axis=0)),
-        force_rms=force_scale,
-        heldout_error_before=before_err,
+        final=final,
+        residual_rms_before=np.sqrt(np.mean(residual_before**2, axis=0)),
+        residual_rms_after=np.sqrt(np.mean(residual_after**2, axis=0)),
+        force_rms=force_rms,
+        heldout_error_before=float(j0),
+        heldout_error_after=float(value),
+        pointwise_before=float(p0),
+        pointwise_after=float(p1),
+        criterion=criterion,
         steps=steps,
         rankings=rankings,
-        coordinates=list(est.coordinates_),
+        coordinates=coords,
         passive=passive,
+        lagrangian_changes=changes,
+        degenerate_folds=fold_names,
+        stop_reason=stop_reason,
         settings={
             "n_splits": n_splits,
+            "fold_kind": fold_kind,
             "min_explained": min_explained,
             "catalogue": tuple(catalogue),
+            "eps": dict(eps),
+            "window": win if stats_w is not None else None,
+            "start_valid": start_valid,
         },
         _data={
             "X": Xa,
             "tau": tau_a,
-            "residual_before": before_residual,
-            "residuals": residuals,
+            "residual_before": residual_before,
+            "residual_after": residual_after,
         },
     )
 

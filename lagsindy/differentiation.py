@@ -8,8 +8,9 @@ positions directly (and cross-validates with ``GroupKFold`` over trajectories).
 
 Methods (``method=``):
 
-* ``"pspline"`` (default): a quintic B-spline with knots every two samples and a
-  penalty on differences of its coefficients (a P-spline). The amount of smoothing,
+* ``"pspline"`` (default): a quintic B-spline with knots every two samples (on
+  records of any length: no cap on the number of knots) and a penalty on
+  differences of its coefficients (a P-spline). The amount of smoothing,
   and whether 3rd or 4th differences are penalised, are chosen per trajectory and
   coordinate by generalized cross-validation (GCV), so nothing needs tuning and the
   result does not depend on the units of q or t. q_dot and q_ddot are the spline's
@@ -26,7 +27,17 @@ Methods (``method=``):
   deviation sigma becomes ``sqrt(6) sigma / dt**2`` in q_ddot).
 
 Time stamps may be non-uniform: every method uses them directly (no resampling).
-Angles can be unwrapped per trajectory before differentiating (``angles=``).
+Angles can be unwrapped per trajectory before differentiating (``angles=``). A step
+longer than ``gap_factor`` (5) median steps is a gap: the trajectory is cut there
+and each segment differentiated on its own, with one warning saying where
+(:func:`split_gaps` gives the segment labels to fit with); rows far closer than the
+median step (duplicated or mistimed frames) are reported by row.
+
+Cost of the P-spline: uniformly sampled trajectories of up to ~1190 samples share
+one eigendecomposition per sampling pattern; longer or irregularly sampled ones use
+banded solves with an exact GCV trace, linear in the number of samples (measured
+1.1-1.4 s of CPU per 1e5 samples on one trajectory, 13 s for 1e6;
+``python -m benchmarks.differentiation --long``).
 
 Accuracy, measured by ``python -m benchmarks.differentiation`` on
 ``make_dataset(cart_pendulum(), n_trajectories=20, excitation="sincos",
@@ -73,7 +84,9 @@ from numbers import Integral, Real
 import numpy as np
 import pandas as pd
 from scipy.interpolate import BSpline, make_smoothing_spline
+from scipy import sparse
 from scipy.linalg import eigh, solve_triangular, solveh_banded
+from scipy.linalg.lapack import zgbtrf, zgbtrs
 from scipy.signal import savgol_filter
 from sklearn.base import BaseEstimator, TransformerMixin, _fit_context
 from sklearn.utils._param_validation import Interval, StrOptions
@@ -184,14 +197,12 @@ def _cubic_spline(q, t, lam):
 
 # ----------------------------------------------------------------- quintic P-spline
 def _pspline_spans(n: int) -> int:
-    """Knot spans for ``n`` samples: one per two samples, at most 500.
+    """Knot spans for ``n`` samples: one per two samples, on records of any length.
 
     ``n_spans + degree`` coefficients stay below ``n`` so the unpenalized fit is a
     regression (GCV is then finite as the penalty goes to zero).
     """
-    return int(
-        max(1, min(round((n - 1) / 2), n - _PSPLINE_DEGREE - 1, _PSPLINE_MAX_SPANS))
-    )
+    return int(max(1, min(round((n - 1) / 2), n - _PSPLINE_DEGREE - 1)))
 
 
 class _PSpline:
@@ -280,6 +291,153 @@ class _PSpline:
         return self.B @ coef, self.B1 @ coef, self.B2 @ coef, lam, score
 
 
+class _BandedPSpline:
+    r"""The P-spline of :class:`_PSpline` at a cost linear in the number of samples.
+
+    Same basis, penalty and GCV criterion; used for records longer than
+    ``_PSPLINE_DENSE_MAX`` coefficients and for non-uniform time stamps (where no
+    factorisation can be shared between trajectories). The basis matrix is sparse
+    and the normal equations are banded (bandwidth 5). The trace of the hat matrix,
+    :math:`\mathrm{tr}\,H = \mathrm{tr}((G + \lambda P)^{-1} G)`, is the derivative
+    :math:`\partial_\epsilon \log\det(G + \lambda P + \epsilon G)` at 0, computed
+    exactly (to rounding) by a complex step through LAPACK's banded LU
+    (``zgbtrf``): the pivots of :math:`G + \lambda P + i h G` are
+    :math:`u_{ii} + i h\,u'_{ii}` and :math:`\mathrm{tr}\,H = \sum_i u'_{ii} /
+    u_{ii}`; the truncation error is of order :math:`h^2`, nothing at
+    ``h = 1e-30``. Deterministic (no random trace estimate) and O(n) per lambda.
+
+    Lambda is searched on the same kind of log grid as :class:`_PSpline` (10 points
+    per decade): every 20th point first (2 decades apart), then a golden-section
+    search over the grid points within 2 decades of each column's best coarse point.
+    This finds the grid minimum whenever GCV has a single minimum in that window;
+    about 17 factorisations per penalty order and trajectory.
+    """
+
+    def __init__(self, t: np.ndarray, penalty_order: int):
+        n = len(t)
+        degree = _PSPLINE_DEGREE
+        n_spans = _pspline_spans(n)
+        h = (t[-1] - t[0]) / n_spans
+        knots = t[0] + h * np.arange(-degree, n_spans + degree + 1)
+        knots[degree] = t[0]  # exact ends, so design_matrix accepts t[0] and t[-1]
+        knots[-degree - 1] = t[-1]
+        B = BSpline.design_matrix(t, knots, degree).tocsr()
+        nb = B.shape[1]
+        G = (B.T @ B).tocsr()
+        D = sparse.diags(
+            _difference_coefficients(penalty_order),
+            offsets=np.arange(penalty_order + 1),
+            shape=(nb - penalty_order, nb),
+        )
+        P = (D.T @ D).tocsr()
+        Gb = np.zeros((degree + 1, nb))
+        Pb = np.zeros((degree + 1, nb))
+        for k in range(degree + 1):
+            Gb[degree - k, k:] = G.diagonal(k)
+            Pb[degree - k, k:] = P.diagonal(k)
+        Gb[degree] += 1e-12 * Gb[degree].sum() / nb  # the ridge of _PSpline
+        self.B = B
+        self.knots = knots
+        self.times = t
+        self.G_banded = Gb
+        self.P_banded = Pb
+        self.n = n
+        self.nb = nb
+        self._bands = None  # complex general-band G (1 + ih) and P, built on demand
+        # Grid as in _PSpline, from 1e-4 / s_max (essentially no smoothing) to the
+        # largest lambda the banded solve resolves. s_max, the largest eigenvalue of
+        # G^-1 P, is taken as the Rayleigh quotient of the alternating vector (the
+        # roughest coefficients, its eigenvector away from the ends).
+        alt = (-1.0) ** np.arange(nb)
+        s_max = float(alt @ (P @ alt)) / float(alt @ (G @ alt))
+        lo = np.log10(1e-4 / s_max)
+        hi = max(_PSPLINE_MAX_LOG_LAMBDA, lo + 1.0)
+        self.grid = np.logspace(lo, hi, int(np.ceil(10 * (hi - lo))) + 1)
+
+    def _general_band(self, upper: np.ndarray) -> np.ndarray:
+        """A symmetric upper band in LAPACK general band storage (for zgbtrf)."""
+        p = _PSPLINE_DEGREE
+        nb = self.nb
+        ab = np.zeros((3 * p + 1, nb), dtype=np.complex128)
+        for k in range(p + 1):
+            diag = upper[p - k, k:]
+            ab[2 * p - k, k:] = diag  # entry (i, i + k)
+            if k:
+                ab[2 * p + k, : nb - k] = diag  # entry (i + k, i)
+        return ab
+
+    def gcv(self, lam: float, q: np.ndarray, Bty: np.ndarray) -> np.ndarray:
+        """GCV score of every column at one lambda (exact trace, O(n))."""
+        p = _PSPLINE_DEGREE
+        if self._bands is None:
+            self._bands = (
+                self._general_band(self.G_banded * (1.0 + 1j * _COMPLEX_STEP)),
+                self._general_band(self.P_banded),
+            )
+        G, P = self._bands
+        lu, piv, info = zgbtrf(G + lam * P, p, p, overwrite_ab=1)
+        if info != 0:  # pragma: no cover - G + lam P is positive definite
+            return np.full(q.shape[1], np.inf)
+        pivots = lu[2 * p]
+        edf = float(np.sum(pivots.imag / pivots.real)) / _COMPLEX_STEP
+        coef, info = zgbtrs(lu, p, p, Bty, piv)
+        rss = np.sum((q - self.B @ coef.real) ** 2, axis=0)
+        return self.n * rss / (self.n - edf) ** 2
+
+    def search(self, q: np.ndarray, Bty: np.ndarray):
+        """Grid index of the GCV minimum per column, and the scores there."""
+        n_cols = q.shape[1]
+        last = len(self.grid) - 1
+        scores: dict[int, np.ndarray] = {}
+
+        def score(i: int) -> np.ndarray:
+            if i not in scores:
+                scores[i] = self.gcv(float(self.grid[i]), q, Bty)
+            return scores[i]
+
+        step = _PSPLINE_COARSE_STEP
+        coarse = sorted(set(range(0, last + 1, step)) | {last})
+        table = np.stack([score(i) for i in coarse])
+        best = np.empty(n_cols, dtype=int)
+        for j in range(n_cols):
+            k = coarse[int(np.argmin(table[:, j]))]
+            a, b = max(k - step, 0), min(k + step, last)
+            while b - a > 3:  # golden-section search over the integers a..b
+                m1 = a + int(round(0.382 * (b - a)))
+                m2 = a + int(round(0.618 * (b - a)))
+                if score(m1)[j] <= score(m2)[j]:
+                    b = m2
+                else:
+                    a = m1
+            cand = list(range(a, b + 1)) + [k]
+            best[j] = min(cand, key=lambda i: (score(i)[j], i))
+        return best, np.array([scores[int(best[j])][j] for j in range(n_cols)])
+
+    def fit(self, q: np.ndarray, smoothing=None):
+        """Fit and its first two derivatives at the times; lambda, GCV per column."""
+        n_cols = q.shape[1]
+        Bty = np.asarray(self.B.T @ q)
+        if smoothing is None:
+            best, score = self.search(q, Bty.astype(np.complex128))
+            lam = self.grid[best]
+        else:
+            lam = np.full(n_cols, float(smoothing))
+            score = np.full(n_cols, np.nan)
+        coef = np.empty_like(Bty)
+        for value in np.unique(lam):
+            cols = lam == value
+            ab = self.G_banded + value * self.P_banded
+            coef[:, cols] = solveh_banded(ab, Bty[:, cols], check_finite=False)
+        spline = BSpline(self.knots, coef, _PSPLINE_DEGREE)
+        t = self.times
+        return spline(t), spline(t, nu=1), spline(t, nu=2), lam, score
+
+
+def _difference_coefficients(order: int) -> list[float]:
+    """Coefficients of the ``order``-th forward difference, e.g. [-1, 3, -3, 1]."""
+    return [float(c) for c in np.diff(np.eye(order + 1), order, axis=0)[0]]
+
+
 def _upper_banded(A: np.ndarray, bandwidth: int) -> np.ndarray:
     """Upper banded storage of a symmetric matrix, as ``solveh_banded`` reads it."""
     n = A.shape[0]
@@ -298,7 +456,11 @@ def _pspline(q, t, smoothing=None, cache=None):
     through ``cache`` between trajectories with the same uniform sampling.
     """
     orders = _PSPLINE_ORDERS if smoothing is None else _PSPLINE_ORDERS[-1:]
-    if cache is not None and _is_uniform(t):
+    uniform = _is_uniform(t)
+    dense = uniform and _pspline_spans(len(t)) + _PSPLINE_DEGREE <= _PSPLINE_DENSE_MAX
+    if not dense:
+        factors = {m: _BandedPSpline(t, m) for m in orders}
+    elif cache is not None:
         step = (t[-1] - t[0]) / (len(t) - 1)
         key = (len(t), float(f"{step:.9e}"))
         factors = cache.get(key)
@@ -322,9 +484,15 @@ _PSPLINE_MAX_LOG_LAMBDA = 10.0
 # 4 towards cubics. GCV picks per trajectory and coordinate; on the paper's systems
 # it chose 4 for most coordinates at sigma = 1e-3 and mixed at 1e-2.
 _PSPLINE_ORDERS = (3, 4)
-# Caps the basis (and the O(n_basis^3) eigenproblem) on long trajectories: 500 spans
-# keep knots every 2 samples up to 1000 samples per trajectory.
-_PSPLINE_MAX_SPANS = 500
+# Uniformly sampled trajectories with up to this many coefficients (about 1190
+# samples) use the Demmler-Reinsch eigenbasis (O(n_basis^3) once, shared by all
+# trajectories with the same sampling, then every lambda of the grid at once);
+# longer or non-uniformly sampled ones the banded O(n) path (_BandedPSpline).
+_PSPLINE_DENSE_MAX = 600
+# _BandedPSpline's coarse lambda scan: every 20th grid point (2 decades).
+_PSPLINE_COARSE_STEP = 20
+# Complex step of _BandedPSpline's exact trace (relative to G; error ~ step**2).
+_COMPLEX_STEP = 1e-30
 
 
 # ----------------------------------------------------------------- validation helpers
@@ -453,6 +621,174 @@ def _is_uniform(t: np.ndarray) -> bool:
     return bool(np.max(np.abs(steps - mean)) <= _UNIFORM_RTOL * mean)
 
 
+
+# ----------------------------------------------------------------- gaps and glitches
+# A step longer than this many times the median step of its trajectory is a gap.
+_GAP_FACTOR = 5.0
+# A step shorter than this fraction of the median step is a timing glitch.
+_GLITCH_FRACTION = 0.25
+
+
+def _split_at_gaps(times, segments, factor):
+    """Cut segments at gaps; returns (new segments, gaps, glitches).
+
+    ``gaps`` lists ``(key, row, step, median)`` for each step longer than ``factor``
+    median steps (the row is the first after the gap); ``glitches`` the rows that
+    come less than ``_GLITCH_FRACTION`` median steps after the previous row, in
+    trajectories on a regular clock (90 % of the steps within 10 % of the median).
+    """
+    out, gaps, glitches = [], [], []
+    for key, sl in segments:
+        steps = np.diff(times[sl])
+        if steps.size == 0:
+            out.append((key, sl))
+            continue
+        median = float(np.median(steps))
+        # glitches only mean something on a regular clock (most steps near the median)
+        if np.mean(np.abs(steps - median) <= 0.1 * median) >= 0.9:
+            short = np.flatnonzero(steps < _GLITCH_FRACTION * median)
+            glitches.extend((sl.start + 1 + short).tolist())
+        if factor is None:
+            out.append((key, sl))
+            continue
+        cut = np.flatnonzero(steps > factor * median)
+        if cut.size == 0:
+            out.append((key, sl))
+            continue
+        bounds = [sl.start, *(sl.start + cut + 1).tolist(), sl.stop]
+        for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+            out.append(((key, k), slice(a, b)))
+        for c in cut:
+            gaps.append((key, sl.start + int(c) + 1, float(steps[c]), median))
+    return out, gaps, glitches
+
+
+def _describe_rows(rows, times, limit=5):
+    shown = ", ".join(f"{r} (t = {times[r]:.6g})" for r in rows[:limit])
+    return shown + (f" and {len(rows) - limit} more" if len(rows) > limit else "")
+
+
+def _warn_gaps(gaps, times, factor, stacklevel=3):
+    rows = [g[1] for g in gaps]
+    worst = max(gaps, key=lambda g: g[2] / g[3])
+    warnings.warn(
+        f"{len(gaps)} gap(s) in the time stamps (a step longer than {factor:g} times "
+        f"the trajectory's median step) before row(s) {_describe_rows(rows, times)}; "
+        f"the longest is {worst[2]:.4g} s against a median step of {worst[3]:.4g} s. "
+        f"Derivatives were estimated on the {len(gaps)} extra segment(s) separately. "
+        "Fit with the segments as trajectories, so that the weak form and "
+        "cross-validation never span a gap: groups = split_gaps(t, groups) "
+        "(lagsindy.differentiation), or derivatives(..., return_groups=True)",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+
+
+def _warn_glitches(glitches, times, stacklevel=3):
+    warnings.warn(
+        f"{len(glitches)} row(s) come less than {_GLITCH_FRACTION:g} median steps after "
+        f"the previous row: {_describe_rows(glitches, times)}. Duplicated or "
+        "mistimed frames? Their derivatives are kept (the time stamps are used as "
+        "given), but check those rows and drop them or repair their time stamps",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+
+
+def split_gaps(t, groups=None, *, gap_factor: float = _GAP_FACTOR) -> np.ndarray:
+    """Trajectory labels with every trajectory cut at its gaps in time.
+
+    A gap is a time step longer than ``gap_factor`` times the median step of its
+    trajectory. Pass the result as ``groups`` to :func:`derivatives`,
+    :meth:`LagrangianSINDy.fit <lagsindy.LagrangianSINDy.fit>` and cross-validation,
+    so that no estimate (splines, the weak form's integrals) spans a gap.
+
+    Parameters
+    ----------
+    t : array-like of shape (n_samples,)
+        Time stamps, strictly increasing within each trajectory.
+    groups : array-like of shape (n_samples,), default=None
+        Trajectory labels (rows of a trajectory contiguous); ``None``: one trajectory.
+    gap_factor : float, default=5.0
+        Steps longer than this many median steps are gaps.
+
+    Returns
+    -------
+    ndarray of int of shape (n_samples,)
+        Segment number of each row, 0, 1, ... in row order (a trajectory without
+        gaps keeps one number).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from lagsindy.differentiation import split_gaps
+    >>> t = np.r_[np.arange(5), np.arange(10, 14)] * 0.01
+    >>> split_gaps(t).tolist()
+    [0, 0, 0, 0, 0, 1, 1, 1, 1]
+    """
+    if not (isinstance(gap_factor, Real) and gap_factor > 1):
+        raise ValueError(f"gap_factor must be a number > 1, got {gap_factor!r}")
+    n = np.shape(t)[0] if np.ndim(t) else 0
+    segments = _segments(groups, n)
+    times = _check_times(t, n, segments)
+    cut, _, _ = _split_at_gaps(times, segments, gap_factor)
+    labels = np.empty(n, dtype=int)
+    for k, (_, sl) in enumerate(cut):
+        labels[sl] = k
+    return labels
+
+
+def check_weak_form_segments(X, n_dof: int, segments, dt: float) -> None:
+    """Refuse trajectories that jump in time, for the weak form (uniform ``dt``).
+
+    The weak form integrates over windows of consecutive rows as if they were
+    ``dt`` apart. Where a trajectory has a gap, the positions jump between two rows:
+    ``|q[s+1] - q[s]|`` exceeds 4 times ``|dt (qd[s] + qd[s+1]) / 2|`` plus 10 times
+    the robust spread of that mismatch (the noise).
+
+    Parameters
+    ----------
+    X : ndarray of shape (n_samples, >= 2 * n_dof)
+        ``[q, q_dot, ...]``.
+    n_dof : int
+        Number of coordinates.
+    segments : list of integer arrays
+        Rows of each trajectory, in time order.
+    dt : float
+        The sampling interval the weak form assumes.
+
+    Raises
+    ------
+    ValueError
+        Naming the trajectory and row of the first jump, and what to do.
+    """
+    X = np.asarray(X, dtype=float)
+    q, qd = X[:, :n_dof], X[:, n_dof : 2 * n_dof]
+    for k, rows in enumerate(segments):
+        rows = np.asarray(rows).astype(np.intp)
+        if rows.size < 3:
+            continue
+        step = np.diff(q[rows], axis=0)
+        expected = dt * (qd[rows][1:] + qd[rows][:-1]) / 2
+        mismatch = np.abs(step - expected)
+        spread = 1.4826 * np.median(
+            np.abs(mismatch - np.median(mismatch, axis=0)), axis=0
+        )
+        jump = np.abs(step) > 4 * np.abs(expected) + 10 * spread + 1e-12
+        if jump.any():
+            s = int(np.flatnonzero(jump.any(axis=1))[0])
+            raise ValueError(
+                "formulation='weak' integrates over consecutive rows as if they were "
+                f"dt = {dt:.4g} s apart, but trajectory {k} (rows {rows[0]}-"
+                f"{rows[-1]}) jumps between rows {rows[s]} and {rows[s + 1]}: the "
+                "positions change far more than the velocities allow, as across a gap "
+                "in the time stamps. Cut the trajectories at their gaps and pass the "
+                "segments as groups (groups = lagsindy.differentiation.split_gaps(t, "
+                "groups), or derivatives(..., return_groups=True)), or fit with "
+                "formulation='strong'"
+            )
+
+
 # ----------------------------------------------------------------- public function
 def derivatives(
     q,
@@ -464,7 +800,9 @@ def derivatives(
     polyorder: int = 4,
     smoothing: float | None = None,
     angles=None,
-) -> np.ndarray:
+    gap_factor: float | None = _GAP_FACTOR,
+    return_groups: bool = False,
+):
     """Estimate ``[q, q_dot, q_ddot]`` from sampled positions, trajectory by trajectory.
 
     Parameters
@@ -507,13 +845,27 @@ def derivatives(
         per trajectory before differentiating, so a jump from pi to -pi is read as
         continued rotation; the returned positions of these coordinates are the
         unwrapped (continuous) angles, not reduced to (-pi, pi].
+    gap_factor : float or None, default=5.0
+        A time step longer than ``gap_factor`` times the median step of its
+        trajectory is a gap: the trajectory is cut there and each segment is
+        differentiated on its own (nothing is interpolated across a gap), with one
+        ``UserWarning`` saying where. Fit with the segments as trajectories
+        (``return_groups=True`` or :func:`split_gaps`). ``None``: no gap detection.
+        Rows less than a quarter of the median step after the previous one
+        (duplicated or mistimed frames) are reported by a ``UserWarning`` naming
+        them.
+    return_groups : bool, default=False
+        Also return the segment labels (see :func:`split_gaps`).
 
     Returns
     -------
-    ndarray of shape (n_samples, 3 * n_dof)
+    X : ndarray of shape (n_samples, 3 * n_dof)
         Columns ``[q..., q_dot..., q_ddot...]``, rows in the input order. The first
         block is the smoothed fit of q for the smoothing methods and q itself
         (unwrapped) for ``"finite_difference"``.
+    groups : ndarray of int of shape (n_samples,)
+        Only with ``return_groups=True``: the segment number of each row (the
+        trajectories cut at their gaps), to pass as ``groups`` to ``fit``.
 
     Raises
     ------
@@ -575,12 +927,28 @@ def derivatives(
             f"smoothing must be None (GCV) or a float >= 0, got {smoothing!r}"
         )
     mask = _angle_mask(angles, n_dof)
+    if gap_factor is not None and not (isinstance(gap_factor, Real) and gap_factor > 1):
+        raise ValueError(
+            f"gap_factor must be a number > 1 or None, got {gap_factor!r}"
+        )
     segments = _segments(groups, n)
     times = _check_times(t, n, segments)
+    segments, gaps, glitches = _split_at_gaps(times, segments, gap_factor)
+    if gaps:
+        _warn_gaps(gaps, times, gap_factor)
+    if glitches:
+        _warn_glitches(glitches, times)
     need = _MIN_SAMPLES[method]
     for key, sl in segments:
         if sl.stop - sl.start < need:
-            where = "the data have" if key is None else f"trajectory {key!r} has"
+            if isinstance(key, tuple):
+                where = (
+                    f"segment {key[1]} of "
+                    + ("the data" if key[0] is None else f"trajectory {key[0]!r}")
+                    + " (between gaps in t) has"
+                )
+            else:
+                where = "the data have" if key is None else f"trajectory {key!r} has"
             raise ValueError(
                 f"method={method!r} needs at least {need} samples per trajectory, but "
                 f"{where} {sl.stop - sl.start}; use a method that needs fewer "
@@ -619,6 +987,11 @@ def derivatives(
             UserWarning,
             stacklevel=2,
         )
+    if return_groups:
+        labels = np.empty(n, dtype=int)
+        for k, (_, sl) in enumerate(segments):
+            labels[sl] = k
+        return out, labels
     return out
 
 
@@ -703,6 +1076,11 @@ class Derivatives(TransformerMixin, BaseEstimator):
         time or trajectory column.
     dt : float, default=None
         Sampling interval, used only when ``time=None``.
+    gap_factor : float or None, default=5.0
+        Steps longer than this many median steps are gaps: each trajectory is
+        differentiated segment by segment (a ``UserWarning`` says where). Fit with
+        ``groups=split_gaps(t, trajectory)`` so that the estimator sees the
+        segments too. ``None``: no gap detection.
 
     Attributes
     ----------
@@ -748,6 +1126,7 @@ class Derivatives(TransformerMixin, BaseEstimator):
         "trajectory": [str, Interval(Integral, None, None, closed="neither"), None],
         "coordinates": ["array-like", None],
         "dt": [Interval(Real, 0, None, closed="neither"), None],
+        "gap_factor": [Interval(Real, 1, None, closed="neither"), None],
     }
 
     def __init__(
@@ -762,6 +1141,7 @@ class Derivatives(TransformerMixin, BaseEstimator):
         trajectory="trajectory",
         coordinates=None,
         dt=None,
+        gap_factor=_GAP_FACTOR,
     ):
         self.method = method
         self.window = window
@@ -772,6 +1152,7 @@ class Derivatives(TransformerMixin, BaseEstimator):
         self.trajectory = trajectory
         self.coordinates = coordinates
         self.dt = dt
+        self.gap_factor = gap_factor
 
     def __sklearn_tags__(self):
         tags = super().__sklearn_tags__()
@@ -931,6 +1312,7 @@ class Derivatives(TransformerMixin, BaseEstimator):
             polyorder=self.polyorder,
             smoothing=self.smoothing,
             angles=[names.index(a) for a in self.angles_],
+            gap_factor=self.gap_factor,
         )
         if frame:
             return pd.DataFrame(

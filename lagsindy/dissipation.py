@@ -149,8 +149,11 @@ class DissipationLibrary(BaseEstimator):
         Extra single terms, each ``(kind, coordinate)`` or ``("relative", (a, b))``.
     pairs : list of tuple of str, default=None
         Pairs for ``"relative"`` (default: all pairs).
-    eps : float, default=0.01
-        Smoothing velocity of Coulomb friction.
+    eps : float or dict, default=0.01
+        Smoothing velocity of Coulomb friction, in the coordinate's velocity units:
+        one value for every coordinate, or ``{coordinate: eps}`` (coordinates not
+        named get 0.01). Choose it well below the data's typical speeds (about 1 %
+        of the top speed): a larger value biases the fitted viscous friction.
 
     Attributes
     ----------
@@ -198,12 +201,13 @@ class DissipationLibrary(BaseEstimator):
                 f"unknown dissipation kinds {unknown}; use some of {KINDS}"
             )
         out = []
+        eps = self._eps_for
         for kind in kinds:
             if kind == "relative":
                 pairs = self.pairs or list(itertools.combinations(names, 2))
-                out += [make_term(kind, pair, names, eps=self.eps) for pair in pairs]
+                out += [make_term(kind, pair, names) for pair in pairs]
             else:
-                out += [make_term(kind, c, names, eps=self.eps) for c in names]
+                out += [make_term(kind, c, names, eps=eps(c)) for c in names]
         for spec in self.terms or []:
             try:
                 kind, coords = spec
@@ -211,7 +215,8 @@ class DissipationLibrary(BaseEstimator):
                 raise ValueError(
                     f"a dissipation term is (kind, coordinate) or ('relative', (a, b)), got {spec!r}"
                 ) from None
-            out.append(make_term(kind, coords, names, eps=self.eps))
+            first = coords if isinstance(coords, str) else None
+            out.append(make_term(kind, coords, names, eps=eps(first)))
         unique, seen = [], set()
         for t in out:
             if t.name not in seen:
@@ -220,6 +225,20 @@ class DissipationLibrary(BaseEstimator):
         self.coordinates_ = names
         self.terms_ = unique
         return self
+
+    def _eps_for(self, coordinate) -> float:
+        """The Coulomb smoothing velocity of ``coordinate``."""
+        if isinstance(self.eps, dict):
+            unknown = set(self.eps) - set(
+                [self.coordinates] if isinstance(self.coordinates, str) else self.coordinates
+            )
+            if unknown:
+                raise ValueError(
+                    f"eps names coordinates {sorted(unknown)} that are not among "
+                    f"{list(self.coordinates)}"
+                )
+            return float(self.eps.get(coordinate, DEFAULT_EPS))
+        return float(self.eps)
 
     def get_feature_names_out(self, input_features=None) -> np.ndarray:
         if not hasattr(self, "terms_"):

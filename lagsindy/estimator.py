@@ -23,6 +23,7 @@ from sklearn.utils.validation import check_is_fitted, validate_data
 from . import _validation as val
 from ._expr import state_names
 from ._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
+from .differentiation import check_weak_form_segments
 from .dynamics import MechanicalModel
 from .euler_lagrange import (
     EulerLagrangeOperator,
@@ -723,13 +724,20 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             hint = (
                 f"; no learned term contains the velocity of {absent}" if absent else ""
             )
+            advice = (
+                " In case III try another fixed term, or fixed_term=None to search "
+                "them all."
+                if self.case_ == "fixed"
+                else ""
+            )
             warnings.warn(
                 "the learned mass matrix d2L/dqdot2 is singular or indefinite at "
                 f"{check.fraction:.0%} of the samples, along coordinate(s) "
                 f"{check.coordinates}{hint}, so the model cannot predict those "
-                "accelerations there (rollouts fail). In case III try another fixed "
-                "term, or fixed_term=None to search them all; with forces, check that "
-                "the data excite every coordinate. Test est.mass_check_.ok.",
+                "accelerations there (rollouts fail)."
+                + advice
+                + " With forces, check that the data excite every coordinate. "
+                "Test est.mass_check_.ok.",
                 UserWarning,
                 stacklevel=3,
             )
@@ -766,6 +774,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
                     "are the rows time-ordered? Pass dt="
                 )
         segments = trajectory_segments(Xt, d, groups, dt=dt)
+        if groups is not None:  # never integrate across a gap inside a trajectory
+            parts = [to_numpy(s) for s in segments]
+            check_weak_form_segments(to_numpy(Xt), d, parts, dt)
         window = int(self.window)
         usable = [s for s in segments if len(s) >= window]
         if not usable:

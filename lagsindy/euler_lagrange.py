@@ -31,6 +31,7 @@ import sympy as sp
 import torch
 from torch.func import jacfwd, jvp, vmap
 
+from ._batched import TermKernels, compile_terms
 from ._expr import compile_torch, symbols_for
 
 DEFAULT_CHUNK_SIZE = 32_768
@@ -79,7 +80,10 @@ def lagrangian_columns(
     ----------
     fn : callable
         ``fn(q, qd) -> Tensor (n_terms,)`` for one sample (see
-        :func:`lagsindy._expr.compile_torch`).
+        :func:`lagsindy._expr.compile_torch`), differentiated by ``torch.func``; or
+        :class:`lagsindy._batched.TermKernels` (from
+        :func:`lagsindy._batched.compile_terms`), whose terms in the batched
+        monomial form are evaluated as a few batched kernels instead.
     q, qd, qdd : Tensor of shape (n_samples, n_dof)
         Positions, velocities and accelerations.
     chunk_size : int, default=32768
@@ -90,6 +94,8 @@ def lagrangian_columns(
     Tensor of shape (n_samples, n_dof, n_terms)
         ``Theta[s, i, k] = (M_k qdd + N_k qd - O_k)_i`` at sample ``s``.
     """
+    if isinstance(fn, TermKernels):
+        return fn.columns_t(q, qd, qdd, _general_columns(chunk_size)).permute(2, 0, 1)
     batched = vmap(_columns_one(fn))
     with _quiet_forward_ad():
         parts = [
@@ -116,6 +122,8 @@ def lagrangian_components(
     O : Tensor of shape (n_samples, n_terms, n_dof)
         ``d phi_k / dq_i``.
     """
+    if isinstance(fn, TermKernels):
+        return fn.components(q, qd, _general_components(chunk_size))
     grad_qd = jacfwd(fn, argnums=1)
 
     def one(q1, qd1):
@@ -132,6 +140,20 @@ def lagrangian_components(
         ns.append(n_mat)
         os_.append(o)
     return torch.cat(ms), torch.cat(ns), torch.cat(os_)
+
+
+def _general_columns(chunk_size):
+    def general(f, q, qd, qdd):
+        return lagrangian_columns(f, q, qd, qdd, chunk_size=chunk_size)
+
+    return general
+
+
+def _general_components(chunk_size):
+    def general(f, q, qd):
+        return lagrangian_components(f, q, qd, chunk_size=chunk_size)
+
+    return general
 
 
 class EulerLagrangeOperator:
@@ -173,7 +195,9 @@ class EulerLagrangeOperator:
         self.chunk_size = chunk_size
         q, qd, _ = symbols_for(self.coordinates)
         self._symbols = (q, qd)
-        self._fn = compile_torch(self.terms, (q, qd)) if self.terms else None
+        # Terms that are monomials in q, qd, sin and cos of linear forms of q go
+        # through batched kernels; the others through torch.func (lagsindy._batched).
+        self._fn = compile_terms(self.terms, self.coordinates) if self.terms else None
         flat = [e for f in self.forces for e in f]
         self._force_fn = compile_torch(flat, (q, qd)) if flat else None
 
@@ -221,8 +245,7 @@ class EulerLagrangeOperator:
         """``M_k`` of every Lagrangian term, shape (n_samples, n_terms, n_dof, n_dof)."""
         if self._fn is None:
             return q.new_zeros((q.shape[0], 0, self.n_dof, self.n_dof))
-        m_mat, _, _ = lagrangian_components(self._fn, q, qd, chunk_size=self.chunk_size)
-        return m_mat
+        return self._fn.mass_matrices(q, qd, _general_components(self.chunk_size))
 
     def gram(self, X: torch.Tensor, y: torch.Tensor | None = None, extra=None):
         """Per-dof Gram statistics of ``A = [Theta | extra | y]``, accumulated in chunks.
@@ -246,13 +269,31 @@ class EulerLagrangeOperator:
         width = self.n_columns + n_extra + (0 if y is None else 1)
         out = X.new_zeros((self.n_dof, width, width))
         for sl in _chunks(X.shape[0], self.chunk_size):
-            theta = self.columns(X[sl])
+            # layout (n_dof, columns, samples): one matrix product per dof
+            parts = [self._columns_t(X[sl])]
             if extra is not None:
-                theta = torch.cat([theta, extra[sl]], dim=2)
+                parts.append(extra[sl].permute(1, 2, 0))
             if y is not None:
-                theta = torch.cat([theta, y[sl].unsqueeze(2)], dim=2)
-            out += torch.einsum("sip,siq->ipq", theta, theta)
+                parts.append(y[sl].T.unsqueeze(1))
+            a_t = torch.cat(parts, dim=1)
+            out += a_t @ a_t.transpose(1, 2)
         return out
+
+    def _columns_t(self, X: torch.Tensor) -> torch.Tensor:
+        """:meth:`columns` in the layout (n_dof, n_columns, n_samples)."""
+        q, qd, qdd = self._split(X)
+        if not isinstance(self._fn, TermKernels) and self._fn is not None:
+            return self.columns(X).permute(1, 2, 0)  # a plain per-sample function
+        parts = []
+        if self._fn is not None:
+            parts.append(
+                self._fn.columns_t(q, qd, qdd, _general_columns(self.chunk_size))
+            )
+        if self._force_fn is not None:
+            parts.append(-self.force_values(q, qd).permute(1, 2, 0))
+        if not parts:
+            return X.new_zeros((self.n_dof, 0, X.shape[0]))
+        return torch.cat(parts, dim=1)
 
     def weak_gram(
         self,
@@ -466,6 +507,12 @@ def lagrangian_gradients(
     chunk_size: int = DEFAULT_CHUNK_SIZE,
 ) -> torch.Tensor:
     """``[d phi_k / dq, d phi_k / dqd]`` per sample, shape (n_samples, n_terms, 2 * n_dof)."""
+    if isinstance(fn, TermKernels):
+
+        def general(f, q1, qd1):
+            return lagrangian_gradients(f, q1, qd1, chunk_size=chunk_size)
+
+        return fn.gradients(q, qd, general)
 
     def one(q1, qd1):
         return torch.cat(

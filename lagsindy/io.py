@@ -180,6 +180,7 @@ def model_to_dict(est) -> dict:
     params = est.get_params(deep=False)
     params.pop("library", None)
     params.pop("dissipation", None)  # its terms are stored under "dissipation"
+    params.pop("verbose", None)  # how chatty a session was is not part of the model
     if not isinstance(params.get("random_state"), Integral | type(None)):
         params["random_state"] = None  # a RandomState instance has no JSON form
     hyper = {k: _plain(v) for k, v in sorted(params.items())}
@@ -378,6 +379,9 @@ def _hyperparameters(hyper: dict) -> dict:
         if _is_number(value) and not math.isfinite(float(value)):
             raise ValueError(f"hyperparameter {key!r} in the model file is not finite")
     hyper = dict(hyper)
+    # Files written before 0.2 store the verbose of the session that fitted them; a
+    # loaded model is quiet (set est.verbose to see its refits' stages).
+    hyper.pop("verbose", None)
     device = hyper.get("device", "cpu")
     if not isinstance(device, str) or not re.fullmatch(
         r"(cpu|cuda|mps)(:\d{1,3})?", device
@@ -549,6 +553,11 @@ def model_from_dict(doc: dict):
         if text not in {t.name for t in dissipation_terms}:
             _index(fitted, text)
     est.stages_ = []
+    # The weak form's sampling interval and noise covariance are not saved: refits
+    # (e.g. by diagnose) estimate them again from their data (dt_ from the `dt`
+    # hyperparameter when it was given).
+    est.dt_ = None if hyper.get("dt") is None else float(hyper["dt"])
+    est.noise_cov_ = None
     est.n_iter_ = int(values["n_iter"])
     est.residual_ = None if residual is None else float(residual)
     est._y_1d = bool(values["tau_1d"])
@@ -559,12 +568,16 @@ def model_from_dict(doc: dict):
     est.dissipation_coef_ = np.asarray(dissipation_coef, dtype=float)
     est.dissipation_removed_ = []
     if dissipation_terms:
-        eps = [_coulomb_eps(t) for t in dissipation_terms if t.kind == "coulomb"]
+        eps = {
+            t.coordinates[0]: _coulomb_eps(t)
+            for t in dissipation_terms
+            if t.kind == "coulomb"
+        }
         est.set_params(
             dissipation=DissipationLibrary(
                 kinds=(),
                 coordinates=coords,
-                eps=eps[0] if eps else DEFAULT_EPS,
+                eps=eps or DEFAULT_EPS,
                 terms=[
                     (
                         t.kind,
@@ -582,6 +595,22 @@ def _coulomb_eps(term) -> float:
     force = next(f for f in term.forces if f != 0)
     arg = next(iter(force.atoms(sp.tanh))).args[0]
     return float(1 / arg.as_coeff_Mul()[0])
+
+
+def _same_forces(a, b, coords) -> bool:
+    """Whether two force vectors agree (to float rounding of a saved eps) at test states."""
+    if all(sp.simplify(x - y) == 0 for x, y in zip(a, b)):
+        return True
+    names = [sp.Symbol(f"{c}_dot", real=True) for c in coords]
+    names += [sp.Symbol(c, real=True) for c in coords]
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        point = dict(zip(names, rng.uniform(-1, 1, len(names)) * 1e-3))
+        for x, y in zip(a, b):
+            vx, vy = float(x.subs(point)), float(y.subs(point))
+            if not math.isclose(vx, vy, rel_tol=1e-9, abs_tol=1e-12):
+                return False
+    return True
 
 
 def _dissipation_entries(entries, coords, allowed):
@@ -642,7 +671,7 @@ def _dissipation_entries(entries, coords, allowed):
             raise ValueError(
                 f"{where} is not a valid dissipation term: {exc}"
             ) from None
-        same = all(sp.simplify(a - b) == 0 for a, b in zip(term.forces, parsed))
+        same = _same_forces(term.forces, parsed, coords)
         if not same or entry["name"] != term.name:
             raise ValueError(
                 f"{where} does not match its kind and coordinates (expected name "
@@ -716,16 +745,43 @@ MULTIARM_ENV = "LAGSINDY_MULTIARM_DIR"
 _MULTIARM_FILES = {
     "single": "SinglePendulumDataForParameterEstimation.mat",
     "double": "DoublePendulumDataForParameterEstimation.mat",
+    "triple": "TriplePendulumDataForParameterEstimation.mat",
 }
+_MULTIARM_PARAMETER_FILES = {
+    "single": "EstimatedParameters_SinglePendulum.mat",
+    "double": "EstimatedParameters_DoublePendulum.mat",
+    "triple": "EstimatedParameters_TriplePendulum.mat",
+}
+# The order of the authors' parameter vectors (see the data README).
+MULTIARM_PARAMETER_NAMES = {
+    "single": ("a1", "m1", "I1", "k1", "g"),
+    "double": ("m1", "m2", "a1", "a2", "L1", "I1", "I2", "k1", "k2", "g"),
+    "triple": (
+        *("m1", "m2", "m3", "a1", "a2", "a3", "L1", "L2"),
+        *("I1", "I2", "I3", "k1", "k2", "k3", "g"),
+    ),
+}
+_MULTIARM_SHIPPED = Path(__file__).resolve().parent / "data" / "multiarm_pendulum"
 
 
 def find_multiarm_pendulum(start=None) -> Path:
-    """Locate the MultiArm-Pendulum recordings (``shared/data/multiarm_pendulum``).
+    """Locate the MultiArm-Pendulum recordings.
 
-    Looks at ``$LAGSINDY_MULTIARM_DIR`` first, then for
-    ``shared/data/multiarm_pendulum``
-    in ``start`` (default: the current directory and this package's repository) and
-    each of its parents.
+    The recordings ship with lagsindy (``lagsindy/data/multiarm_pendulum``, MIT
+    license, see its ``README.md`` and ``LICENSE``), so this normally returns that
+    folder. Order: ``$LAGSINDY_MULTIARM_DIR`` if set (an override, e.g. for a newer
+    download); then ``shared/data/multiarm_pendulum`` in ``start`` or one of its
+    parents, when ``start`` is given; then the shipped folder.
+
+    Parameters
+    ----------
+    start : str or path-like, default=None
+        A folder whose parents hold ``shared/data/multiarm_pendulum``.
+
+    Returns
+    -------
+    pathlib.Path
+        The folder holding the ``.mat`` files.
 
     Raises
     ------
@@ -738,26 +794,43 @@ def find_multiarm_pendulum(start=None) -> Path:
         if p.is_dir():
             return p
         raise FileNotFoundError(
-            f"${MULTIARM_ENV} is set to {env}, which is not a folder"
+            f"${MULTIARM_ENV} is set to {env}, which is not a folder; unset it to use "
+            "the recordings shipped with lagsindy, or point it at the folder holding "
+            "the .mat files"
         )
-    starts = (
-        [Path(start)]
-        if start is not None
-        else [Path.cwd(), Path(__file__).resolve().parent]
-    )
     tried = []
-    for s in starts:
-        for folder in [s.resolve(), *s.resolve().parents]:
+    if start is not None:
+        s = Path(start).resolve()
+        for folder in [s, *s.parents]:
             candidate = folder / "shared" / "data" / "multiarm_pendulum"
             tried.append(str(candidate))
             if candidate.is_dir():
                 return candidate
+    tried.append(str(_MULTIARM_SHIPPED))
+    if (_MULTIARM_SHIPPED / _MULTIARM_FILES["single"]).is_file():
+        return _MULTIARM_SHIPPED
     raise FileNotFoundError(
-        "the MultiArm-Pendulum recordings were not found (looked for "
-        f"shared/data/multiarm_pendulum above {[str(s) for s in starts]}). Download "
+        f"the MultiArm-Pendulum recordings were not found (looked in {tried}); this "
+        "lagsindy installation lacks its data files. Reinstall lagsindy, or download "
         "ParameterEstimation/ from github.com/dynamicslab/MultiArm-Pendulum and set "
         f"${MULTIARM_ENV} to that folder"
     )
+
+
+def _multiarm_file(path, which: str, files: dict) -> Path:
+    if which not in files:
+        raise ValueError(
+            f"which must be 'single', 'double' or 'triple', got {which!r}"
+        )
+    p = find_multiarm_pendulum() if path is None else Path(path)
+    if p.is_dir():
+        p = p / files[which]
+    if not p.is_file():
+        raise FileNotFoundError(
+            f"no MultiArm-Pendulum file at {p}; pass the folder holding "
+            f"{files[which]}, or path=None for the recordings shipped with lagsindy"
+        )
+    return p
 
 
 def load_multiarm_pendulum(
@@ -765,46 +838,61 @@ def load_multiarm_pendulum(
 ) -> pd.DataFrame:
     """Load the MultiArm-Pendulum free-swing recordings (Kaheman et al., 2022).
 
-    Encoder recordings of a real single or double pendulum (cart locked, no input),
-    sampled at 1 kHz, split by the authors into consecutive identification (``"id"``)
-    and validation (``"vad"``) segments. Angles are absolute joint angles in radians
-    with ``pi`` meaning hanging straight down; the velocities were filtered by the
-    authors. Accelerations are not recorded.
+    Encoder recordings of a real single, double or triple pendulum (cart locked, no
+    input), sampled at 1 kHz, split by the authors into consecutive identification
+    (``"id"``) and validation (``"vad"``) segments. Angles are absolute joint angles
+    in radians with ``pi`` meaning hanging straight down; the velocities were
+    filtered by the authors. Accelerations are not recorded. The recordings ship
+    with lagsindy (MIT license); :func:`load_multiarm_parameters` gives the authors'
+    fitted parameters.
 
     Parameters
     ----------
     path : str or path-like, default=None
-        The ``.mat`` file, or the folder holding it. ``None``:
+        The ``.mat`` file, or the folder holding it. ``None``: the shipped
+        recordings (or ``$LAGSINDY_MULTIARM_DIR``); see
         :func:`find_multiarm_pendulum`.
-    which : {"single", "double"}, default="single"
+    which : {"single", "double", "triple"}, default="single"
+        Which pendulum.
     split : {"id", "vad"}, default="id"
+        The authors' identification or validation segments.
 
     Returns
     -------
     pandas.DataFrame
         Columns ``trajectory`` (segment index), ``t`` (seconds, continuous over the
-        record), ``theta`` (single) or ``theta1, theta2`` (double), and the authors'
-        filtered velocities ``theta_dot_filtered`` (``theta1_dot_filtered``, ...).
+        record), the angles ``theta`` (single), ``theta1, theta2`` (double) or
+        ``theta1, theta2, theta3`` (triple), and the authors' filtered velocities
+        ``theta_dot_filtered`` (``theta1_dot_filtered``, ...).
+
+    Raises
+    ------
+    ValueError
+        If ``which`` or ``split`` is unknown, or the file is not a MultiArm-Pendulum
+        data file.
+    FileNotFoundError
+        If the file is missing (the message says where it was looked for).
 
     References
     ----------
     E. Kaheman, U. Fasel, J. J. Bramburger, B. Strom, J. N. Kutz and S. L. Brunton,
     "The Experimental Multi-Arm Pendulum on a Cart: A Benchmark System for Chaos,
     Learning, and Control", arXiv:2205.06231, 2022. Data: MIT license.
+
+    Examples
+    --------
+    >>> from lagsindy.io import load_multiarm_pendulum
+    >>> df = load_multiarm_pendulum(which="triple")
+    >>> [c for c in df.columns if not c.endswith("filtered")]
+    ['trajectory', 't', 'theta1', 'theta2', 'theta3']
     """
     from scipy.io import loadmat
 
-    if which not in _MULTIARM_FILES:
-        raise ValueError(f"which must be 'single' or 'double', got {which!r}")
     if split not in ("id", "vad"):
         raise ValueError(
             f"split must be 'id' (identification) or 'vad' (validation), got {split!r}"
         )
-    p = find_multiarm_pendulum() if path is None else Path(path)
-    if p.is_dir():
-        p = p / _MULTIARM_FILES[which]
-    if not p.is_file():
-        raise FileNotFoundError(f"no MultiArm-Pendulum file at {p}")
+    p = _multiarm_file(path, which, _MULTIARM_FILES)
     mat = loadmat(p)
     key_y, key_t = f"Y_{split}", f"Time_{split}"
     if key_y not in mat or key_t not in mat:
@@ -813,8 +901,8 @@ def load_multiarm_pendulum(
         )
     segments = mat[key_y].ravel()
     times = mat[key_t].ravel()
-    angles = ["theta"] if which == "single" else ["theta1", "theta2"]
-    n = len(angles)
+    n = {"single": 1, "double": 2, "triple": 3}[which]
+    angles = ["theta"] if n == 1 else [f"theta{i + 1}" for i in range(n)]
     frames = []
     for k, (y, t) in enumerate(zip(segments, times)):
         y = np.asarray(y, dtype=float)
@@ -832,12 +920,58 @@ def load_multiarm_pendulum(
     return pd.concat(frames, ignore_index=True)
 
 
+def load_multiarm_parameters(which: str = "single", path=None) -> dict:
+    """The MultiArm-Pendulum authors' fitted parameters, by name.
+
+    Per joint ``j``: mass ``mj`` (kg), distance ``aj`` from the joint to the centre
+    of mass (m), inertia ``Ij`` about the centre of mass (kg m^2), joint
+    coefficient ``kj``; arm lengths ``Lj`` (m) between joints; gravity ``g``. For
+    the triple pendulum the joint coefficients act on relative joint velocities
+    (see ``TriplePendulumODE_Mounted.m`` next to the data, the authors' equations
+    of motion).
+
+    Parameters
+    ----------
+    which : {"single", "double", "triple"}, default="single"
+        Which pendulum.
+    path : str or path-like, default=None
+        The parameter ``.mat`` file or its folder; ``None``: the shipped data.
+
+    Returns
+    -------
+    dict of str to float
+        ``single``: a1, m1, I1, k1, g; ``double``: m1, m2, a1, a2, L1, I1, I2, k1,
+        k2, g; ``triple``: m1, m2, m3, a1, a2, a3, L1, L2, I1, I2, I3, k1, k2, k3, g
+        (the authors' order).
+
+    Examples
+    --------
+    >>> from lagsindy.io import load_multiarm_parameters
+    >>> round(load_multiarm_parameters("triple")["g"], 2)
+    9.81
+    """
+    from scipy.io import loadmat
+
+    p = _multiarm_file(path, which, _MULTIARM_PARAMETER_FILES)
+    mat = loadmat(p)
+    if "EstimatedParameters" not in mat:
+        raise ValueError(f"{p} lacks 'EstimatedParameters': not a parameter file")
+    values = np.asarray(mat["EstimatedParameters"], dtype=float).ravel()
+    names = MULTIARM_PARAMETER_NAMES[which]
+    if values.size != len(names):
+        raise ValueError(
+            f"{p} holds {values.size} parameters, expected {len(names)} ({names})"
+        )
+    return {name: float(v) for name, v in zip(names, values)}
+
+
 __all__ = [
     "FORMAT",
     "SCHEMA_VERSION",
     "expression_to_string",
     "find_multiarm_pendulum",
     "load_model",
+    "load_multiarm_parameters",
     "load_multiarm_pendulum",
     "model_from_dict",
     "model_to_dict",

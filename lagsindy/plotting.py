@@ -34,6 +34,23 @@ def _finish(fig, path):
     return fig
 
 
+_FORCE_UNITS = {"m": "N", "rad": "N*m"}
+
+
+def _units(units, n):
+    """Per-coordinate units (``None`` entries when unknown)."""
+    if units is None:
+        return [None] * n
+    units = list(units)
+    if len(units) != n:
+        raise ValueError(f"got {len(units)} units for states with {n} coordinates")
+    return [u or None for u in units]
+
+
+def _label(name, unit):
+    return name if unit is None else f"{name} ({unit})"
+
+
 def _names(coordinates, n):
     if coordinates is None:
         return [f"q{i}" for i in range(n)]
@@ -53,6 +70,7 @@ def plot_trajectories(
     *,
     labels: tuple[str, str] = ("true", "learned"),
     velocities: bool = False,
+    units: Sequence[str] | None = None,
     title: str | None = None,
     path=None,
 ):
@@ -70,6 +88,9 @@ def plot_trajectories(
     labels : tuple of str, default=("true", "learned")
     velocities : bool, default=False
         Add a column of velocity plots.
+    units : sequence of str, default=None
+        Unit of each coordinate (e.g. ``["m", "rad"]``) for the axis labels;
+        velocities get ``unit/s``. Time is in seconds.
     title : str, default=None
     path : str or path-like, default=None
         Save the figure there (PNG for ``*.png``).
@@ -93,6 +114,7 @@ def plot_trajectories(
             f"learned_states must have shape (<= {t.size}, {a.shape[1]}), got {b.shape}"
         )
     names = _names(coordinates, n)
+    unit = _units(units, n)
     cols = 2 if velocities else 1
     fig = _figure(figsize=(6.5 * cols, 2.2 * n + 0.8))
     axes = np.asarray(fig.subplots(n, cols, sharex=True, squeeze=False))
@@ -110,10 +132,11 @@ def plot_trajectories(
                     ls="--",
                     label=labels[1],
                 )
-            ax.set_ylabel(names[i] + ("_dot" if j else ""))
+            u = None if unit[i] is None else unit[i] + ("/s" if j else "")
+            ax.set_ylabel(_label(names[i] + ("_dot" if j else ""), u))
             ax.grid(alpha=0.3)
     for j in range(cols):
-        axes[-1, j].set_xlabel("t")
+        axes[-1, j].set_xlabel("t (s)")
     axes[0, 0].legend(loc="best", fontsize="small")
     if b is None:
         axes[0, 0].set_title(
@@ -203,7 +226,16 @@ def plot_coefficient_path(
 
 
 def plot_residuals(
-    est, X, tau=None, *, kind: str = "auto", t=None, bins: int = 50, path=None
+    est,
+    X,
+    tau=None,
+    *,
+    kind: str = "auto",
+    t=None,
+    dt=None,
+    units: Sequence[str] | None = None,
+    bins: int = 50,
+    path=None,
 ):
     """Residuals of a fitted model per coordinate: over time and as a histogram.
 
@@ -212,7 +244,10 @@ def plot_residuals(
     ``est.predict_acceleration(X, tau)`` (passive data: ``tau=None``). ``"auto"``
     picks forces for a model fit with forces (case I) when ``tau`` is given, else
     accelerations. Structure over time (drift, periodic bumps) hints at a missing
-    effect such as friction; a narrow symmetric histogram at noise.
+    effect such as friction; a narrow symmetric histogram at noise. Each panel's
+    title gives the residual's RMS and its share of the measured signal's RMS (for
+    forces: ``RMS(tau - predicted) / RMS(tau)``, "% of the measured force", the share
+    :func:`lagsindy.diagnose` reports).
 
     Parameters
     ----------
@@ -223,7 +258,13 @@ def plot_residuals(
         Generalized forces; ``None`` for passive data.
     kind : {"auto", "forces", "acceleration"}, default="auto"
     t : array-like of shape (n_samples,), default=None
-        Abscissa (time); the sample index when ``None``.
+        Time of each sample in seconds (e.g. ``Dataset.t``).
+    dt : float, default=None
+        Sampling interval in seconds, when ``t`` is not given: the abscissa is then
+        ``dt * sample``. With neither, ``est.dt`` when set, else the sample index.
+    units : sequence of str, default=None
+        Unit of each coordinate (``"m"``, ``"rad"``, ...): the residual's axis gets
+        N or N*m (forces) or unit/s^2 (accelerations).
     bins : int, default=50
     path : str or path-like, default=None
 
@@ -246,13 +287,27 @@ def plot_residuals(
             )
         pred = np.asarray(est.predict(X), dtype=float).reshape(-1, n)
         measured = np.asarray(tau, dtype=float).reshape(-1, n)
-        what = "force residual"
+        what, measured_what = "force residual", "measured force"
     else:
         pred = np.asarray(est.predict_acceleration(X, tau), dtype=float).reshape(-1, n)
         measured = _accelerations(X, coords)
-        what = "acceleration residual"
+        what, measured_what = "acceleration residual", "measured acceleration"
     resid = measured - pred
-    x = np.arange(resid.shape[0]) if t is None else np.asarray(t, dtype=float).ravel()
+    unit = _units(units, n)
+    if kind == "forces":
+        runit = [_FORCE_UNITS.get(u) for u in unit]
+    else:
+        runit = [None if u is None else f"{u}/s^2" for u in unit]
+    if t is None and dt is None:
+        dt = getattr(est, "dt", None)
+    if t is not None:
+        x, xlabel = np.asarray(t, dtype=float).ravel(), "t (s)"
+    elif dt is not None:
+        if not float(dt) > 0:
+            raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+        x, xlabel = np.arange(resid.shape[0]) * float(dt), "t (s), samples end to end"
+    else:
+        x, xlabel = np.arange(resid.shape[0]), "sample (pass t= or dt= for time)"
     if x.size != resid.shape[0]:
         raise ValueError(f"t has {x.size} entries for {resid.shape[0]} samples")
     fig = _figure(figsize=(10, 2.4 * n + 0.6))
@@ -264,15 +319,15 @@ def plot_residuals(
         ax = axes[i, 0]
         ax.plot(x, r, ".", ms=1.5, color="C0")
         ax.axhline(0.0, color="k", lw=0.8)
-        ax.set_ylabel(f"{name}\n{what}")
+        ax.set_ylabel(_label(f"{name}\n{what}", runit[i]))
         ax.grid(alpha=0.3)
         rms = float(np.sqrt(np.mean(r**2)))
         scale = float(np.sqrt(np.mean(measured[:, i] ** 2)))
-        rel = f", {rms / scale:.2%} of the signal" if scale > 0 else ""
+        rel = f", {rms / scale:.2%} of the {measured_what}" if scale > 0 else ""
         ax.set_title(f"{name}: RMS {rms:.3g}{rel}", fontsize="small")
         axes[i, 1].hist(r, bins=bins, color="C0", alpha=0.8)
-        axes[i, 1].set_xlabel("residual")
-    axes[-1, 0].set_xlabel("t" if t is not None else "sample")
+        axes[i, 1].set_xlabel(_label("residual", runit[i]))
+    axes[-1, 0].set_xlabel(xlabel)
     return _finish(fig, path)
 
 

@@ -291,3 +291,51 @@ def test_robustness_tiny(tiny_results):
     assert row.split("|")[5].strip() != "none" and row.split("|")[6].strip() != "none"
     assert (tiny_results / "robustness_quick.png").stat().st_size > 1000
     assert (tiny_results / "robustness_quick.csv").exists()
+
+
+def test_quick_runner_skips_what_needs_optional_things(monkeypatch, capsys):
+    """`python -m benchmarks --quick` goes on past missing packages and data (#18)."""
+    import types
+
+    from benchmarks import __main__ as runner
+
+    def module(fn):
+        m = types.ModuleType("fake")
+        m.main = fn
+        return m
+
+    def missing_package(argv):
+        raise ModuleNotFoundError("No module named 'pysindy'")
+
+    def missing_data(argv):
+        raise FileNotFoundError("no MultiArm-Pendulum data")
+
+    def broken(argv):
+        raise RuntimeError("a bug")
+
+    ran = []
+    fake = {
+        "a": module(missing_package),
+        "b": module(missing_data),
+        "c": module(ran.append),
+        "d": module(ran.append),
+    }
+    monkeypatch.setattr(runner, "discover", lambda: fake)
+    monkeypatch.setattr(runner, "accepts_quick", lambda m: m is not fake["d"])
+    assert runner.main(["--quick"]) == 0
+    out = capsys.readouterr().out
+    assert ran == [["--quick"]]
+    assert "a: SKIPPED: ModuleNotFoundError: No module named 'pysindy'" in out
+    assert "b: SKIPPED: FileNotFoundError" in out
+    assert "d: SKIPPED: its command line has no --quick option" in out
+    fake["e"] = module(broken)
+    assert runner.main(["--quick"]) == 1
+    assert "FAILED: ['e']" in capsys.readouterr().out
+
+
+def test_every_benchmark_accepts_quick():
+    from benchmarks import __main__ as runner
+
+    found = runner.discover()
+    assert len(found) >= 7
+    assert [n for n, m in found.items() if not runner.accepts_quick(m)] == []

@@ -637,3 +637,268 @@ def test_diagnose_command_finds_damping(tmp_path, capsys):
     assert main(["diagnose", str(csv), "--model", str(first), "--passive"]) == 2
     err = capsys.readouterr().err
     assert "error:" in err and len(err.strip().splitlines()) == 1
+
+
+# ---------------------------------------- a newcomer's first hour (#18)
+def _options(parser):
+    import argparse
+
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from ((name, a) for a in sub._actions)
+
+
+def test_every_option_has_help_and_shows_its_default():
+    import argparse
+
+    from lagsindy.cli import build_parser
+
+    parser = build_parser()
+    checked = 0
+    for command, action in _options(parser):
+        if isinstance(action, argparse._HelpAction):
+            continue
+        assert action.help, f"{command} {action.dest} has no help text"
+        if action.option_strings and action.default not in (None, False):
+            formatter = parser._get_formatter()
+            text = formatter._get_help_string(action) % {"default": action.default}
+            where = f"{command} {action.option_strings}"
+            assert "default" in text, f"{where} hides its default"
+            checked += 1
+    assert checked > 30  # measured 50 options with a default
+
+
+def test_simulate_help_shows_its_defaults(capsys):
+    code, out, _ = run(capsys, "simulate", "--help")
+    assert code == 0
+    flat = " ".join(out.split())
+    for text in (
+        "--trajectories TRAJECTORIES number of trajectories",
+        "(default: 100)",
+        "(default: 5.0)",
+        "(default: 100.0)",
+        "random seed of the initial states, inputs and noise (default: 0)",
+    ):
+        assert text in flat, flat
+
+
+def test_system_names_in_help_match_the_systems():
+    from lagsindy.cli import SYSTEM_NAMES
+    from lagsindy.systems import SYSTEMS
+
+    assert list(SYSTEM_NAMES) == sorted(SYSTEMS)
+
+
+def test_help_imports_no_heavy_module():
+    # The parser and --help need neither torch, sympy, scikit-learn nor pandas.
+    code = (
+        "import sys, lagsindy.cli as c\n"
+        "c.build_parser()\n"
+        "try:\n"
+        "    c.main(['--help'])\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        "heavy = [m for m in ('torch', 'sympy', 'sklearn', 'pandas', 'scipy')"
+        " if m in sys.modules]\n"
+        "print('HEAVY', heavy)\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "HEAVY []" in proc.stdout, proc.stdout[-500:]
+
+
+def test_import_lagsindy_is_lazy_but_complete():
+    code = (
+        "import sys, lagsindy\n"
+        "assert 'torch' not in sys.modules\n"
+        "from lagsindy import *\n"
+        "import lagsindy.estimator as e\n"
+        "assert lagsindy.LagrangianSINDy is e.LagrangianSINDy\n"
+        "assert set(lagsindy.__all__) <= set(dir(lagsindy))\n"
+        "print('OK')\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code],
+        env=ENV,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 0 and "OK" in proc.stdout, proc.stderr
+
+
+@pytest.fixture
+def no_derivatives(monkeypatch):
+    """Derivative estimation fails the test: checks must come before it."""
+    import lagsindy.differentiation
+
+    def boom(*args, **kwargs):
+        raise AssertionError("derivatives were estimated before the argument check")
+
+    monkeypatch.setattr(lagsindy.differentiation, "derivatives", boom)
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--lam", "-1"], "--lam must be a number >= 0"),
+        (["--library", "foo"], "--library 'foo' is not known"),
+        (["--input", "tau_x,nosuch"], "no column 'nosuch'"),
+        (["--threshold", "1.5"], "--threshold must be in"),
+        (["--coordinates", "theta,nosuch"], "no column 'nosuch'"),
+    ],
+)
+def test_cheap_checks_come_before_derivatives(
+    capsys, workdir, no_derivatives, extra, message
+):
+    args = ["fit", workdir / "q.csv", "--coordinates", "x,theta", "--angles", "theta"]
+    code, _, err = run(capsys, *args, *extra, "--out", workdir / "never.json")
+    assert code == 2, err
+    assert message in err, err
+
+
+def test_bad_values_are_reported_as_file_lines(capsys, workdir, tmp_path):
+    df = pd.read_csv(workdir / "data.csv")
+    df = df.astype({"theta": object})
+    df.loc[500, "theta"] = "oops"  # data row 500 is file line 502 (header = line 1)
+    csv = tmp_path / "bad.csv"
+    df.to_csv(csv, index=False)
+    lines = csv.read_text().splitlines()
+    assert "oops" in lines[501] and "oops" not in lines[500]
+    code, _, err = run(
+        capsys, "fit", csv, "--coordinates", "x,theta", "--out", tmp_path / "m.json"
+    )
+    assert code == 2
+    assert "line 502 holds 'oops'" in err, err
+
+
+def test_semicolon_csv_is_read_with_a_note(capsys, workdir, tmp_path):
+    df = pd.read_csv(workdir / "data.csv")
+    csv = tmp_path / "semi.csv"
+    df.to_csv(csv, index=False, sep=";")
+    code, out, err = run(
+        capsys,
+        "fit",
+        csv,
+        "--coordinates",
+        "x,theta",
+        "--angles",
+        "theta",
+        "--out",
+        tmp_path / "m.json",
+        "--quiet",
+    )
+    assert code == 0, err
+    assert "semicolon-separated" in err
+    assert "theta_dot*x_dot*cos(theta)" in out
+    # decimal commas get a hint instead of a bare "not numeric"
+    df.to_csv(csv, index=False, sep=";", decimal=",")
+    code, _, err = run(
+        capsys,
+        "fit",
+        csv,
+        "--coordinates",
+        "x,theta",
+        "--angles",
+        "theta",
+        "--out",
+        tmp_path / "m2.json",
+    )
+    assert code == 2 and "decimal commas" in err, err
+
+
+def test_poly2_warns_that_it_cannot_couple_the_cart_and_pendulum(capsys, workdir):
+    args = ["fit", workdir / "data.csv", "--coordinates", "x,theta"]
+    args += ["--angles", "theta"]
+    code, out, err = run(
+        capsys, *args, "--library", "poly2", "--out", workdir / "p2.json", "--quiet"
+    )
+    assert code == 0
+    assert "no term coupling the velocities of x and theta" in err, err
+    assert "x_dot*theta_dot*cos(theta)" in err
+    # the default library holds the coupling: the true structure, no warning
+    code, out, err = run(capsys, *args, "--out", workdir / "p3.json", "--quiet")
+    assert code == 0 and "coupling" not in err, err
+    assert _kept(workdir / "p3.json") == set(TRUE_TERMS)
+
+
+def test_two_angles_need_a_product_of_both(capsys):
+    from lagsindy.cli import _warn_missing_coupling
+    from lagsindy.library import CandidateLibrary
+
+    class Args:
+        library = "poly3"
+
+    coords = ["theta1", "theta2"]
+    with pytest.warns(UserWarning, match="cos\\(theta1 - theta2\\).*poly4"):
+        _warn_missing_coupling(
+            CandidateLibrary.polynomial(coords, angles=coords, degree=3),
+            coords,
+            coords,
+            Args,
+        )
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        lib = CandidateLibrary.polynomial(
+            coords,
+            angles=coords,
+            degree=2,
+            terms=["theta1_dot*theta2_dot*cos(theta1 - theta2)"],
+        )
+        _warn_missing_coupling(lib, coords, coords, Args)
+
+
+def test_quiet_fit_then_quiet_diagnose_print_only_results(tmp_path):
+    from lagsindy.systems import make_dataset, single_pendulum
+
+    system = single_pendulum().with_damping(viscous={"theta": 0.2})
+    data = make_dataset(
+        system, n_trajectories=9, duration=3.0, excitation="sincos", random_state=0
+    )
+    csv = tmp_path / "damped.csv"
+    data.to_frame().to_csv(csv, index=False)
+    model = tmp_path / "m.json"
+
+    def cli(*args):
+        return subprocess.run(
+            [sys.executable, "-m", "lagsindy", *map(str, args)],
+            cwd=tmp_path,
+            env=ENV,
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+
+    # not quiet: the fit prints its stage lines ...
+    fit = cli("fit", csv, "--coordinates", "theta", "--angles", "theta", "--out", model)
+    assert fit.returncode == 0, fit.stderr
+    assert "[lagsindy] stage" in fit.stdout
+    # ... but the saved model does not carry that verbosity
+    assert "verbose" not in json.loads(model.read_text())["hyperparameters"]
+    diag = cli("diagnose", csv, "--model", model, "--quiet")
+    assert diag.returncode == 0, diag.stderr
+    assert "[lagsindy]" not in diag.stdout and "stage" not in diag.stdout
+    assert diag.stdout.startswith("Residual diagnosis"), diag.stdout[:300]
+    assert diag.stderr == ""
+    # without --quiet, diagnose still prints no per-fold stage lines
+    diag = cli("diagnose", csv, "--model", model)
+    assert "[lagsindy] stage" not in diag.stdout
+
+
+def test_old_model_files_with_verbose_still_load(workdir, tmp_path):
+    doc = json.loads((workdir / "model.json").read_text())
+    doc["hyperparameters"]["verbose"] = 1  # as written by lagsindy 0.1
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps(doc))
+    est = LagrangianSINDy.load(old)
+    assert est.verbose == 0
+    assert _kept(old) == _kept(workdir / "model.json")

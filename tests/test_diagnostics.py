@@ -134,9 +134,16 @@ def test_passive_diagnosis_in_case_III():
 
 def test_report_text_table_and_plot(tmp_path):
     system = double_pendulum().with_damping(viscous={"theta1": 0.3})
-    report, _ = _fit_and_diagnose(system, n=12, duration=3.0)
+    report, data = _fit_and_diagnose(system, n=12, duration=3.0)
     text = str(report)
-    assert "viscous damping" in text and "theta1" in text and "N*m*s/rad" in text
+    # no units given: none invented (issue 14 item 5)
+    assert "viscous damping" in text and "per unit of theta1_dot" in text
+    assert "N*m*s/rad" not in text
+    units = {"theta1": ("rad", "N*m"), "theta2": ("rad", "N*m")}
+    with_units = diagnose(
+        report.initial, data.X, data.tau, groups=data.groups, units=units
+    )
+    assert "N*m*s/rad" in str(with_units)
     assert "held-out" in text and "final model" in text and "D = " in text
     frame = report.to_frame()
     assert list(frame.term) == ["viscous(theta1)"]

@@ -42,15 +42,17 @@ def runs(tmp_path_factory):
         "LAGSINDY_EXAMPLE_QUICK": "1",
         "OMP_NUM_THREADS": "1",
     }
-    procs = {}
+    procs, cwds = {}, {}
     for path in EXAMPLES:
         if path.name == "measured_pendulum.py" and not _have_multiarm():
             continue
         cwd = tmp_path_factory.mktemp(path.stem)
+        (cwd / "tmp").mkdir()
+        cwds[path.name] = cwd
         procs[path.name] = subprocess.Popen(
             [sys.executable, str(path)],
             cwd=cwd,
-            env=env,
+            env={**env, "TMPDIR": str(cwd / "tmp")},
             text=True,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -58,7 +60,7 @@ def runs(tmp_path_factory):
     results, deadline = {}, time.monotonic() + 600
     for name, proc in procs.items():
         out, err = proc.communicate(timeout=max(1.0, deadline - time.monotonic()))
-        results[name] = (proc.returncode, out, err)
+        results[name] = (proc.returncode, out, err, cwds[name])
     return results
 
 
@@ -70,8 +72,15 @@ def test_every_example_is_checked():
 def test_example_runs(runs, name):
     if name not in runs:
         pytest.skip("MultiArm-Pendulum data not available")
-    code, out, err = runs[name]
+    code, out, err, cwd = runs[name]
     assert code == 0, err[-2000:]
     assert "Traceback" not in err
     for text in EXPECTED[name]:
         assert text in out, out[-2000:]
+
+
+def test_own_data_example_leaves_no_temporary_folder(runs):
+    code, out, err, cwd = runs["own_data_csv.py"]
+    assert code == 0, err[-2000:]
+    assert "saved " in out  # it did write its files into a temporary folder
+    assert list((cwd / "tmp").glob("lagsindy_*")) == []

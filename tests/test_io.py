@@ -496,7 +496,7 @@ def test_multiarm_loader_reports_missing_data(tmp_path, monkeypatch):
     with pytest.raises(FileNotFoundError, match="LAGSINDY_MULTIARM_DIR"):
         lio.load_multiarm_pendulum()
     with pytest.raises(ValueError, match="which"):
-        lio.load_multiarm_pendulum(tmp_path, which="triple")
+        lio.load_multiarm_pendulum(tmp_path, which="quadruple")
 
 
 def test_multiarm_loader_reads_the_recordings():

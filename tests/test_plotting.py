@@ -130,3 +130,57 @@ def test_missing_matplotlib_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
     with pytest.raises(ImportError, match=r"lagsindy\[plot\]"):
         plot_trajectories([0.0, 1.0], np.zeros((2, 2)), None)
+
+
+def test_axes_carry_units_and_time(fitted):
+    system, data, est = fitted
+    t = np.arange(101) / 100.0
+    states = system.simulate([1.0, 0.0], t)
+    fig = plot_trajectories(
+        t, states, states, ["theta"], velocities=True, units=["rad"]
+    )
+    labels = [ax.get_ylabel() for ax in fig.axes]
+    assert labels == ["theta (rad)", "theta_dot (rad/s)"]
+    assert [ax.get_xlabel() for ax in fig.axes] == ["t (s)", "t (s)"]
+    with pytest.raises(ValueError, match="units"):
+        plot_trajectories(t, states, states, ["theta"], units=["rad", "m"])
+    fig = plot_residuals(est, data.X, data.tau, t=data.t, units=["rad"])
+    assert fig.axes[0].get_ylabel() == "theta\nforce residual (N*m)"
+    assert fig.axes[0].get_xlabel() == "t (s)"
+    fig = plot_residuals(est, data.X, data.tau, kind="acceleration", units=["rad"])
+    assert fig.axes[0].get_ylabel() == "theta\nacceleration residual (rad/s^2)"
+    fig = plot_residuals(est, data.X, data.tau, dt=0.01)
+    assert fig.axes[0].get_xlabel().startswith("t (s)")
+    np.testing.assert_allclose(
+        fig.axes[0].get_lines()[0].get_xdata()[:3], [0.0, 0.01, 0.02]
+    )
+
+
+def test_residual_share_is_of_the_measured_force(fitted):
+    # The title's share is RMS(tau - predicted) / RMS(tau), as diagnose reports it.
+    _, data, est = fitted
+    fig = plot_residuals(est, data.X, data.tau)
+    resid = data.tau[:, 0] - est.predict(data.X)[:, 0]
+    share = np.sqrt(np.mean(resid**2)) / np.sqrt(np.mean(data.tau[:, 0] ** 2))
+    title = fig.axes[0].get_title()
+    assert title.endswith(f"{share:.2%} of the measured force"), title
+
+
+def test_diagnosis_figure_with_nothing_found_shows_every_coordinate():
+    from lagsindy import diagnose
+    from lagsindy.systems import cart_pendulum
+
+    system = cart_pendulum()
+    data = make_dataset(
+        system, n_trajectories=6, duration=2.0, excitation="sincos", random_state=0
+    )
+    est = LagrangianSINDy(system.paper_library(), formulation="strong")
+    est.fit(data.X, data.tau, groups=data.groups)
+    report = diagnose(est, data.X, data.tau, groups=data.groups)
+    assert report.steps == []  # noise-free, complete model: nothing to add
+    fig = report.plot()
+    assert [ax.get_ylabel() for ax in fig.axes] == [
+        "residual on x",
+        "residual on theta",
+    ]
+    assert [ax.get_xlabel() for ax in fig.axes] == ["x_dot", "theta_dot"]

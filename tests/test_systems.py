@@ -9,6 +9,7 @@ from lagsindy.systems import (
     elastic_pendulum,
     get_system,
     make_dataset,
+    planar_chain,
     single_pendulum,
     spherical_pendulum,
     spring_chain,
@@ -257,3 +258,18 @@ def test_case_II_start_skips_combinations_without_mass():
     c = dict(zip(est.term_names_, est.coef_))
     assert {n for n, v in c.items() if v != 0} == {"theta_dot**2", "cos(theta)"}
     assert c["theta_dot**2"] / c["cos(theta)"] == pytest.approx(1 / 19.62, rel=1e-6)
+
+
+def test_planar_chain_true_model_in_its_chain_library():
+    """planar_chain(n): point masses, compact couplings, every term in the library."""
+    system = get_system("planar_chain")
+    assert system.coordinates == ["theta1", "theta2", "theta3"]
+    four = planar_chain(masses=[1.0, 2.0, 3.0, 4.0], lengths=[0.5, 1.0, 1.5, 2.0])
+    terms = four.terms()
+    # coupling of links 1 and 3: L1 * L3 * (m3 + m4) = 0.5 * 1.5 * 7
+    assert terms["theta1_dot*theta3_dot*cos(theta1 - theta3)"] == pytest.approx(5.25)
+    assert terms["cos(theta2)"] == pytest.approx(G * 1.0 * 9.0)
+    lib = four.paper_library()
+    assert len(lib) == 4 + 6 + 8
+    coef = four.true_coefficients(lib)
+    assert np.count_nonzero(coef) == 4 + 6 + 4

@@ -8,7 +8,12 @@ from .elastic_pendulum import elastic_pendulum
 from .single_pendulum import single_pendulum
 from .spherical_pendulum import spherical_pendulum
 from .spring_chain import spring_chain
-from .triple_pendulum import n_link_lagrangian, triple_pendulum
+from .planar_chain import chain_lagrangian, planar_chain
+from .triple_pendulum import (
+    multiarm_triple_pendulum,
+    n_link_lagrangian,
+    triple_pendulum,
+)
 
 PAPER_SYSTEMS = {
     "single_pendulum": single_pendulum,
@@ -19,6 +24,7 @@ PAPER_SYSTEMS = {
 SYSTEMS = {
     **PAPER_SYSTEMS,
     "triple_pendulum": triple_pendulum,
+    "planar_chain": planar_chain,
     "spring_chain": spring_chain,
     "elastic_pendulum": elastic_pendulum,
 }
@@ -41,11 +47,14 @@ __all__ = [
     "SYSTEMS",
     "System",
     "cart_pendulum",
+    "chain_lagrangian",
     "double_pendulum",
     "elastic_pendulum",
     "get_system",
     "make_dataset",
+    "multiarm_triple_pendulum",
     "n_link_lagrangian",
+    "planar_chain",
     "single_pendulum",
     "spherical_pendulum",
     "spring_chain",

@@ -1,0 +1,467 @@
+r"""Batched Euler-Lagrange kernels for libraries of monomials in base features.
+
+Most candidate terms are products of integer powers of *base features*: the
+coordinates :math:`q_i`, the velocities :math:`\dot q_i`, and :math:`\sin(a \cdot q)`,
+:math:`\cos(a \cdot q)` for linear forms :math:`a \cdot q` of the coordinates
+(``sin(theta)``, ``cos(theta1 - theta2)``, ``sin(2*theta)``). The derivative of such a
+monomial is again a sum of monomials (:math:`d \sin(a \cdot q)/dq_i = a_i \cos(a
+\cdot q)`), so every entry of :math:`M_k`, :math:`N_k \dot q` and :math:`O_k` is known
+at compile time as a short list of (coefficient, monomial) pairs. Evaluation is then a
+handful of batched tensor operations for the whole library, whatever its size:
+
+1. the base features of all samples (one ``sin``/``cos`` per distinct argument);
+2. their powers (one ``pow``);
+3. every distinct monomial as a product of a few gathered powers;
+4. the columns as one scatter-add of coefficient-weighted monomials.
+
+Terms outside this form (``exp``, ``sqrt``, powers of sums, negative powers) keep the
+general path: the sympy tree compiled by :func:`lagsindy._expr.compile_torch` and
+differentiated by ``torch.func``. All tensors follow the device and dtype of the
+input, so the same kernels run on CPU and CUDA.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections import defaultdict
+from collections.abc import Sequence
+
+import numpy as np
+import sympy as sp
+import torch
+
+from ._expr import compile_torch, symbols_for
+
+# Elements (rows x entries) evaluated at once by the batched kernels: bounds the
+# temporary memory to about 8 bytes times this per float64 tensor.
+BATCH_ELEMENTS = 1 << 22
+
+
+# ----------------------------------------------------------------- symbolic form
+class _Unsupported(Exception):
+    """A term that is not a polynomial in the base features."""
+
+
+class _Features:
+    """Registry of base features: ("q", i), ("qd", i), ("qdd", i), ("sin", a), ("cos", a).
+
+    The accelerations only enter the Euler-Lagrange columns, never a term.
+    """
+
+    def __init__(self, n_dof):
+        self.n_dof = n_dof
+        self.keys = [
+            (kind, i) for kind in ("q", "qd", "qdd") for i in range(n_dof)
+        ]
+        self.index = {k: j for j, k in enumerate(self.keys)}
+
+    def trig(self, kind, a):
+        for k in ("sin", "cos"):  # both, so that derivatives stay in the registry
+            if (k, a) not in self.index:
+                self.index[(k, a)] = len(self.keys)
+                self.keys.append((k, a))
+        return self.index[(kind, a)]
+
+    def derivative(self, f, var):
+        """``d feature_f / d var`` as ``(coefficient, feature or None)``, or None if 0.
+
+        ``var`` is ``("q", i)`` or ``("qd", i)``.
+        """
+        kind, arg = self.keys[f]
+        if kind in ("q", "qd", "qdd"):
+            return (1.0, None) if (kind, arg) == var else None
+        if var[0] != "q" or arg[var[1]] == 0:
+            return None
+        a_i = arg[var[1]]
+        if kind == "sin":
+            return (a_i, self.index[("cos", arg)])
+        return (-a_i, self.index[("sin", arg)])
+
+
+def _mono(exps: dict) -> tuple:
+    return tuple(sorted((f, e) for f, e in exps.items() if e))
+
+
+def _poly_mul(a: dict, b: dict) -> dict:
+    out = defaultdict(float)
+    for ma, ca in a.items():
+        for mb, cb in b.items():
+            exps = dict(ma)
+            for f, e in mb:
+                exps[f] = exps.get(f, 0) + e
+            out[_mono(exps)] += ca * cb
+    return {m: c for m, c in out.items() if c != 0.0}
+
+
+def _poly_add(a: dict, b: dict, scale: float = 1.0) -> dict:
+    out = defaultdict(float, a)
+    for m, c in b.items():
+        out[m] += scale * c
+    return {m: c for m, c in out.items() if c != 0.0}
+
+
+def _poly_diff(p: dict, var, feats: _Features) -> dict:
+    out = defaultdict(float)
+    for mono, c in p.items():
+        for f, e in mono:
+            d = feats.derivative(f, var)
+            if d is None:
+                continue
+            coef, g = d
+            exps = dict(mono)
+            exps[f] -= 1
+            if g is not None:
+                exps[g] = exps.get(g, 0) + 1
+            out[_mono(exps)] += c * e * coef
+    return {m: c for m, c in out.items() if c != 0.0}
+
+
+def _to_poly(expr, symbols: dict, q, feats: _Features) -> dict:
+    """A sympy expression as ``{monomial: coefficient}``; raises :class:`_Unsupported`."""
+    if expr.is_Number:
+        v = float(expr)
+        return {(): v} if v != 0.0 else {}
+    if expr.is_Symbol:
+        if expr not in symbols:
+            raise _Unsupported(expr)
+        return {((symbols[expr], 1),): 1.0}
+    if expr.is_Add:
+        out = {}
+        for a in expr.args:
+            out = _poly_add(out, _to_poly(a, symbols, q, feats))
+        return out
+    if expr.is_Mul:
+        out = {(): 1.0}
+        for a in expr.args:
+            out = _poly_mul(out, _to_poly(a, symbols, q, feats))
+        return out
+    if expr.is_Pow:
+        e = expr.exp
+        if not (e.is_Integer and int(e) >= 0):
+            raise _Unsupported(expr)
+        base = _to_poly(expr.base, symbols, q, feats)
+        if len(base) != 1 or len(next(iter(base))) != 1:
+            raise _Unsupported(expr)  # powers of sums: keep the general path
+        ((mono, c),) = base.items()
+        ((f, e0),) = mono
+        return {((f, e0 * int(e)),): c ** int(e)}
+    if expr.func in (sp.sin, sp.cos) and len(expr.args) == 1:
+        arg = expr.args[0]
+        if not arg.free_symbols or not arg.free_symbols <= set(q):
+            raise _Unsupported(expr)
+        coeffs = [arg.diff(s) for s in q]
+        if not all(c.is_Number for c in coeffs):
+            raise _Unsupported(expr)
+        if sp.expand(arg - sum(c * s for c, s in zip(coeffs, q))) != 0:
+            raise _Unsupported(expr)  # a constant offset
+        a = tuple(float(c) for c in coeffs)
+        f = feats.trig("sin" if expr.func is sp.sin else "cos", a)
+        return {((f, 1),): 1.0}
+    raise _Unsupported(expr)
+
+
+class _Kernel:
+    """One batched output: ``out[r] = sum_u S[r, u] * monomial_u`` at every sample.
+
+    The monomials are built level by level, each as a stored monomial with one
+    factor fewer times one power of a base feature, so a monomial of ``m`` factors
+    costs one multiplication. Everything here is numpy; :meth:`tensors` moves it to
+    a device.
+    """
+
+    def __init__(self, n_out: int):
+        self.n_out = n_out
+        self.merged: dict[tuple, float] = defaultdict(float)
+
+    def add(self, out: int, poly: dict):
+        for mono, c in poly.items():
+            self.merged[(out, mono)] += c
+
+    def finish(self):
+        entries = {k: c for k, c in self.merged.items() if c != 0.0}
+        del self.merged
+        closure = set()
+        for _, mono in entries:
+            while len(mono) > 1 and mono not in closure:
+                closure.add(mono)
+                mono = mono[:-1]
+        factors = sorted({fe for _, mono in entries for fe in mono} | {
+            fe for mono in closure for fe in mono
+        })
+        row = {(): 0}
+        for fe in factors:
+            row[(fe,)] = len(row)
+        self.pow_feature = np.asarray([f for f, _ in factors], dtype=np.int64)
+        self.pow_exponent = np.asarray([e for _, e in factors], dtype=np.int64)
+        self.levels = []
+        for length in range(2, 1 + max((len(m) for m in closure), default=1)):
+            level = sorted(m for m in closure if len(m) == length)
+            first = len(row)
+            for m in level:
+                row[m] = len(row)
+            self.levels.append(
+                (
+                    first,
+                    len(row),
+                    np.asarray([row[m[:-1]] for m in level], dtype=np.int64),
+                    np.asarray([row[(m[-1],)] for m in level], dtype=np.int64),
+                )
+            )
+        self.n_rows = len(row)
+        keys = sorted(entries, key=lambda k: (k[0], row[k[1]]))
+        self.indices = np.asarray(
+            [[k[0] for k in keys], [row[k[1]] for k in keys]], dtype=np.int64
+        ).reshape(2, -1)
+        self.values = np.asarray([entries[k] for k in keys], dtype=np.float64)
+        self._cache = {}
+        return self
+
+    @property
+    def width(self) -> int:
+        return max(self.n_rows, self.n_out)
+
+    def tensors(self, like: torch.Tensor):
+        key = (like.device, like.dtype)
+        hit = self._cache.get(key)
+        if hit is None:
+
+            def long(a):
+                return torch.as_tensor(a, dtype=torch.long, device=like.device)
+
+            matrix = torch.sparse_coo_tensor(
+                long(self.indices),
+                torch.as_tensor(self.values, dtype=like.dtype, device=like.device),
+                (self.n_out, self.n_rows),
+                check_invariants=True,
+            ).coalesce()
+            hit = (
+                long(self.pow_feature),
+                torch.as_tensor(self.pow_exponent, dtype=like.dtype, device=like.device),
+                [(a, b, long(p), long(f)) for a, b, p, f in self.levels],
+                matrix,
+            )
+            self._cache[key] = hit
+        return hit
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_cache"] = {}
+        return state
+
+    def evaluate(self, base: torch.Tensor) -> torch.Tensor:
+        """Outputs ``(n_out, n)`` from the base features ``(n_features, n)``."""
+        pow_feature, pow_exponent, levels, matrix = self.tensors(base)
+        n = base.shape[1]
+        rows = base.new_empty((self.n_rows, n))
+        rows[0] = 1.0
+        if pow_feature.numel():
+            rows[1 : 1 + pow_feature.numel()] = (
+                base[pow_feature] ** pow_exponent[:, None]
+            )
+        for first, stop, parent, factor in levels:
+            torch.mul(rows[parent], rows[factor], out=rows[first:stop])
+        return torch.sparse.mm(matrix, rows)
+
+
+@functools.lru_cache(maxsize=128)
+def _compile_plan(terms: tuple, coordinates: tuple):
+    """Symbolic derivatives of the supported terms as batched index tensors.
+
+    Returns ``(plan, supported)``: ``supported`` are the indices of the terms in the
+    batched form (``plan`` is None when there are none).
+    """
+    n = len(coordinates)
+    q, qd, _ = symbols_for(coordinates)
+    feats = _Features(n)
+    symbols = {s: j for j, s in enumerate(list(q) + list(qd))}
+    polys, supported = [], []
+    for k, term in enumerate(terms):
+        try:
+            polys.append(_to_poly(sp.sympify(term), symbols, q, feats))
+        except _Unsupported:
+            continue
+        supported.append(k)
+    if not supported:
+        return None, ()
+    p = len(supported)
+    kernels = {
+        "columns": _Kernel(n * p),  # (dof, term)
+        "mass": _Kernel(p * n * n),  # (term, dof, dof)
+        "cross": _Kernel(p * n * n),
+        "force": _Kernel(p * n),  # (term, dof)
+        "grad": _Kernel(p * 2 * n),  # (term, [q dofs, qd dofs])
+    }
+    for col, phi in enumerate(polys):
+        grad_qd = [_poly_diff(phi, ("qd", i), feats) for i in range(n)]
+        grad_q = [_poly_diff(phi, ("q", i), feats) for i in range(n)]
+        for i in range(n):
+            # Theta_i = sum_j M_ij qdd_j + sum_j N_ij qd_j - O_i: products with the
+            # base features qdd_j and qd_j, so one polynomial per column.
+            column = {k: -c for k, c in grad_q[i].items()}
+            for j in range(n):
+                m_ij = _poly_diff(grad_qd[i], ("qd", j), feats)
+                n_ij = _poly_diff(grad_qd[i], ("q", j), feats)
+                kernels["mass"].add((col * n + i) * n + j, m_ij)
+                kernels["cross"].add((col * n + i) * n + j, n_ij)
+                column = _poly_add(column, _poly_mul(m_ij, {((2 * n + j, 1),): 1.0}))
+                column = _poly_add(column, _poly_mul(n_ij, {((n + j, 1),): 1.0}))
+            kernels["columns"].add(i * p + col, column)
+            kernels["force"].add(col * n + i, grad_q[i])
+            kernels["grad"].add(col * 2 * n + i, grad_q[i])
+            kernels["grad"].add(col * 2 * n + n + i, grad_qd[i])
+    plan = {k: v.finish() for k, v in kernels.items()}
+    plan["trig"] = [
+        (kind, [(i, a) for i, a in enumerate(arg) if a != 0])
+        for kind, arg in feats.keys[3 * n :]
+    ]
+    return plan, tuple(supported)
+
+
+# ----------------------------------------------------------------- evaluation
+class TermKernels:
+    """Euler-Lagrange kernels of a list of candidate terms.
+
+    Calling the object evaluates the terms at one sample, ``f(q, qd) -> (n_terms,)``
+    (the general path, composable with ``torch.func``), exactly like the function of
+    :func:`lagsindy._expr.compile_torch`. The methods evaluate derivatives for many
+    samples at once: terms that are polynomials in the base features (see the module
+    docstring) through the batched kernels, the others through ``torch.func``.
+
+    Parameters
+    ----------
+    terms : sequence of sympy.Expr
+    coordinates : sequence of str
+    """
+
+    def __init__(self, terms: Sequence[sp.Expr], coordinates: Sequence[str]):
+        self.terms = [sp.sympify(t) for t in terms]
+        self.coordinates = list(coordinates)
+        self.n_dof = len(self.coordinates)
+        self.plan, supported = _compile_plan(
+            tuple(self.terms), tuple(self.coordinates)
+        )
+        self.supported = np.asarray(supported, dtype=np.int64)
+        self.general = np.setdiff1d(np.arange(len(self.terms)), self.supported)
+        self._fn = None
+        self._general_fn = None
+
+    @property
+    def n_terms(self) -> int:
+        return len(self.terms)
+
+    # ------------------------------------------------------------- general path
+    def __call__(self, q, qd):
+        if self._fn is None:
+            q_s, qd_s, _ = symbols_for(self.coordinates)
+            self._fn = compile_torch(self.terms, (q_s, qd_s))
+        return self._fn(q, qd)
+
+    def _general(self):
+        if self._general_fn is None:
+            q_s, qd_s, _ = symbols_for(self.coordinates)
+            self._general_fn = compile_torch(
+                [self.terms[k] for k in self.general], (q_s, qd_s)
+            )
+        return self._general_fn
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state["_fn"] = state["_general_fn"] = None
+        return state
+
+    # ------------------------------------------------------------- batched path
+    def _base(self, q_t, qd_t, qdd_t):
+        """Base features ``(n_features, n)``: q, qd, qdd, then sin/cos rows."""
+        rows = [q_t, qd_t, q_t if qdd_t is None else qdd_t]  # qdd unused without it
+        trig = []
+        for kind, arg in self.plan["trig"]:
+            x = None
+            for i, a in arg:
+                term = q_t[i] if a == 1.0 else a * q_t[i]
+                x = term if x is None else x + term
+            trig.append(torch.sin(x) if kind == "sin" else torch.cos(x))
+        if trig:
+            rows.append(torch.stack(trig))
+        return torch.cat(rows)
+
+    def _batched(self, kind, q, qd, qdd=None):
+        """``(n_out, n_samples)`` outputs of one kernel, in row batches."""
+        kernel = self.plan[kind]
+        step = max(256, BATCH_ELEMENTS // max(kernel.width, 1))
+        n = q.shape[0]
+        if n <= step:
+            return kernel.evaluate(
+                self._base(q.T, qd.T, None if qdd is None else qdd.T)
+            )
+        out = q.new_empty((kernel.n_out, n))
+        for start in range(0, n, step):
+            sl = slice(start, start + step)
+            base = self._base(q[sl].T, qd[sl].T, None if qdd is None else qdd[sl].T)
+            out[:, sl] = kernel.evaluate(base)
+        return out
+
+    def columns_t(self, q, qd, qdd, general_columns):
+        """Columns in the layout (n_dof, n_terms, n_samples)."""
+        n, p = self.n_dof, self.n_terms
+        out = q.new_empty((n, p, q.shape[0]))
+        if self.plan is not None:
+            ps = len(self.supported)
+            vals = self._batched("columns", q, qd, qdd).reshape(n, ps, -1)
+            if not self.general.size:
+                return vals
+            out[:, torch.as_tensor(self.supported, device=q.device)] = vals
+        if self.general.size:
+            g = general_columns(self._general(), q, qd, qdd)  # (n_samples, n, p_g)
+            out[:, torch.as_tensor(self.general, device=q.device)] = g.permute(1, 2, 0)
+        return out
+
+    def components(self, q, qd, general_components):
+        """``M``, ``N`` (n, p, d, d) and ``O`` (n, p, d) of every term."""
+        n, p, s = self.n_dof, self.n_terms, q.shape[0]
+        m_out = q.new_empty((s, p, n, n))
+        n_out = q.new_empty((s, p, n, n))
+        o_out = q.new_empty((s, p, n))
+        if self.plan is not None:
+            ps = len(self.supported)
+            idx = torch.as_tensor(self.supported, device=q.device)
+            m_out[:, idx] = self._batched("mass", q, qd).T.reshape(s, ps, n, n)
+            n_out[:, idx] = self._batched("cross", q, qd).T.reshape(s, ps, n, n)
+            o_out[:, idx] = self._batched("force", q, qd).T.reshape(s, ps, n)
+        if self.general.size:
+            idx = torch.as_tensor(self.general, device=q.device)
+            m_g, n_g, o_g = general_components(self._general(), q, qd)
+            m_out[:, idx], n_out[:, idx], o_out[:, idx] = m_g, n_g, o_g
+        return m_out, n_out, o_out
+
+    def mass_matrices(self, q, qd, general_components):
+        """``M`` of every term, shape (n, p, d, d)."""
+        n, p, s = self.n_dof, self.n_terms, q.shape[0]
+        out = q.new_empty((s, p, n, n))
+        if self.plan is not None:
+            ps = len(self.supported)
+            idx = torch.as_tensor(self.supported, device=q.device)
+            vals = self._batched("mass", q, qd)
+            out[:, idx] = vals.T.reshape(s, ps, n, n)
+        if self.general.size:
+            idx = torch.as_tensor(self.general, device=q.device)
+            out[:, idx] = general_components(self._general(), q, qd)[0]
+        return out
+
+    def gradients(self, q, qd, general_gradients):
+        """``[d phi / dq, d phi / dqd]`` per sample, shape (n, p, 2 d)."""
+        n, p, s = self.n_dof, self.n_terms, q.shape[0]
+        out = q.new_empty((s, p, 2 * n))
+        if self.plan is not None:
+            ps = len(self.supported)
+            idx = torch.as_tensor(self.supported, device=q.device)
+            vals = self._batched("grad", q, qd)
+            out[:, idx] = vals.T.reshape(s, ps, 2 * n)
+        if self.general.size:
+            idx = torch.as_tensor(self.general, device=q.device)
+            out[:, idx] = general_gradients(self._general(), q, qd)
+        return out
+
+
+def compile_terms(terms: Sequence[sp.Expr], coordinates: Sequence[str]) -> TermKernels:
+    """Compile candidate terms into :class:`TermKernels` (batched where possible)."""
+    return TermKernels(terms, coordinates)

@@ -1,0 +1,422 @@
+"""Input delay: estimate the lag between recorded inputs and positions, and apply it.
+
+Actuators, drives and cameras delay the recorded input tau against the recorded
+positions q by tens of milliseconds. Fitted as recorded, the Euler-Lagrange
+regression then matches q_ddot(t) with tau(t) although the force acting at t was
+recorded earlier; on a cart-pole this gave a negative cart mass. Convention here: a
+delay ``d > 0`` means the input recorded at time ``t`` acts at ``t + d``, so the force
+in the equations at time ``t`` is ``tau(t - d)``, which :func:`shift_input` returns.
+
+:func:`estimate_delay` fits a clone of the estimator for each candidate delay on
+training trajectories and scores it on held-out ones (GroupKFold), so the delay is
+chosen by prediction, not by in-sample fit. Candidates are whole sample shifts (no
+interpolation error); the estimate is refined below one sample by the vertex of the
+parabola through the best candidate and its two neighbours, and its uncertainty is
+the spread of the per-fold estimates. The support is refitted at every candidate
+with ``method="refit"`` (``n_candidates * n_splits`` fits); the default
+``method="support"`` fits the estimator at most 3 times and scores every candidate
+by least squares on the fitted support (see :func:`estimate_delay`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from sklearn.base import clone
+from sklearn.model_selection import GroupKFold
+
+__all__ = ["DelayEstimate", "estimate_delay", "shift_input"]
+
+
+def _blocks(groups, n):
+    """(label, slice) of contiguous blocks, one per trajectory."""
+    if groups is None:
+        return [(0, slice(0, n))]
+    labels = np.asarray(groups)
+    if labels.shape != (n,):
+        raise ValueError(
+            f"groups must have one label per row ({n}), got shape {labels.shape}"
+        )
+    change = np.flatnonzero(labels[1:] != labels[:-1]) + 1
+    starts, stops = np.r_[0, change], np.r_[change, n]
+    keys = [labels[a] for a in starts]
+    if len(set(map(_hashable, keys))) != len(keys):
+        raise ValueError(
+            "the rows of each trajectory must be contiguous (sort by trajectory, t)"
+        )
+    return [(k, slice(int(a), int(b))) for k, a, b in zip(keys, starts, stops)]
+
+
+def _hashable(x):
+    return x.item() if hasattr(x, "item") else x
+
+
+def shift_input(tau, t, delay, groups=None):
+    """The input acting at each sample: ``tau(t - delay)``, per trajectory.
+
+    Linear interpolation between samples, within each trajectory only. Where
+    ``t - delay`` falls before the first (after the last) sample of a trajectory,
+    the first (last) recorded value is held; drop the first ``delay`` seconds of
+    each trajectory (or the last ``-delay``) if those rows matter.
+
+    Parameters
+    ----------
+    tau : array-like of shape (n_samples, n_inputs) or (n_samples,)
+        Recorded inputs.
+    t : array-like of shape (n_samples,)
+        Time stamps, increasing within each trajectory.
+    delay : float
+        Seconds between recording an input and its action (> 0: the input acts
+        later than recorded). 0 returns a copy.
+    groups : array-like of shape (n_samples,), default=None
+        Trajectory labels (contiguous rows); ``None``: one trajectory.
+
+    Returns
+    -------
+    ndarray, the shape of ``tau``
+        The shifted inputs.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> t = np.arange(5) * 0.01
+    >>> shift_input(t * 100, t, 0.02).tolist()
+    [0.0, 0.0, 0.0, 1.0, 2.0]
+    """
+    tau = np.asarray(tau, dtype=float)
+    flat = tau.ndim == 1
+    tau2 = tau[:, None] if flat else tau
+    t = np.asarray(t, dtype=float)
+    delay = float(delay)
+    if not math.isfinite(delay):
+        raise ValueError(f"delay must be a finite number of seconds, got {delay!r}")
+    if t.shape != (tau2.shape[0],):
+        raise ValueError(
+            f"t must have one time stamp per row of tau ({tau2.shape[0]}), got shape "
+            f"{t.shape}"
+        )
+    out = np.empty_like(tau2)
+    for _, sl in _blocks(groups, len(t)):
+        ts = t[sl]
+        if np.any(np.diff(ts) <= 0):
+            raise ValueError(
+                "t must increase within each trajectory; pass groups= for stacked "
+                "trajectories"
+            )
+        for j in range(tau2.shape[1]):
+            out[sl, j] = np.interp(ts - delay, ts, tau2[sl, j])
+    return out[:, 0] if flat else out
+
+
+@dataclass
+class DelayEstimate:
+    """Result of :func:`estimate_delay`.
+
+    Attributes
+    ----------
+    delay : float
+        Estimated delay in seconds (> 0: the input acts after it is recorded).
+    std : float
+        Its uncertainty: standard deviation of the per-fold estimates divided by
+        the square root of the number of folds (NaN with one fold).
+    candidates : ndarray of shape (n_candidates,)
+        The delays tried (whole sample shifts: every ``stride``-th of the range,
+        then every one around the best; increasing).
+    scores : ndarray of shape (n_splits, n_candidates)
+        Held-out mean squared force error per fold and candidate, relative to the
+        variance of the recorded input (lower is better).
+    fold_delays : ndarray of shape (n_splits,)
+        The estimate of each fold.
+    """
+
+    delay: float
+    std: float
+    candidates: np.ndarray = field(repr=False)
+    scores: np.ndarray = field(repr=False)
+    fold_delays: np.ndarray = field(repr=False)
+
+    def __str__(self):
+        return (
+            f"input delay {1e3 * self.delay:.1f} ms +- {1e3 * self.std:.1f} ms "
+            f"({len(self.fold_delays)} folds, {len(self.candidates)} candidates from "
+            f"{1e3 * self.candidates[0]:.1f} to {1e3 * self.candidates[-1]:.1f} ms)"
+        )
+
+
+def _vertex(candidates, score):
+    """Sub-sample minimum: vertex of the parabola through the best point and its
+    neighbours (the best candidate itself at the ends of the range)."""
+    k = int(np.argmin(score))
+    if k == 0 or k == len(score) - 1:
+        return float(candidates[k]), True
+    y0, y1, y2 = score[k - 1], score[k], score[k + 1]
+    h = candidates[k + 1] - candidates[k]
+    curvature = y0 - 2 * y1 + y2
+    if not curvature > 0:
+        return float(candidates[k]), False
+    return float(candidates[k] + 0.5 * h * (y0 - y2) / curvature), False
+
+
+def estimate_delay(
+    estimator,
+    X,
+    tau,
+    t,
+    *,
+    groups=None,
+    max_delay=None,
+    n_splits=3,
+    method="support",
+    verbose=0,
+):
+    """Estimate the delay between the recorded input tau and the positions.
+
+    For each candidate delay (whole sample shifts from ``-max_delay`` to
+    ``max_delay``: every ``max(1, steps // 4)``-th first, then every one near the
+    best of those), the input is shifted with :func:`shift_input`, a clone of
+    ``estimator`` is fitted on the training trajectories of each ``GroupKFold``
+    fold and its forces are compared with the shifted input on the held-out
+    trajectories. The delay minimising the mean held-out error is refined between
+    samples by a parabola through the best candidate and its neighbours. The same
+    rows (without the first and last ``max_delay`` seconds of each trajectory,
+    where a shift would run out of data) are used for every candidate.
+
+    Parameters
+    ----------
+    estimator : LagrangianSINDy
+        An unfitted estimator with the library and options of the final fit
+        (cloned for every fit; pass ``formulation=`` explicitly).
+    X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+        ``[q, q_dot, q_ddot]`` (e.g. from :func:`~lagsindy.derivatives`).
+    tau : array-like of shape (n_samples, n_dof)
+        Recorded inputs.
+    t : array-like of shape (n_samples,)
+        Time stamps (increasing within each trajectory).
+    groups : array-like of shape (n_samples,), default=None
+        Trajectory labels. ``None``: the record is cut into ``n_splits``
+        contiguous pieces for the folds.
+    max_delay : float, default=None
+        Largest absolute delay tried, in seconds. ``None``: 10 sampling intervals.
+    n_splits : int, default=3
+        Folds of trajectories (at most the number of trajectories).
+    method : {"support", "refit"}, default="support"
+        ``"refit"``: a sparse fit of a clone of ``estimator`` per candidate and fold
+        (``n_candidates * n_splits`` fits; slow). ``"support"``: fit the estimator
+        once (at delay 0), then, with its support fixed, the model's forces are
+        linear in the coefficients, so each candidate and fold is an ordinary least
+        squares on the support's force columns (all candidates cost less than one
+        sparse fit); the estimator is refitted at the estimated delay and the search
+        repeated until the support no longer changes (at most 3 fits). The sparse
+        penalty only chooses the support, so with the right support both rank the
+        delays alike. Falls back to ``"refit"`` if the estimator's force columns
+        cannot be read.
+    verbose : int, default=0
+        Print progress (one line per candidate) when > 0.
+
+    Returns
+    -------
+    DelayEstimate
+        ``delay`` (seconds), ``std`` (its uncertainty), and the score table.
+
+    Raises
+    ------
+    ValueError
+        If there are fewer than 2 trajectories (pieces), or the data are too
+        short for ``max_delay``.
+
+    Warns
+    -----
+    UserWarning
+        When the best candidate is at the end of the range: the delay may be
+        larger; increase ``max_delay``.
+
+    Examples
+    --------
+    >>> from lagsindy import LagrangianSINDy  # doctest: +SKIP
+    >>> est = LagrangianSINDy(library, formulation="strong")  # doctest: +SKIP
+    >>> d = estimate_delay(est, X, tau, t, groups=groups)  # doctest: +SKIP
+    >>> est.fit(X, shift_input(tau, t, d.delay, groups), groups=groups)  # doctest: +SKIP
+    """
+    import warnings
+
+    import pandas as pd
+
+    frame = isinstance(X, pd.DataFrame)
+    n = len(X)
+    tau = np.asarray(tau, dtype=float)
+    tau2 = tau[:, None] if tau.ndim == 1 else tau
+    t = np.asarray(t, dtype=float)
+    if tau2.shape[0] != n or t.shape != (n,):
+        raise ValueError(
+            f"X, tau and t must have the same number of rows, got {n}, "
+            f"{tau2.shape[0]} and {t.shape[0] if t.ndim else 'a scalar'}"
+        )
+    if groups is None:
+        if n_splits < 2:
+            raise ValueError("n_splits must be at least 2")
+        groups = np.minimum(np.arange(n) * n_splits // n, n_splits - 1)
+    groups = np.asarray(groups)
+    blocks = _blocks(groups, n)
+    if len(blocks) < 2:
+        raise ValueError(
+            "estimate_delay needs at least 2 trajectories to hold some out; pass "
+            "groups=None to cut a single record into pieces"
+        )
+    dt = float(np.median(np.concatenate([np.diff(t[sl]) for _, sl in blocks])))
+    if max_delay is None:
+        max_delay = 10 * dt
+    steps = int(math.floor(float(max_delay) / dt + 1e-9))
+    if steps < 1:
+        raise ValueError(
+            f"max_delay={max_delay} is below one sampling interval ({dt:.4g} s)"
+        )
+    candidates = dt * np.arange(-steps, steps + 1)
+    keep = np.zeros(n, dtype=bool)
+    for _, sl in blocks:
+        ts = t[sl]
+        keep[sl] = (ts >= ts[0] + steps * dt * 1.000001) & (
+            ts <= ts[-1] - steps * dt * 1.000001
+        )
+    if keep.sum() < 10 * len(blocks):
+        raise ValueError(
+            f"the trajectories are too short for max_delay={max_delay}: too few rows "
+            "remain once the first and last max_delay seconds are dropped"
+        )
+    k = min(int(n_splits), len(blocks))
+    folds = list(GroupKFold(n_splits=k).split(np.zeros(n), groups=groups))
+    scale = float(np.mean(np.var(tau2[keep], axis=0)))
+    scores = np.full((k, len(candidates)), np.nan)
+    rows = np.flatnonzero(keep)
+    Xk = X.iloc[rows] if frame else np.asarray(X)[rows]
+    gk = groups[rows]
+
+    if method not in ("support", "refit"):
+        raise ValueError(f"method must be 'support' or 'refit', got {method!r}")
+    if method == "support":
+        result = _support_search(
+            estimator, Xk, frame, tau2, t, groups, rows, folds, candidates, scale,
+            verbose,
+        )
+        if result is not None:
+            scores, fold_delays, delay, at_edge = result
+            return _finish(delay, at_edge, candidates, scores, fold_delays, k)
+
+    def evaluate(c):
+        if not np.isnan(scores[0, c]):
+            return
+        shifted = shift_input(tau2, t, candidates[c], groups)[rows]
+        for f, (train, _) in enumerate(folds):
+            tr = np.isin(rows, train)
+            te = ~tr
+            est = clone(estimator)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                est.fit(Xk.iloc[tr] if frame else Xk[tr], shifted[tr], groups=gk[tr])
+                pred = np.asarray(est.predict(Xk.iloc[te] if frame else Xk[te]))
+            pred = pred.reshape(shifted[te].shape)
+            scores[f, c] = float(np.mean((pred - shifted[te]) ** 2)) / scale
+        if verbose:
+            print(
+                f"delay {1e3 * candidates[c]:+.1f} ms: held-out error "
+                f"{scores[:, c].mean():.4g}",
+                flush=True,
+            )
+
+    # every stride-th shift first, then every shift around the best of those
+    stride = max(1, steps // 4)
+    coarse = sorted(set(range(0, 2 * steps + 1, stride)) | {2 * steps})
+    for c in coarse:
+        evaluate(c)
+    best = coarse[int(np.argmin(np.nanmean(scores[:, coarse], axis=0)))]
+    for c in range(max(best - stride, 0), min(best + stride, 2 * steps) + 1):
+        evaluate(c)
+    best = int(np.nanargmin(np.nanmean(scores, axis=0)))
+    for c in (best - 1, best + 1):
+        if 0 <= c <= 2 * steps:
+            evaluate(c)
+    tried = ~np.isnan(scores[0])
+    candidates, scores = candidates[tried], scores[:, tried]
+    delay, at_edge = _vertex(candidates, scores.mean(axis=0))
+    fold_delays = np.array([_vertex(candidates, s)[0] for s in scores])
+    return _finish(delay, at_edge, candidates, scores, fold_delays, k)
+
+
+def _finish(delay, at_edge, candidates, scores, fold_delays, k):
+    import warnings
+
+    std = float(np.std(fold_delays, ddof=1) / np.sqrt(k)) if k > 1 else math.nan
+    if at_edge:
+        warnings.warn(
+            f"the best delay is at the end of the range tried ({1e3 * delay:.1f} ms); "
+            "the delay may be larger: call estimate_delay again with a larger "
+            "max_delay",
+            UserWarning,
+            stacklevel=3,
+        )
+    return DelayEstimate(delay, std, candidates, scores, fold_delays)
+
+
+def _force_columns(est, X):
+    """Force of each support term at X, (n_samples * n_dof, n_support), or None.
+
+    Reads the fitted estimator's Euler-Lagrange operator; checked against
+    ``predict`` so that a change of the estimator's internals falls back to refits
+    instead of giving a wrong answer.
+    """
+    try:
+        from ._torch import to_numpy
+
+        _, Xt = est._prepare_predict(X)
+        op, coef = est._support_operator(Xt.device, Xt.dtype)
+        cols = to_numpy(op.columns(Xt))
+        coef = to_numpy(coef)
+    except Exception:  # noqa: BLE001 - any internal change: use refits
+        return None
+    if cols.ndim != 3 or cols.shape[2] != coef.size or coef.size == 0:
+        return None
+    pred = np.asarray(est.predict(X)).reshape(cols.shape[:2])
+    if not np.allclose(cols @ coef, pred, rtol=1e-8, atol=1e-10 * np.abs(pred).max()):
+        return None
+    return cols.reshape(-1, coef.size)
+
+
+def _support_search(estimator, Xk, frame, tau2, t, groups, rows, folds, candidates,
+                    scale, verbose):
+    """Least squares on a fixed support for every candidate; refit at the estimate
+    until the support is stable. Returns None when the columns cannot be read."""
+    import warnings
+
+    n_dof = tau2.shape[1]
+    gk = groups[rows]
+    shifted = np.stack([shift_input(tau2, t, d, groups)[rows] for d in candidates])
+    delay, support = 0.0, None
+    for _ in range(3):
+        est = clone(estimator)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            est.fit(Xk, shift_input(tau2, t, delay, groups)[rows], groups=gk)
+        new_support = tuple(np.flatnonzero(np.asarray(est.coef_)))
+        A = _force_columns(est, Xk)
+        if A is None:
+            return None
+        scores = np.empty((len(folds), len(candidates)))
+        for f, (train, _) in enumerate(folds):
+            tr = np.repeat(np.isin(rows, train), n_dof)
+            te = ~tr
+            for c in range(len(candidates)):
+                b = shifted[c].reshape(-1)
+                xi, *_ = np.linalg.lstsq(A[tr], b[tr], rcond=None)
+                scores[f, c] = float(np.mean((A[te] @ xi - b[te]) ** 2)) / scale
+        delay, at_edge = _vertex(candidates, scores.mean(axis=0))
+        if verbose:
+            print(
+                f"support of {len(new_support)} terms: delay {1e3 * delay:.2f} ms",
+                flush=True,
+            )
+        if new_support == support:
+            break
+        support = new_support
+    fold_delays = np.array([_vertex(candidates, s)[0] for s in scores])
+    return scores, fold_delays, delay, at_edge

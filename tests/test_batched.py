@@ -1,0 +1,165 @@
+"""The batched Euler-Lagrange kernels against sympy and against the torch.func path."""
+
+import pickle
+
+import numpy as np
+import pytest
+import sympy as sp
+import torch
+
+from lagsindy import CandidateLibrary, LagrangianSINDy
+from lagsindy._batched import compile_terms
+from lagsindy._expr import compile_torch, symbols_for
+from lagsindy.euler_lagrange import (
+    EulerLagrangeOperator,
+    lagrangian_columns,
+    lagrangian_components,
+    lagrangian_gradients,
+)
+from lagsindy.library import _KINDS, euler_lagrange_expressions
+
+# Every generated kind of library (a kind added to library._KINDS is tested too),
+# on a cart-like system (one raw coordinate, one angle) and on two angles.
+SETUPS = [
+    (["x", "theta"], ["theta"], 3),
+    (["theta1", "theta2"], "all", 2),
+]
+CASES = [(kind, *setup) for kind in _KINDS for setup in SETUPS]
+
+
+def _states(n_dof, n, seed):
+    rng = np.random.default_rng(seed)
+    return [
+        torch.tensor(rng.uniform(lo, hi, (n, n_dof)))
+        for lo, hi in ((-np.pi, np.pi), (-3, 3), (-3, 3))
+    ]
+
+
+def _sympy_columns(terms, names, q, qd, qdd):
+    """Theta[s, i, k] from sympy's Euler-Lagrange expressions."""
+    q_s, qd_s, qdd_s = symbols_for(names)
+    flat = [e for t in terms for e in euler_lagrange_expressions(t, names)]
+    f = sp.lambdify(q_s + qd_s + qdd_s, flat, modules="numpy")
+    n = q.shape[0]
+    values = f(*q.numpy().T, *qd.numpy().T, *qdd.numpy().T)
+    out = np.stack([np.broadcast_to(np.asarray(v, float), (n,)) for v in values], 1)
+    return out.reshape(n, len(terms), len(names)).transpose(0, 2, 1)
+
+
+def _assert_close(got, want, what):
+    # Relative to each column's size: measured agreement is about 1e-15.
+    scale = np.maximum(np.abs(want).max(axis=0, keepdims=True), 1.0)
+    np.testing.assert_array_less(np.abs(got - want) / scale, 1e-10, err_msg=what)
+
+
+@pytest.mark.parametrize("kind,names,angles,degree", CASES)
+def test_batched_columns_match_sympy_and_torch_func(kind, names, angles, degree):
+    lib = CandidateLibrary(names, kind=kind, angles=angles, degree=degree).build()
+    kernels = compile_terms(lib.terms_, names)
+    assert kernels.general.size == 0  # every generated term takes the batched path
+    q, qd, qdd = _states(len(names), 40, 0)
+    got = lagrangian_columns(kernels, q, qd, qdd).numpy()
+    want = _sympy_columns(lib.terms_, names, q, qd, qdd)
+    _assert_close(got, want, f"{kind} {names}: batched vs sympy")
+    q_s, qd_s, _ = symbols_for(names)
+    old = lagrangian_columns(compile_torch(lib.terms_, (q_s, qd_s)), q, qd, qdd)
+    _assert_close(got, old.numpy(), f"{kind} {names}: batched vs torch.func")
+
+
+@pytest.mark.parametrize("kind,names,angles,degree", CASES[:2])
+def test_batched_components_and_gradients_match_torch_func(kind, names, angles, degree):
+    lib = CandidateLibrary(names, kind=kind, angles=angles, degree=degree).build()
+    kernels = compile_terms(lib.terms_, names)
+    q_s, qd_s, _ = symbols_for(names)
+    plain = compile_torch(lib.terms_, (q_s, qd_s))
+    q, qd, _ = _states(len(names), 30, 1)
+    for got, want in zip(
+        lagrangian_components(kernels, q, qd), lagrangian_components(plain, q, qd)
+    ):
+        _assert_close(got.numpy(), want.numpy(), "components")
+    _assert_close(
+        lagrangian_gradients(kernels, q, qd).numpy(),
+        lagrangian_gradients(plain, q, qd).numpy(),
+        "gradients",
+    )
+    op = EulerLagrangeOperator(names, lib.terms_)
+    _assert_close(
+        op.mass_matrices(q, qd).numpy(),
+        lagrangian_components(plain, q, qd)[0].numpy(),
+        "mass matrices",
+    )
+
+
+def test_mixed_terms_split_between_batched_and_general_paths():
+    names = ["theta1", "theta2"]
+    t1, t2 = sp.symbols(names, real=True)
+    w1, w2 = sp.symbols(["theta1_dot", "theta2_dot"], real=True)
+    terms = [
+        w1 * w2 * sp.cos(t1 - t2),  # batched: chain difference
+        sp.exp(t1) * w1**2,  # general
+        w2**2 * sp.sin(2 * t2),  # batched: multiple angle
+        (w1 + t2) ** 2,  # general: a power of a sum
+        sp.sqrt(1 + w1**2),  # general
+        3 * w1**2 * t2**3 + w2**2 / 2,  # batched: a sum of monomials
+        sp.cos(t1 + 1) * w2**2,  # general: constant offset
+    ]
+    kernels = compile_terms(terms, names)
+    assert kernels.supported.tolist() == [0, 2, 5]
+    assert kernels.general.tolist() == [1, 3, 4, 6]
+    q, qd, qdd = _states(2, 25, 2)
+    got = lagrangian_columns(kernels, q, qd, qdd).numpy()
+    _assert_close(got, _sympy_columns(terms, names, q, qd, qdd), "mixed vs sympy")
+    # the Gram matrix accumulated in chunks from the (dof, column, sample) layout
+    op = EulerLagrangeOperator(names, terms, forces=[[-w1, -w2]], chunk_size=7)
+    X = torch.cat([q, qd, qdd], dim=1)
+    y = torch.tensor(np.random.default_rng(3).normal(size=(25, 2)))
+    a = torch.cat([op.columns(X), y.unsqueeze(2)], dim=2).numpy()
+    want = np.einsum("sip,siq->ipq", a, a)
+    g = op.gram(X, y).numpy()
+    np.testing.assert_allclose(g, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+
+
+def test_kernels_are_callable_per_sample_and_pickle():
+    lib = CandidateLibrary.polynomial(["x", "theta"], angles=["theta"], degree=2)
+    kernels = lib.to_torch()
+    q, qd, qdd = _states(2, 10, 4)
+    per_sample = torch.func.vmap(kernels)(q, qd)
+    q_s, qd_s, _ = symbols_for(lib.coordinates_)
+    f = sp.lambdify(q_s + qd_s, lib.terms_, modules="numpy")
+    want = np.stack(
+        [np.broadcast_to(v, (10,)) for v in f(*q.numpy().T, *qd.numpy().T)], 1
+    )
+    np.testing.assert_allclose(per_sample.numpy(), want, rtol=1e-13)
+    again = pickle.loads(pickle.dumps(kernels))
+    np.testing.assert_array_equal(
+        lagrangian_columns(again, q, qd, qdd).numpy(),
+        lagrangian_columns(kernels, q, qd, qdd).numpy(),
+    )
+
+
+def test_batched_rows_in_several_batches(monkeypatch):
+    """Row batching of the kernels (small BATCH_ELEMENTS) changes nothing."""
+    import lagsindy._batched as batched
+
+    lib = CandidateLibrary.polynomial(["x", "theta"], angles=["theta"], degree=3)
+    kernels = compile_terms(lib.terms_, lib.coordinates_)
+    q, qd, qdd = _states(2, 1000, 5)
+    whole = lagrangian_columns(kernels, q, qd, qdd)
+    monkeypatch.setattr(batched, "BATCH_ELEMENTS", 1)  # 256 rows per batch
+    np.testing.assert_array_equal(lagrangian_columns(kernels, q, qd, qdd), whole)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_fit_on_cuda_matches_cpu():
+    from lagsindy.systems import cart_pendulum, make_dataset
+
+    system = cart_pendulum()
+    data = make_dataset(system, n_trajectories=4, excitation="sincos", random_state=0)
+    lib = system.paper_library()
+    cpu = LagrangianSINDy(lib, formulation="strong").fit(data.X, data.tau)
+    gpu = LagrangianSINDy(lib, formulation="strong", device="cuda").fit(
+        data.X, data.tau
+    )
+    np.testing.assert_array_equal(gpu.support_, cpu.support_)
+    np.testing.assert_allclose(gpu.coef_, cpu.coef_, rtol=1e-8, atol=1e-10)

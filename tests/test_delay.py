@@ -1,0 +1,111 @@
+"""Input delay (#13): estimate_delay, shift_input, lagsindy fit --delay."""
+
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from lagsindy import LagrangianSINDy, estimate_delay, shift_input
+from lagsindy.cli import main
+from lagsindy.systems import make_dataset, single_pendulum
+
+
+@pytest.fixture(scope="module")
+def delayed():
+    """A forced pendulum recorded at 125 Hz whose input acts 30 ms (3.75 samples)
+    after it is recorded: simulated at 1 kHz, the recorded input at row i is the
+    force acting 30 ms later."""
+    system = single_pendulum()
+    fine = make_dataset(
+        system, n_trajectories=4, duration=2.0, rate=1000.0, random_state=0
+    )
+    step, lag = 8, 30
+    rows, recorded = [], []
+    for g in np.unique(fine.groups):
+        idx = np.flatnonzero(fine.groups == g)
+        take = idx[: idx.size - lag : step]
+        rows.append(take)
+        recorded.append(fine.tau[take + lag])
+    rows = np.concatenate(rows)
+    return (
+        system,
+        fine.X[rows],
+        np.concatenate(recorded),
+        fine.t[rows],
+        fine.groups[rows],
+    )
+
+
+def make(system):
+    return LagrangianSINDy(system.paper_library(), formulation="strong")
+
+
+def test_shift_input_interpolates_within_each_trajectory():
+    t = np.r_[np.arange(5), np.arange(4)] * 0.01
+    groups = np.repeat([0, 1], [5, 4])
+    tau = np.c_[t * 100, -t * 100]
+    out = shift_input(tau, t, 0.015, groups)
+    np.testing.assert_allclose(out[:5, 0], [0, 0, 0.5, 1.5, 2.5])
+    np.testing.assert_allclose(out[5:, 0], [0, 0, 0.5, 1.5])  # no leak from row 4
+    np.testing.assert_allclose(out[:, 1], -out[:, 0])
+    np.testing.assert_allclose(shift_input(tau[:, 0], t, 0.0, groups), tau[:, 0])
+    with pytest.raises(ValueError, match="finite"):
+        shift_input(tau, t, np.nan, groups)
+
+
+def test_delay_is_estimated_and_removes_the_bias(delayed):
+    system, X, tau, t, groups = delayed
+    result = estimate_delay(make(system), X, tau, t, groups=groups, max_delay=0.048,
+                            n_splits=2)
+    # measured 30.0 ms +- 0.006 ms (folds 30.00 and 29.99 ms; method="refit" gave
+    # 29.2 ms +- 0.4 ms)
+    assert abs(result.delay - 0.030) < 0.005
+    assert 0 < result.std < 0.005
+    assert "ms" in str(result)
+    raw = make(system).fit(X, tau, groups=groups)
+    fixed = make(system).fit(X, shift_input(tau, t, result.delay, groups),
+                             groups=groups)
+    truth = make(system).fit(X, shift_input(tau, t, 0.030, groups), groups=groups)
+    ref = {"theta_dot**2": 0.5, "cos(theta)": 9.81}
+    for est, bound in ((fixed, 0.02), (truth, 0.02)):
+        table = est.coef_table().set_index("term")["coefficient"]
+        for term, value in ref.items():
+            assert abs(table[term] / value - 1) < bound  # measured 0.06 %
+    table = raw.coef_table().set_index("term")["coefficient"]
+    assert abs(table["theta_dot**2"] / 0.5 - 1) > 0.02  # unshifted: 3.4 % off
+
+
+def test_delay_needs_held_out_trajectories(delayed):
+    system, X, tau, t, groups = delayed
+    one = groups == groups[0]
+    with pytest.raises(ValueError, match="too short"):
+        estimate_delay(make(system), X[one], tau[one], t[one], max_delay=0.9)
+    with pytest.raises(ValueError, match="below one sampling interval"):
+        estimate_delay(make(system), X, tau, t, groups=groups, max_delay=0.001)
+
+
+def test_cli_delay_option(tmp_path, capsys, delayed):
+    system, X, tau, t, groups = delayed
+    frame = pd.DataFrame(
+        {"trajectory": groups, "t": t, "theta": X[:, 0], "theta_dot": X[:, 1],
+         "theta_ddot": X[:, 2], "tau_theta": tau[:, 0]}
+    )
+    frame.to_csv(tmp_path / "d.csv", index=False)
+    outs = []
+    for delay in ("0", "0.03"):
+        code = main(["fit", str(tmp_path / "d.csv"), "--coordinates", "theta",
+                     "--angles", "theta", "--formulation",
+                     "strong", "--delay", delay, "--out", str(tmp_path / "m.json"),
+                     "--quiet"])
+        assert code == 0, capsys.readouterr().err
+        outs.append(capsys.readouterr().out)
+    coefs = [
+        [float(c) for c in re.findall(r"([-\d.e]+)\*(?:theta_dot\*\*2|cos\(theta\))", o)]
+        for o in outs
+    ]
+    assert np.allclose(coefs[1], [0.5, 9.81], rtol=0.01), outs[1]  # measured 0.02 %
+    assert not np.allclose(coefs[0], [0.5, 9.81], rtol=0.02), outs[0]
+    assert main(["fit", str(tmp_path / "d.csv"), "--coordinates", "theta",
+                 "--delay", "soon", "--out", str(tmp_path / "m.json")]) == 2
+    assert "--delay must be a number" in capsys.readouterr().err
