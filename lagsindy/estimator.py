@@ -78,6 +78,9 @@ _TIME_ORDER_MIN = 0.2
 # the fit warns.
 _MASS_BAD_FRACTION = 0.01
 _PATH_TIE = 0.1
+# Absolute relative-residual margin below which a path is not restarted (clean data:
+# residuals at rounding level differ by large factors that mean nothing).
+_PATH_FLOOR = 1e-9
 
 
 class LagrangianSINDy(RegressorMixin, BaseEstimator):
@@ -1113,9 +1116,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         # shrinks the true terms below the threshold and the hard threshold removes
         # them for good (the MultiArm double pendulum, weak form: lam=1e-3 kept 10
         # terms at relative residual 6.1e-4, lam=1e-4 the six physical ones at
-        # 2.8e-5). The path is therefore also started from lam / 10 and lam / 100 and
-        # the sparsest path whose residual is within _PATH_TIE of the best is kept
-        # (then the larger lam), so a weaker start only wins by fitting clearly better.
+        # 2.8e-5). The path is therefore also started from lam / lam_decay, and the
+        # sparsest path whose residual is within _PATH_TIE of the best is kept (then
+        # the larger lam), so a weaker start only wins by fitting clearly better.
+        # No path's residual can be below the dense least-squares residual of all
+        # the features, so when the first path is within _PATH_TIE of that bound no
+        # other start can fit clearly better and it is not run (most fits).
         starts = _LAM_STARTS if starts is None else starts
         # Dissipation that opposes motion (viscous, relative, drag, Coulomb) cannot
         # have a negative coefficient: projected in FISTA and in the refit. Only where
@@ -1126,12 +1132,23 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         if not isinstance(datafit, GramQuadratic) or self.lam == 0 or starts <= 1:
             return self._staged(datafit, self.lam, features, weights, verbose, **kwargs)
         results = []
+        bound = None
         for k in range(starts):
             lam = self.lam / self.lam_decay**k if self.lam_decay > 1 else self.lam
             res = self._staged(datafit, lam, features, weights, verbose, **kwargs)
             results.append(res)
             if self.lam_decay <= 1:
                 break
+            if bound is None:
+                bound = _dense_residual(datafit)
+            if res.cost <= (1 + _PATH_TIE) * bound + _PATH_FLOOR:
+                break
+            if verbose:
+                print(
+                    f"[lagsindy] relative residual {res.cost:.3g} is above the dense "
+                    f"least-squares bound {bound:.3g}: restarting the path from "
+                    f"lam={lam / self.lam_decay:.3g}"
+                )
         best = min(r.cost for r in results)
         near = [r for r in results if r.cost <= (1 + _PATH_TIE) * best + 1e-12]
         chosen = min(near, key=lambda r: int((r.coef != 0).sum()))
@@ -1499,6 +1516,22 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         from .io import load_model
 
         return load_model(path)
+
+
+def _dense_residual(datafit: GramQuadratic) -> float:
+    """Relative residual of the unpenalised least-squares fit of every feature.
+
+    A lower bound of the relative residual of any sparse (or constrained) solution of
+    ``datafit``; eigenvalues below ``_NULL_RCOND`` times the largest are treated as
+    zero.
+    """
+    if datafit.const <= 0 or datafit.n_features == 0:
+        return 0.0
+    vals, vecs = torch.linalg.eigh(datafit.gram)
+    keep = vals > _NULL_RCOND * float(vals[-1].clamp(min=0))
+    proj = vecs[:, keep].T @ datafit.rhs
+    explained = float((proj * proj / vals[keep]).sum())
+    return max(0.0, 1.0 - explained / datafit.const)
 
 
 def _warn_if_not_identifiable(balanced, free, names, *, allowed):
