@@ -40,6 +40,9 @@ from sklearn.base import BaseEstimator
 from ._expr import check_coordinate_names, symbols_for
 
 KINDS = ("viscous", "relative", "drag", "coulomb", "bias")
+# Kinds whose force opposes the motion for a positive coefficient: a negative one
+# would feed energy in, so the fit constrains them to be non-negative.
+DISSIPATIVE_KINDS = ("viscous", "relative", "drag", "coulomb")
 DEFAULT_EPS = 0.01
 
 
@@ -67,6 +70,11 @@ class ForceTerm:
     coordinates: tuple
     forces: tuple
     rayleigh: sp.Expr | None = None
+
+    @property
+    def dissipative(self) -> bool:
+        """Whether the coefficient must be non-negative (the force opposes motion)."""
+        return self.kind in DISSIPATIVE_KINDS
 
     def units(self, coordinate_units: dict) -> str:
         """Units of its coefficient, from ``{coordinate: (q unit, force unit)}``."""

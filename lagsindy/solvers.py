@@ -219,9 +219,15 @@ class L1:
         Per-coefficient weights; 0 leaves a coefficient unpenalised (known terms).
     """
 
-    def __init__(self, lam: float, weights: torch.Tensor | None = None):
+    def __init__(
+        self,
+        lam: float,
+        weights: torch.Tensor | None = None,
+        nonneg: torch.Tensor | None = None,
+    ):
         self.lam = float(lam)
         self.weights = weights
+        self.nonneg = nonneg
 
     def _w(self, like):
         return torch.ones_like(like) if self.weights is None else self.weights
@@ -231,24 +237,35 @@ class L1:
 
     def prox(self, w, step):
         thresh = step * self.lam * self._w(w)
-        return torch.sign(w) * torch.clamp(w.abs() - thresh, min=0.0)
+        out = torch.sign(w) * torch.clamp(w.abs() - thresh, min=0.0)
+        if self.nonneg is not None:
+            # Projection onto w_k >= 0 (prox of the L1 term plus the indicator).
+            out = torch.where(self.nonneg, torch.clamp(out, min=0.0), out)
+        return out
 
     def subdiff_distance(self, w, grad):
         """Largest distance of ``-grad`` to the subdifferential (the KKT violation)."""
         lw = self.lam * self._w(w)
         nonzero = w != 0
-        dist = torch.where(
-            nonzero,
-            (grad + lw * torch.sign(w)).abs(),
-            torch.clamp(grad.abs() - lw, min=0.0),
-        )
+        at_zero = torch.clamp(grad.abs() - lw, min=0.0)
+        if self.nonneg is not None:
+            # at w_k = 0 with w_k >= 0 imposed, any grad_k >= -lw_k is optimal
+            at_zero = torch.where(
+                self.nonneg, torch.clamp(-grad - lw, min=0.0), at_zero
+            )
+        dist = torch.where(nonzero, (grad + lw * torch.sign(w)).abs(), at_zero)
         return float(dist.max()) if dist.numel() else 0.0
 
     def restrict(self, idx):
-        if self.weights is None:
+        if self.weights is None and self.nonneg is None:
             return L1(self.lam)
-        idx = torch.as_tensor(idx, dtype=torch.long, device=self.weights.device)
-        return L1(self.lam, self.weights[idx])
+        like = self.weights if self.weights is not None else self.nonneg
+        idx = torch.as_tensor(idx, dtype=torch.long, device=like.device)
+        return L1(
+            self.lam,
+            None if self.weights is None else self.weights[idx],
+            None if self.nonneg is None else self.nonneg[idx],
+        )
 
 
 # --------------------------------------------------------------------------- FISTA
@@ -326,6 +343,44 @@ def fista(
     if p == 0:
         return SolverResult(w, 0, True, 0.0, 0.0)
     lip = datafit.lipschitz()
+    like = w
+    numpy_loop = _numpy_problem(datafit, penalty, w)
+    if numpy_loop is not None:
+        # Small CPU problems: the same iterations on NumPy arrays, whose per-call
+        # overhead is several times lower than torch's (the loop is overhead-bound).
+        datafit, penalty, w = numpy_loop
+    # Divergence shows as inf/nan objectives, handled below: no NumPy warnings.
+    with np.errstate(over="ignore", invalid="ignore"):
+        res = _fista_loop(
+            datafit,
+            penalty,
+            w,
+            step,
+            lip,
+            max_iter,
+            tol,
+            check_every,
+            restart,
+            max_step_reductions,
+        )
+    res.coef = _back(res.coef, like)
+    return res
+
+
+def _fista_loop(
+    datafit,
+    penalty,
+    w,
+    step,
+    lip,
+    max_iter,
+    tol,
+    check_every,
+    restart,
+    max_step_reductions,
+):
+    """The iterations of :func:`fista` (on tensors or NumPy arrays)."""
+    copy = _copy
     reductions = 0
     if step is None:
         step = 1.0 / lip if lip > 0 else 1.0
@@ -336,8 +391,8 @@ def fista(
         n_halvings = math.ceil(math.log2(step) + math.log2(lip) - 1.0)
         step = step / 2.0**n_halvings
         reductions += n_halvings
-    w_prev = w.clone()
-    best_w, best_obj = w.clone(), datafit.value(w) + penalty.value(w)
+    w_prev = copy(w)
+    best_w, best_obj = copy(w), datafit.value(w) + penalty.value(w)
     history = [best_obj]
     k = 1
     rises = 0
@@ -371,16 +426,90 @@ def fista(
                     step *= 0.5
                     guard += 1
                     reductions += 1
-                    w, w_prev, k, rises = best_w.clone(), best_w.clone(), 1, 0
+                    w, w_prev, k, rises = copy(best_w), copy(best_w), 1, 0
                     continue
             else:
                 rises = 0
                 if obj <= best_obj:
-                    best_obj, best_w = obj, w.clone()
+                    best_obj, best_w = obj, copy(w)
             stop = penalty.subdiff_distance(w, datafit.gradient(w))
             if stop <= tol:
                 return SolverResult(w, it, True, stop, step, history, reductions)
     return SolverResult(w, n_iter, False, stop, step, history, reductions)
+
+
+def _copy(x):
+    return x.copy() if isinstance(x, np.ndarray) else x.clone()
+
+
+def _back(w, like: torch.Tensor) -> torch.Tensor:
+    """``w`` as a tensor like ``like`` (a no-op for tensors)."""
+    if isinstance(w, np.ndarray):
+        return torch.from_numpy(w).to(dtype=like.dtype, device=like.device)
+    return w
+
+
+class _NumpyQuadratic:
+    """:class:`GramQuadratic` on NumPy arrays (value and gradient only)."""
+
+    def __init__(self, gram, rhs, const):
+        self.gram, self.rhs, self.const = gram, rhs, const
+
+    def value(self, w):
+        return float(0.5 * w @ (self.gram @ w) - self.rhs @ w + 0.5 * self.const)
+
+    def gradient(self, w):
+        return self.gram @ w - self.rhs
+
+
+class _NumpyL1:
+    """:class:`L1` on NumPy arrays (value, prox and KKT distance only)."""
+
+    def __init__(self, lam, weights, nonneg):
+        self.lam, self.weights, self.nonneg = lam, weights, nonneg
+
+    def value(self, w):
+        return float(self.lam * (self.weights * np.abs(w)).sum())
+
+    def prox(self, w, step):
+        out = np.sign(w) * np.maximum(np.abs(w) - step * self.lam * self.weights, 0.0)
+        if self.nonneg is not None:
+            out = np.where(self.nonneg, np.maximum(out, 0.0), out)
+        return out
+
+    def subdiff_distance(self, w, grad):
+        lw = self.lam * self.weights
+        at_zero = np.maximum(np.abs(grad) - lw, 0.0)
+        if self.nonneg is not None:
+            at_zero = np.where(self.nonneg, np.maximum(-grad - lw, 0.0), at_zero)
+        dist = np.where(w != 0, np.abs(grad + lw * np.sign(w)), at_zero)
+        return float(dist.max()) if dist.size else 0.0
+
+
+def _numpy_problem(datafit, penalty, w):
+    """NumPy copies of a CPU :class:`GramQuadratic` and :class:`L1`, else ``None``."""
+    if (
+        type(datafit) is not GramQuadratic
+        or type(penalty) is not L1
+        or w.device.type != "cpu"
+        or w.dtype not in (torch.float32, torch.float64)
+    ):
+        return None
+
+    def arr(t):
+        return t.detach().cpu().numpy().copy()
+
+    weights = (
+        np.ones(w.shape[0], dtype=arr(w).dtype)
+        if penalty.weights is None
+        else arr(penalty.weights)
+    )
+    nonneg = None if penalty.nonneg is None else arr(penalty.nonneg).astype(bool)
+    return (
+        _NumpyQuadratic(arr(datafit.gram), arr(datafit.rhs), datafit.const),
+        _NumpyL1(penalty.lam, weights, nonneg),
+        arr(w),
+    )
 
 
 def proximal_gradient(
@@ -484,6 +613,7 @@ def staged_fista(
     debias: bool = True,
     verbose: int = 0,
     w0: torch.Tensor | None = None,
+    nonneg: torch.Tensor | None = None,
 ) -> StagedResult:
     r"""The xL-SINDy schedule: FISTA stages with hard thresholding between them.
 
@@ -523,6 +653,9 @@ def staged_fista(
     verbose : int
     w0 : Tensor, optional
         Starting point of the first stage (zeros by default).
+    nonneg : Tensor of bool, shape (p,), optional
+        Coefficients constrained to be non-negative (dissipation), enforced by
+        projection in FISTA's proximal step and in the unpenalised refit.
 
     Returns
     -------
@@ -539,13 +672,17 @@ def staged_fista(
         .clone()
     )
     w_full = template.clone() if w0 is None else w0.clone()
+    if nonneg is not None:
+        nonneg = torch.as_tensor(nonneg, dtype=torch.bool, device=device)
+        w_full = torch.where(nonneg, torch.clamp(w_full, min=0.0), w_full)
     stages, total_iter, reductions = [], 0, 0
     converged = True
     cur_lam = float(lam)
     cost = datafit.relative_residual(w_full)
     for s in range(max_stages):
         sub = datafit.restrict(support)
-        pen = L1(cur_lam, weights[torch.as_tensor(support, device=device)])
+        sup_idx = torch.as_tensor(support, device=device)
+        pen = L1(cur_lam, weights[sup_idx], None if nonneg is None else nonneg[sup_idx])
         step = None if alpha is None else float(alpha) * step_growth**s
         solver = fista if sub.lipschitz() is not None else proximal_gradient
         res = solver(
@@ -597,7 +734,7 @@ def staged_fista(
         cur_lam /= lam_decay
     if debias and len(support):
         w_full, support = _debias(
-            datafit, support, weights, thresholds, reference, w_full
+            datafit, support, weights, thresholds, reference, w_full, nonneg
         )
         cost = datafit.relative_residual(w_full)
     return StagedResult(
@@ -605,17 +742,26 @@ def staged_fista(
     )
 
 
-def _debias(datafit, support, weights, thresholds, reference, w_start):
+def _debias(datafit, support, weights, thresholds, reference, w_start, nonneg=None):
     """Unpenalised refit of the support, thresholding the refit until it is stable.
 
     The L1 stages shrink coefficients, so a term that the penalty kept alive only
     to stand in for a shrunk one can look large before the refit and negligible
     after it; it is removed and the rest refitted (at most ``len(support)`` times).
+    Coefficients in ``nonneg`` stay non-negative: where the unconstrained refit
+    makes one negative, the refit is the non-negative least-squares solution
+    (projected FISTA with no penalty).
     """
     device = datafit.zeros().device
     while True:
         idx = torch.as_tensor(support, device=device)
-        w_ls = datafit.restrict(support).least_squares(w0=w_start[idx])
+        sub = datafit.restrict(support)
+        w_ls = sub.least_squares(w0=w_start[idx])
+        if nonneg is not None and bool((nonneg[idx] & (w_ls < 0)).any()):
+            start = torch.where(nonneg[idx], torch.clamp(w_ls, min=0.0), w_ls)
+            w_ls = fista(
+                sub, L1(0.0, None, nonneg[idx]), start, max_iter=50_000, tol=1e-12
+            ).coef
         mags = w_ls.abs()
         peak = max(float(mags.max()), reference) if mags.numel() else 0.0
         drop = (mags < thresholds[idx] * peak) & (weights[idx] > 0)

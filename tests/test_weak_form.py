@@ -130,7 +130,7 @@ def test_weak_form_with_noise_correction_beats_strong_form():
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        strong = LagrangianSINDy(lib).fit(data.X, data.tau)
+        strong = LagrangianSINDy(lib, formulation="strong").fit(data.X, data.tau)
         weak_raw = LagrangianSINDy(
             lib, formulation="weak", dt=0.01, noise_cov=None
         ).fit(data.X, data.tau, groups=data.groups)
