@@ -208,7 +208,7 @@ def windows(frame, horizon: float, max_windows: int = 20, min_every: float = 0.2
     return out
 
 
-def rollouts(models: dict, X: pd.DataFrame, frame, horizon: float):
+def rollouts(models: dict, X: pd.DataFrame, frame, horizon: float, max_windows=20):
     """RMS angle error of each model over the windows; ``(errors, curves)``.
 
     A model whose integration fails gets ``nan`` for that window.
@@ -218,7 +218,7 @@ def rollouts(models: dict, X: pd.DataFrame, frame, horizon: float):
     t_all = frame["t"].to_numpy()
     out = {name: [] for name in models}
     curves = []
-    for idx in windows(frame, horizon):
+    for idx in windows(frame, horizon, max_windows):
         tt = t_all[idx] - t_all[idx[0]]
         x0 = Xv[idx[0], : 2 * n]
         measured = Xv[idx, :n]
@@ -391,7 +391,7 @@ def study(which: str, step: int, args):
     # -- prediction
     errs, curves = {}, {}
     for h in HORIZONS:
-        errs[h], curves[h] = rollouts(models, X_vad, f_vad, h)
+        errs[h], curves[h] = rollouts(models, X_vad, f_vad, h, args.max_windows)
     n_win = {h: len(next(iter(errs[h].values()))) for h in HORIZONS}
     lines.append("### Prediction on the validation segments\n")
     lines.append(
@@ -589,6 +589,9 @@ def main(argv=None):
     parser.add_argument("--systems", default=",".join(SYSTEMS))
     parser.add_argument("--max-effects", type=int, default=4)
     parser.add_argument(
+        "--max-windows", type=int, default=20, help="rollout windows per horizon"
+    )
+    parser.add_argument(
         "--resamples", default="single:100,triple:30",
         help="bootstrap resamples per system, e.g. single:100,triple:30",
     )
@@ -609,9 +612,9 @@ def main(argv=None):
         resamples = {k: min(v, 20) for k, v in resamples.items()}
         sweep = []
     if tiny:
-        step, systems, sweep = 20, ["single"], []
+        step, systems, sweep, args.max_windows = 20, ["single"], [], 6
         args.max_effects = 1
-        resamples = {"single": 5}
+        resamples = {"single": 4}
     args.resamples = resamples
     suffix = "_quick" if (args.quick or tiny) else ""
     load_avg = os.getloadavg()
