@@ -157,7 +157,9 @@ def authors_model(which: str):
             p["k1"] * d1**2 + p["k2"] * (d2 - d1) ** 2 + p["k3"] * (d3 - d2) ** 2
         ) / (2 * c)
         model = MechanicalModel(
-            system.lagrangian / c, coordinates("triple"), dissipation=diss,
+            system.lagrangian / c,
+            coordinates("triple"),
+            dissipation=diss,
             name="authors",
         )
         return model, ratios
@@ -282,18 +284,28 @@ def _lagrangian_keys(truth: dict) -> set:
 
 def structure(ratios: dict, truth: dict):
     """``(exact, found, n_true, largest relative ratio error over the authors' terms)``."""
-    lag = {k: v for k, v in ratios.items() if k in _lagrangian_keys(truth) or not _is_effect(k)}
+    lag = {
+        k: v
+        for k, v in ratios.items()
+        if k in _lagrangian_keys(truth) or not _is_effect(k)
+    }
     true = _lagrangian_keys(truth)
     found = set(lag) & true
     worst = max(
-        (abs(lag[k] / truth[k] - 1) if k in lag else np.inf for k in true), default=np.nan
+        (abs(lag[k] / truth[k] - 1) if k in lag else np.inf for k in true),
+        default=np.nan,
     )
     return set(lag) == true, len(found), len(true), float(worst), len(lag)
 
 
 def _is_effect(term: str) -> bool:
     return term.split("(", 1)[0] in (
-        "viscous", "relative", "drag", "coulomb", "bias", "gain"
+        "viscous",
+        "relative",
+        "drag",
+        "coulomb",
+        "bias",
+        "gain",
     )
 
 
@@ -350,7 +362,8 @@ def study(which: str, step: int, args):
     variants = {"diagnosed": ("weak", {})}
     if which == "triple":
         variants["diagnosed, joint damping only"] = (
-            "weak", dict(catalogue=("viscous", "relative"))
+            "weak",
+            dict(catalogue=("viscous", "relative")),
         )
     if args.diagnose_strong:
         variants["diagnosed from strong"] = ("strong", {})
@@ -413,7 +426,9 @@ def study(which: str, step: int, args):
     lines.append(
         "| model | terms | R^2 accelerations (identification) | R^2 accelerations "
         "(validation) | "
-        + " | ".join(f"median rollout error, {h:g} s ({n_win[h]} windows)" for h in HORIZONS)
+        + " | ".join(
+            f"median rollout error, {h:g} s ({n_win[h]} windows)" for h in HORIZONS
+        )
         + " | time (wall / CPU) |"
     )
     lines.append("|---|---|---|---|" + "---|" * len(HORIZONS) + "---|")
@@ -433,16 +448,21 @@ def study(which: str, step: int, args):
         lines.append(
             f"| {name} | {_n_terms(model, truth)} | {_fmt(scores[name][0], 5)} "
             f"| {_fmt(scores[name][1], 5)} | "
-            + " | ".join(f"{_fmt(float(np.nanmedian(errs[h][name])), 3)} rad" for h in HORIZONS)
+            + " | ".join(
+                f"{_fmt(float(np.nanmedian(errs[h][name])), 3)} rad" for h in HORIZONS
+            )
             + f" | {tcell} |"
         )
     lines.append(
         "\nRollout failures (integration blew up) count as missing: "
         + ", ".join(
             f"{name} {int(np.isnan(errs[h][name]).sum())}/{n_win[h]} at {h:g} s"
-            for h in HORIZONS for name in models if np.isnan(errs[h][name]).any()
+            for h in HORIZONS
+            for name in models
+            if np.isnan(errs[h][name]).any()
         )
-        + ".\n" if any(np.isnan(errs[h][m]).any() for h in HORIZONS for m in models)
+        + ".\n"
+        if any(np.isnan(errs[h][m]).any() for h in HORIZONS for m in models)
         else ""
     )
 
@@ -466,10 +486,14 @@ def study(which: str, step: int, args):
             traj=(rep.heldout_error_before, rep.heldout_error_after),
             point=(rep.pointwise_before, rep.pointwise_after),
             r2=(scores[f"{form} fit"][1], scores[label][1]),
-            roll5=(float(np.nanmedian(errs[5.0][f"{form} fit"])),
-                   float(np.nanmedian(errs[5.0][label]))),
-            time=(times[form][0] + diag_times[label][0],
-                  times[form][1] + diag_times[label][1]),
+            roll5=(
+                float(np.nanmedian(errs[5.0][f"{form} fit"])),
+                float(np.nanmedian(errs[5.0][label])),
+            ),
+            time=(
+                times[form][0] + diag_times[label][0],
+                times[form][1] + diag_times[label][1],
+            ),
         )
 
     # -- bootstrap of the diagnosed model
@@ -512,7 +536,9 @@ def study(which: str, step: int, args):
         )
     summary.update(
         scores=scores,
-        roll={h: {m: float(np.nanmedian(e)) for m, e in errs[h].items()} for h in HORIZONS},
+        roll={
+            h: {m: float(np.nanmedian(e)) for m, e in errs[h].items()} for h in HORIZONS
+        },
         times=times,
         fits=fits,
         truth=truth,
@@ -610,15 +636,19 @@ def main(argv=None):
         "--max-windows", type=int, default=20, help="rollout windows per horizon"
     )
     parser.add_argument(
-        "--no-diagnose-strong", dest="diagnose_strong", action="store_false",
+        "--no-diagnose-strong",
+        dest="diagnose_strong",
+        action="store_false",
         help="diagnose the weak-form fit only (default: the strong-form fit too)",
     )
     parser.add_argument(
-        "--resamples", default="single:100,triple:30",
+        "--resamples",
+        default="single:100,triple:30",
         help="bootstrap resamples per system, e.g. single:100,triple:30",
     )
     parser.add_argument(
-        "--windows", default="41,161",
+        "--windows",
+        default="41,161",
         help="extra weak-form windows tried on the double pendulum ('' for none)",
     )
     args = parser.parse_args(argv)
@@ -642,7 +672,10 @@ def main(argv=None):
     suffix = "_quick" if (args.quick or tiny) else ""
     load_avg = os.getloadavg()
     text = (
-        header("Measured pendulums: fit, diagnosis, prediction", _common.command("measured", argv))
+        header(
+            "Measured pendulums: fit, diagnosis, prediction",
+            _common.command("measured", argv),
+        )
         + f"- load average at start: {load_avg[0]:.2f} (1 min), {load_avg[1]:.2f} (5 min); "
         "the machine is shared, so wall times vary: CPU times are the better guide\n\n"
         + __doc__.split("\n\n", 1)[1].rsplit("\n\n    python", 1)[0]
@@ -658,12 +691,15 @@ def main(argv=None):
             bodies += (
                 "### Weak form at other test-function windows (conservative fit)\n\n"
                 "The default window is 81 samples (0.81 s); the table above is at 81.\n\n"
-                + window_sweep(step, sweep) + "\n"
+                + window_sweep(step, sweep)
+                + "\n"
             )
         _common.RESULTS.mkdir(parents=True, exist_ok=True)
         png = _common.RESULTS / f"measured_{which}_rollout{suffix}.png"
         plot_rollouts(
-            curves, coords, png,
+            curves,
+            coords,
+            png,
             f"measured {which} pendulum: 5 s rollouts from estimated states (validation)",
         )
         bodies += f"![rollouts]({png.name})\n\n"
