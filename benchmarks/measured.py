@@ -252,11 +252,18 @@ def rollouts(models: dict, X: pd.DataFrame, frame, horizon: float, max_windows=2
 
 # ----------------------------------------------------------------------------- report
 def _ratios(est) -> dict:
-    """Learned Lagrangian and dissipation coefficients over the pivot term's."""
+    """Learned Lagrangian and dissipation coefficients over the pivot term's.
+
+    The pivot is ``phi1_dot**2``; a fit without it is given relative to its own
+    fixed term (its ``phi1_dot**2`` row then reads ``-``).
+    """
     table = est.coef_table()
     table = table[table["coefficient"] != 0]
     pivot = f"{est.coordinates_[0]}_dot**2"
-    scale = float(table.set_index("term").loc[pivot, "coefficient"])
+    coef = table.set_index("term")["coefficient"]
+    if pivot not in coef.index:  # the fit dropped it: ratios to its own fixed term
+        pivot = est.fixed_term_
+    scale = float(coef.loc[pivot]) if pivot in coef.index else 1.0
     return {str(r.term): float(r.coefficient) / scale for r in table.itertuples()}
 
 
