@@ -419,7 +419,7 @@ def _fista_loop(
                 if not math.isfinite(obj) or rises >= 2:
                     if guard >= max_step_reductions:
                         raise FloatingPointError(
-                            f"FISTA diverged: the objective kept growing after the step "
+                            "FISTA diverged: the objective kept growing after the step "
                             f"was halved {guard} times (step now {step:.3g}); use a "
                             "smaller step (alpha) or alpha=None"
                         )

@@ -1,4 +1,4 @@
-"""Issue 12: the default formulation, non-negative dissipation, the mass-matrix check."""
+"""Issue 12: default formulation, non-negative dissipation, mass-matrix check."""
 
 import warnings
 
