@@ -27,7 +27,12 @@ from ._common import command, header, write
 def _structure(coef, truth):
     kept, true = coef != 0, truth != 0
     err = np.linalg.norm(coef - truth) / np.linalg.norm(truth)
-    return int((kept & true).sum()), int((kept & ~true).sum()), int((~kept & true).sum()), err
+    return (
+        int((kept & true).sum()),
+        int((kept & ~true).sum()),
+        int((~kept & true).sum()),
+        err,
+    )
 
 
 def run(n_trajectories, n_estimators, noise, formulation, seed=0):

@@ -246,12 +246,12 @@ def multiarm(formulation: str, horizon: float = 1.0) -> str:
             start, cpu = time.perf_counter(), time.process_time()
             est = LagrangianSINDy(library, random_state=0, **kw)
             est.fit(X_id, groups=g_id)
-            durations.append(
-                (time.perf_counter() - start, time.process_time() - cpu)
-            )
+            durations.append((time.perf_counter() - start, time.process_time() - cpu))
         fits[label], times[label] = est, durations
     authors = multiarm_triple_pendulum()
-    conservative = MechanicalModel(authors.lagrangian, names, name="authors, no damping")
+    conservative = MechanicalModel(
+        authors.lagrangian, names, name="authors, no damping"
+    )
     truth = library.decompose(authors.lagrangian)[0]
     lines = [
         f"Identification: {len(np.unique(g_id))} segments, {len(X_id)} samples "
@@ -259,7 +259,7 @@ def multiarm(formulation: str, horizon: float = 1.0) -> str:
         f"Library: `CandidateLibrary.chain({names})`, {len(library)} terms. "
         "Fits of case III with `fixed_term=None`: conservative (weak and strong "
         "form), and the weak form with a viscous term per coordinate "
-        "(`DissipationLibrary([\"viscous\"])`).\n",
+        '(`DissipationLibrary(["viscous"])`).\n',
         "| term | authors' model | "
         + " | ".join(f"{f} fit" for f in fits)
         + " | "

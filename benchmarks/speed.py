@@ -343,13 +343,15 @@ def _run_in(spec, kind, code_root=None, timeout=1800):
     # lagsindy is imported first (from code_root when given), then this file's
     # benchmarks package runs the measurement.
     boot = (
-        "import runpy, sys; sys.path.insert(0, {!r}); import lagsindy; "
-        "sys.path[0] = {!r}; sys.argv[0] = 'speed'; "
+        f"import runpy, sys; sys.path.insert(0, {os.path.abspath(code_root or root)!r}); import lagsindy; "
+        f"sys.path[0] = {root!r}; sys.argv[0] = 'speed'; "
         "runpy.run_module('benchmarks.speed', run_name='__main__')"
-    ).format(os.path.abspath(code_root or root), root)
+    )
     cmd = [sys.executable, "-c", boot, f"--_{kind}", json.dumps(spec)]
     try:
-        out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=root)
+        out = subprocess.run(
+            cmd, capture_output=True, text=True, timeout=timeout, cwd=root
+        )
     except subprocess.TimeoutExpired:
         return {**spec, "error": f"no result within {timeout} s"}
     if out.returncode != 0:
@@ -406,7 +408,9 @@ def floor_section(baseline=None, repeats=3, quick=False):
             r = _run_in(spec, "floor", root)
             print("floor", label, r, flush=True)
             if "error" in r:
-                lines.append(f"| {n_rows} x deg {degree} | {label} | - | - | - | error: {r['error']} |")
+                lines.append(
+                    f"| {n_rows} x deg {degree} | {label} | - | - | - | error: {r['error']} |"
+                )
                 continue
             lines.append(
                 f"| {n_rows} x {r['n_terms']} | {label} | {r['floor']:.3g} s | "
@@ -512,8 +516,10 @@ def main(argv=None):
             args.baseline, repeats=1 if quick else min(args.repeats, 3), quick=quick
         )
         path = _common.RESULTS / name
-        old = path.read_text() if path.exists() else header(
-            "Fit time: cart-pendulum, case I", command("speed", argv)
+        old = (
+            path.read_text()
+            if path.exists()
+            else header("Fit time: cart-pendulum, case I", command("speed", argv))
         )
         stamp = "\n".join(
             header("Hardware floor", command("speed", argv)).splitlines()[2:]

@@ -51,13 +51,13 @@ def __dir__():
 
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
+    from .delay import DelayEstimate, estimate_delay, shift_input
     from .diagnostics import DiagnosisReport, diagnose
     from .differentiation import Derivatives, derivatives
     from .dissipation import DissipationLibrary
     from .dynamics import MechanicalModel, SingularMassMatrixError, rollout_error
     from .estimator import LagrangianSINDy
     from .io import load_model, save_model
-    from .delay import DelayEstimate, estimate_delay, shift_input
     from .library import CandidateLibrary
     from .uncertainty import (
         BootstrapReport,

@@ -50,9 +50,7 @@ class _Features:
 
     def __init__(self, n_dof):
         self.n_dof = n_dof
-        self.keys = [
-            (kind, i) for kind in ("q", "qd", "qdd") for i in range(n_dof)
-        ]
+        self.keys = [(kind, i) for kind in ("q", "qd", "qdd") for i in range(n_dof)]
         self.index = {k: j for j, k in enumerate(self.keys)}
 
     def trig(self, kind, a):
@@ -185,9 +183,10 @@ class _Kernel:
             while len(mono) > 1 and mono not in closure:
                 closure.add(mono)
                 mono = mono[:-1]
-        factors = sorted({fe for _, mono in entries for fe in mono} | {
-            fe for mono in closure for fe in mono
-        })
+        factors = sorted(
+            {fe for _, mono in entries for fe in mono}
+            | {fe for mono in closure for fe in mono}
+        )
         row = {(): 0}
         for fe in factors:
             row[(fe,)] = len(row)
@@ -236,7 +235,9 @@ class _Kernel:
             ).coalesce()
             hit = (
                 long(self.pow_feature),
-                torch.as_tensor(self.pow_exponent, dtype=like.dtype, device=like.device),
+                torch.as_tensor(
+                    self.pow_exponent, dtype=like.dtype, device=like.device
+                ),
                 [(a, b, long(p), long(f)) for a, b, p, f in self.levels],
                 matrix,
             )
@@ -337,9 +338,7 @@ class TermKernels:
         self.terms = [sp.sympify(t) for t in terms]
         self.coordinates = list(coordinates)
         self.n_dof = len(self.coordinates)
-        self.plan, supported = _compile_plan(
-            tuple(self.terms), tuple(self.coordinates)
-        )
+        self.plan, supported = _compile_plan(tuple(self.terms), tuple(self.coordinates))
         self.supported = np.asarray(supported, dtype=np.int64)
         self.general = np.setdiff1d(np.arange(len(self.terms)), self.supported)
         self._fn = None

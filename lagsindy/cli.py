@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 
-
 # The built-in systems (lagsindy.systems.SYSTEMS), named here so that --help does not
 # import sympy; tests/test_cli.py checks that the two lists agree.
 SYSTEM_NAMES = (
@@ -572,9 +571,7 @@ def _warn_missing_coupling(library, coords, angles, args):
     found = []
     for term in library.terms_:
         names = {str(v) for v in term.free_symbols}
-        trig_of = {
-            str(v) for f in term.atoms(*trig) for v in f.args[0].free_symbols
-        }
+        trig_of = {str(v) for f in term.atoms(*trig) for v in f.args[0].free_symbols}
         found.append((names, trig_of))
     missing = []
     for i, a in enumerate(coords):
@@ -661,7 +658,7 @@ def _fit_csv(args):
         fixed_term=args.fixed_term,
         unpenalized=_split(args.unpenalized) or None,
         case=args.case,
-        formulation=getattr(args, "formulation", "strong"),
+        formulation=getattr(args, "formulation", "auto"),
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
     )
@@ -920,11 +917,12 @@ def _add_fit_options(p, *, required):
     )
     p.add_argument(
         "--formulation",
-        default="strong",
-        choices=["strong", "weak"],
-        help="strong: the paper's pointwise residual; weak: integral Euler-Lagrange "
-        "equations with a noise correction (needs time-ordered trajectories; see "
-        "LagrangianSINDy)",
+        default="auto",
+        choices=["auto", "strong", "weak"],
+        help="auto: the weak form on time-ordered trajectories, else the strong form "
+        "with a warning; strong: the paper's pointwise residual (biased when the data "
+        "are noisy); weak: integral Euler-Lagrange equations with a noise correction "
+        "(needs time-ordered trajectories; see LagrangianSINDy)",
     )
     p.add_argument(
         "--delay",
@@ -977,10 +975,11 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--passive", action="store_true", help="no input (case III)")
     demo.add_argument(
         "--formulation",
-        default="strong",
-        choices=["strong", "weak"],
-        help="strong (the paper's pointwise residual, default) or weak (integral "
-        "form with noise correction: removes the noise bias of the coefficients)",
+        default="auto",
+        choices=["auto", "strong", "weak"],
+        help="auto (the library's default: the weak form on trajectories), strong "
+        "(the paper's pointwise residual, biased by noise) or weak (integral form "
+        "with noise correction: removes the noise bias of the coefficients)",
     )
     demo.add_argument(
         "--trajectories",
@@ -1049,8 +1048,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--excitation",
         default="sincos",
         choices=["sincos", "paper"],
-        help="input: a sin(wt) + b cos(wt) (sincos) or the paper's form for the "
-        "system",
+        help="input: a sin(wt) + b cos(wt) (sincos) or the paper's form for the system",
     )
     sim.add_argument("--passive", action="store_true", help="no input")
     sim.add_argument(

@@ -296,7 +296,16 @@ def estimate_delay(
         raise ValueError(f"method must be 'support' or 'refit', got {method!r}")
     if method == "support":
         result = _support_search(
-            estimator, Xk, frame, tau2, t, groups, rows, folds, candidates, scale,
+            estimator,
+            Xk,
+            frame,
+            tau2,
+            t,
+            groups,
+            rows,
+            folds,
+            candidates,
+            scale,
             verbose,
         )
         if result is not None:
@@ -382,8 +391,9 @@ def _force_columns(est, X):
     return cols.reshape(-1, coef.size)
 
 
-def _support_search(estimator, Xk, frame, tau2, t, groups, rows, folds, candidates,
-                    scale, verbose):
+def _support_search(
+    estimator, Xk, frame, tau2, t, groups, rows, folds, candidates, scale, verbose
+):
     """Least squares on a fixed support for every candidate; refit at the estimate
     until the support is stable. Returns None when the columns cannot be read."""
     import warnings

@@ -652,9 +652,7 @@ class _Scorer:
         active = list(free)
         for _ in range(len(free) + 1):
             coef = _lstsq(g[np.ix_(active, active)], sign * g[active, t])
-            neg = [
-                (c, j) for c, j in zip(coef, active) if self.nonneg[j] and c < 0
-            ]
+            neg = [(c, j) for c, j in zip(coef, active) if self.nonneg[j] and c < 0]
             if not neg:
                 return active, coef
             active.remove(min(neg)[1])
@@ -669,7 +667,9 @@ class _Scorer:
             gs = gi / np.outer(self.col, self.col)
             yy = gs[t, t]
             b = sign * gs[active, t]
-            out.append(max(yy - 2 * coef @ b + coef @ gs[np.ix_(active, active)] @ coef, 0))
+            out.append(
+                max(yy - 2 * coef @ b + coef @ gs[np.ix_(active, active)] @ coef, 0)
+            )
         return np.asarray(out)
 
     def coefficients(self, support):
@@ -1047,10 +1047,10 @@ def diagnose(
         rows = np.concatenate(blocks)
         pick = np.sort(rng.choice(rows, size=min(len(rows), _MASS_ROWS), replace=False))
         with torch.no_grad():
-            mass.append(
-                to_numpy(op.mass_matrices(Xt[pick, :d], Xt[pick, d : 2 * d]))
-            )
-    all_rows = np.sort(rng.choice(Xa.shape[0], size=min(Xa.shape[0], 400), replace=False))
+            mass.append(to_numpy(op.mass_matrices(Xt[pick, :d], Xt[pick, d : 2 * d])))
+    all_rows = np.sort(
+        rng.choice(Xa.shape[0], size=min(Xa.shape[0], 400), replace=False)
+    )
     mass_all = to_numpy(op.mass_matrices(Xt[all_rows, :d], Xt[all_rows, d : 2 * d]))
 
     def make_scorer(stats):
@@ -1147,8 +1147,9 @@ def diagnose(
     if "delay" in catalogue and tau_a is not None and dt and dt > 0:
         # The delay is estimated with the dissipative catalogue as candidates:
         # an input delay and missing damping both shift the phase of the force.
-        joint_config = _fit_model(est, None, None, None, penalized=diss, eps=eps,
-                                  fit=False)
+        joint_config = _fit_model(
+            est, None, None, None, penalized=diss, eps=eps, fit=False
+        )
         found = _input_delay(joint_config, Xf, tau_a, segments, float(dt), verbose)
         if found is not None:
             estimate, shifted = found
@@ -1213,9 +1214,11 @@ def diagnose(
                 print(f"[lagsindy] joint fit failed: {exc}")
         if joint is not None:
             sj = support_of(joint)
-            kept = [by_name[f.name] for f, c in zip(joint.dissipation_terms_,
-                                                    joint.dissipation_coef_)
-                    if c and f.name in by_name]
+            kept = [
+                by_name[f.name]
+                for f, c in zip(joint.dissipation_terms_, joint.dissipation_coef_)
+                if c and f.name in by_name
+            ]
             # Backward pruning: each kept effect must pass the test of an added one
             # (explain min_explained of the held-out criterion, improve every fold,
             # improve the criterion by min_improvement); drop the weakest until so.
@@ -1339,7 +1342,9 @@ def diagnose(
                     "explained": float(1 - v**2 / base_value**2)
                     if np.isfinite(base_value) and base_value > 0
                     else (1.0 if np.isfinite(v) else 0.0),
-                    "every_fold": bool(ok.any() and np.all(folds_v[ok] < base_folds[ok])),
+                    "every_fold": bool(
+                        ok.any() and np.all(folds_v[ok] < base_folds[ok])
+                    ),
                     "criterion": v,
                     "coefficient": float(coef),
                 }
@@ -1487,8 +1492,15 @@ def diagnose(
     boot = None
     if bootstrap is not None:
         boot = _bootstrap_final(
-            final, Xf, tau_final, groups, segments, Xa.shape[0], int(bootstrap),
-            random_state, verbose,
+            final,
+            Xf,
+            tau_final,
+            groups,
+            segments,
+            Xa.shape[0],
+            int(bootstrap),
+            random_state,
+            verbose,
         )
         by_term = {t: k for k, t in enumerate(boot.terms)}
         for s in steps:
@@ -1585,8 +1597,9 @@ def _input_delay(est, X, tau, segments, dt, verbose):
     return estimate, shifted
 
 
-def _bootstrap_final(final, X, tau, groups, segments, n, n_resamples, random_state,
-                     verbose):
+def _bootstrap_final(
+    final, X, tau, groups, segments, n, n_resamples, random_state, verbose
+):
     """:func:`lagsindy.bootstrap` of the final model's configuration.
 
     The groups are the trajectories (``groups``, else the segments diagnose found),

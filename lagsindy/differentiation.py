@@ -84,7 +84,6 @@ from numbers import Integral, Real
 import numpy as np
 import pandas as pd
 from scipy.interpolate import BSpline, make_smoothing_spline
-from scipy import sparse
 from scipy.linalg import eigh, solve_triangular, solveh_banded
 from scipy.linalg.lapack import dpbtrf, dpbtrs, zgbtrf, zgbtrs
 from scipy.signal import savgol_filter
@@ -413,7 +412,9 @@ class _BandedPSpline:
         # G^-1 P, is taken as the Rayleigh quotient of the alternating vector (the
         # roughest coefficients, its eigenvector away from the ends).
         alt = (-1.0) ** np.arange(nb)
-        s_max = _band_quadratic(self.P_banded, alt) / _band_quadratic(self.G_banded, alt)
+        s_max = _band_quadratic(self.P_banded, alt) / _band_quadratic(
+            self.G_banded, alt
+        )
         self.s_max = s_max
         lo = np.log10(1e-4 / s_max)
         hi = max(_PSPLINE_MAX_LOG_LAMBDA, lo + 1.0)
@@ -802,7 +803,6 @@ def _is_uniform(t: np.ndarray) -> bool:
     return bool(np.max(np.abs(steps - mean)) <= _UNIFORM_RTOL * mean)
 
 
-
 # ----------------------------------------------------------------- gaps and glitches
 # A step longer than this many times the median step of its trajectory is a gap.
 _GAP_FACTOR = 5.0
@@ -1109,9 +1109,7 @@ def derivatives(
         )
     mask = _angle_mask(angles, n_dof)
     if gap_factor is not None and not (isinstance(gap_factor, Real) and gap_factor > 1):
-        raise ValueError(
-            f"gap_factor must be a number > 1 or None, got {gap_factor!r}"
-        )
+        raise ValueError(f"gap_factor must be a number > 1 or None, got {gap_factor!r}")
     segments = _segments(groups, n)
     times = _check_times(t, n, segments)
     segments, gaps, glitches = _split_at_gaps(times, segments, gap_factor)

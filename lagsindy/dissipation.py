@@ -230,7 +230,9 @@ class DissipationLibrary(BaseEstimator):
         """The Coulomb smoothing velocity of ``coordinate``."""
         if isinstance(self.eps, dict):
             unknown = set(self.eps) - set(
-                [self.coordinates] if isinstance(self.coordinates, str) else self.coordinates
+                [self.coordinates]
+                if isinstance(self.coordinates, str)
+                else self.coordinates
             )
             if unknown:
                 raise ValueError(

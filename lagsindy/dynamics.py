@@ -69,7 +69,11 @@ def _integrate_between(solver_class, rhs, t, y0, rtol, atol, max_step):
             if solver.status == "failed":
                 return out, -1, message
         out[k] = solver.y
-    return out, 0, "The solver successfully reached the end of the integration interval."
+    return (
+        out,
+        0,
+        "The solver successfully reached the end of the integration interval.",
+    )
 
 
 def _float_stepper(solver_class, d):
@@ -101,9 +105,7 @@ def _float_stepper(solver_class, d):
         f"    {', '.join(f'k0_{i}' for i in comps)}, = k0",
     ]
     for j in range(1, s):
-        arg = ", ".join(
-            f"y_{i} + h*({combo(A[j, :j], names[:j], i)})" for i in comps
-        )
+        arg = ", ".join(f"y_{i} + h*({combo(A[j, :j], names[:j], i)})" for i in comps)
         lines.append(
             f"    {', '.join(f'k{j}_{i}' for i in comps)}, = "
             f"f(t + {float(C[j])!r}*h, ({arg},))"
@@ -130,9 +132,7 @@ def _float_stepper(solver_class, d):
             f"    return ({new},), fn, abs(h)*e5/math.sqrt((e5 + 0.01*e3)*{d})",
         ]
     else:
-        e = " + ".join(
-            f"(({combo(solver_class.E, names, i)})/c_{i})**2" for i in comps
-        )
+        e = " + ".join(f"(({combo(solver_class.E, names, i)})/c_{i})**2" for i in comps)
         lines.append(f"    return ({new},), fn, abs(h)*math.sqrt(({e})/{d})")
     namespace = {"math": math}
     exec("\n".join(lines), namespace)  # noqa: S102 - code generated from the tableau above

@@ -819,9 +819,7 @@ def find_multiarm_pendulum(start=None) -> Path:
 
 def _multiarm_file(path, which: str, files: dict) -> Path:
     if which not in files:
-        raise ValueError(
-            f"which must be 'single', 'double' or 'triple', got {which!r}"
-        )
+        raise ValueError(f"which must be 'single', 'double' or 'triple', got {which!r}")
     p = find_multiarm_pendulum() if path is None else Path(path)
     if p.is_dir():
         p = p / files[which]

@@ -194,7 +194,9 @@ def _solve_from_gram(fitted, gram, n_rows, start=None):
         penalty[fitted._feature_index(term)] = 0.0
     if fitted.case_ == "forces":
         free = np.flatnonzero(identifiable)
-        return _staged_solve(fitted, balanced, free, n_features, 1.0, penalty, 0.0, start)
+        return _staged_solve(
+            fitted, balanced, free, n_features, 1.0, penalty, 0.0, start
+        )
     r = fitted.library_.index(fitted.fixed_term)
     if not identifiable[r]:
         raise ValueError("the fixed term has a zero column on this resample")
@@ -218,7 +220,9 @@ def _staged_solve(fitted, balanced, free, target, sign, penalty, reference, star
     w0 = None
     if start is not None:
         scale = to_coef(torch.ones_like(datafit.rhs))
-        w0 = torch.as_tensor(start[free], dtype=scale.dtype, device=scale.device) / scale
+        w0 = (
+            torch.as_tensor(start[free], dtype=scale.dtype, device=scale.device) / scale
+        )
     result = fitted._stages(datafit, free, weights, 0, reference=reference, w0=w0)
     coef = np.zeros(balanced.n_features)
     coef[free] = to_numpy(to_coef(result.coef))
@@ -265,7 +269,9 @@ def _group_gram(fitted, Xa, tau, labels):
         Xg = Xt[idx]
         tg = None if tau_t is None else tau_t[idx]
         window = int(fitted.window)
-        segs = [s for s in trajectory_segments(Xg, d, np.zeros(len(g))) if len(s) >= window]
+        segs = [
+            s for s in trajectory_segments(Xg, d, np.zeros(len(g))) if len(s) >= window
+        ]
         if not segs:
             grams.append(None)
             rows.append(0)
@@ -322,7 +328,9 @@ def _refit_resample(base, Xa, tau, groups_rows, mult, weak):
         warnings.simplefilter("ignore")
         try:
             est = clone(base).fit(
-                Xa[idx], None if tau is None else tau[idx], groups=labels if weak else None
+                Xa[idx],
+                None if tau is None else tau[idx],
+                groups=labels if weak else None,
             )
         except (ValueError, FloatingPointError, RuntimeError):
             return None
@@ -507,8 +515,14 @@ def bootstrap(
         ref = int(np.argmax(np.abs(all_coef)))
 
     rng = check_random_state(random_state)
-    mults = rng.multinomial(n_groups, np.full(n_groups, 1.0 / n_groups), size=n_resamples)
-    jack_mults = 1 - np.eye(n_groups, dtype=np.int64) if method == "bca" else np.zeros((0, n_groups))
+    mults = rng.multinomial(
+        n_groups, np.full(n_groups, 1.0 / n_groups), size=n_resamples
+    )
+    jack_mults = (
+        1 - np.eye(n_groups, dtype=np.int64)
+        if method == "bca"
+        else np.zeros((0, n_groups))
+    )
 
     fast = False
     grams = group_rows_n = None
@@ -545,17 +559,24 @@ def bootstrap(
 
     all_mults = np.concatenate([mults, jack_mults])
     n_jobs_eff = 1 if n_jobs is None else n_jobs
-    chunks = np.array_split(np.arange(len(all_mults)), max(1, min(len(all_mults), _n_workers(n_jobs_eff))))
+    chunks = np.array_split(
+        np.arange(len(all_mults)), max(1, min(len(all_mults), _n_workers(n_jobs_eff)))
+    )
 
     if fast:
+
         def work(ix):
             return [
                 _fast_resample(full, grams, group_rows_n, all_mults[i], start)
                 for i in ix
             ]
     else:
+
         def work(ix):
-            return [_refit_resample(base, Xa, tau_a, rows_of, all_mults[i], weak) for i in ix]
+            return [
+                _refit_resample(base, Xa, tau_a, rows_of, all_mults[i], weak)
+                for i in ix
+            ]
 
     results = Parallel(n_jobs=n_jobs, verbose=max(0, verbose - 1))(
         delayed(work)(ix) for ix in chunks
@@ -678,7 +699,9 @@ class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEsti
     def _base(self):
         from .estimator import LagrangianSINDy
 
-        return clone(self.estimator) if self.estimator is not None else LagrangianSINDy()
+        return (
+            clone(self.estimator) if self.estimator is not None else LagrangianSINDy()
+        )
 
     def fit(self, X, y=None, groups=None):
         """Fit the bagged ensemble, then the base estimator on the kept terms.
@@ -694,17 +717,15 @@ class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEsti
         self
         """
         if not (isinstance(self.n_estimators, Integral) and self.n_estimators >= 1):
-            raise ValueError(f"n_estimators must be a positive integer, got {self.n_estimators!r}")
+            raise ValueError(
+                f"n_estimators must be a positive integer, got {self.n_estimators!r}"
+            )
         if not 0 <= self.inclusion_threshold < 1:
             raise ValueError(
                 f"inclusion_threshold must be in [0, 1), got {self.inclusion_threshold!r}"
             )
         base = self._base()
-        library = (
-            clone(base.library)
-            if base.library is not None
-            else None
-        )
+        library = clone(base.library) if base.library is not None else None
         lib_coords = None if library is None else library.coordinates
         if isinstance(lib_coords, str):
             lib_coords = [lib_coords]
@@ -742,13 +763,17 @@ class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEsti
         pool = np.array([j for j in range(n_terms) if j not in always])
         subsets = []
         for _ in range(self.n_estimators):
-            pick = rng.choice(pool, size=min(max(k - len(always), 0), len(pool)), replace=False)
+            pick = rng.choice(
+                pool, size=min(max(k - len(always), 0), len(pool)), replace=False
+            )
             subsets.append(np.sort(np.concatenate([sorted(always), pick]).astype(int)))
 
         def one(subset):
             lib = CandidateLibrary.from_terms(
-                library.coordinates_, [terms[j] for j in subset],
-                remove_trivial=False, remove_dependent=False,
+                library.coordinates_,
+                [terms[j] for j in subset],
+                remove_trivial=False,
+                remove_dependent=False,
             )
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
@@ -788,7 +813,9 @@ class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEsti
                 stacklevel=2,
             )
         with np.errstate(invalid="ignore", divide="ignore"):
-            self.inclusion_ = np.where(offered > 0, chosen / np.maximum(offered, 1), np.nan)
+            self.inclusion_ = np.where(
+                offered > 0, chosen / np.maximum(offered, 1), np.nan
+            )
         self.n_offered_ = offered
         kept = np.nan_to_num(self.inclusion_, nan=0.0) > self.inclusion_threshold
         kept[list(always)] = True
@@ -799,8 +826,10 @@ class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEsti
             )
         self.kept_ = kept
         final = CandidateLibrary.from_terms(
-            library.coordinates_, [terms[j] for j in np.flatnonzero(kept)],
-            remove_trivial=False, remove_dependent=False,
+            library.coordinates_,
+            [terms[j] for j in np.flatnonzero(kept)],
+            remove_trivial=False,
+            remove_dependent=False,
         )
         self.estimator_ = clone(base).set_params(library=final).fit(X, y, groups=groups)
         coef = np.zeros(n_terms)

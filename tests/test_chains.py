@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 import sympy as sp
+from _multiarm_triple_reference import accelerations as reference_accelerations
 from sklearn.base import clone
 
 from lagsindy import CandidateLibrary, LagrangianSINDy
@@ -14,8 +15,6 @@ from lagsindy.systems import (
     planar_chain,
     triple_pendulum,
 )
-
-from _multiarm_triple_reference import accelerations as reference_accelerations
 
 ANGLES3 = ["theta1", "theta2", "theta3"]
 

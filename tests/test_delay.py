@@ -56,16 +56,18 @@ def test_shift_input_interpolates_within_each_trajectory():
 
 def test_delay_is_estimated_and_removes_the_bias(delayed):
     system, X, tau, t, groups = delayed
-    result = estimate_delay(make(system), X, tau, t, groups=groups, max_delay=0.048,
-                            n_splits=2)
+    result = estimate_delay(
+        make(system), X, tau, t, groups=groups, max_delay=0.048, n_splits=2
+    )
     # measured 30.0 ms +- 0.006 ms (folds 30.00 and 29.99 ms; method="refit" gave
     # 29.2 ms +- 0.4 ms)
     assert abs(result.delay - 0.030) < 0.005
     assert 0 < result.std < 0.005
     assert "ms" in str(result)
     raw = make(system).fit(X, tau, groups=groups)
-    fixed = make(system).fit(X, shift_input(tau, t, result.delay, groups),
-                             groups=groups)
+    fixed = make(system).fit(
+        X, shift_input(tau, t, result.delay, groups), groups=groups
+    )
     truth = make(system).fit(X, shift_input(tau, t, 0.030, groups), groups=groups)
     ref = {"theta_dot**2": 0.5, "cos(theta)": 9.81}
     for est, bound in ((fixed, 0.02), (truth, 0.02)):
@@ -88,24 +90,59 @@ def test_delay_needs_held_out_trajectories(delayed):
 def test_cli_delay_option(tmp_path, capsys, delayed):
     system, X, tau, t, groups = delayed
     frame = pd.DataFrame(
-        {"trajectory": groups, "t": t, "theta": X[:, 0], "theta_dot": X[:, 1],
-         "theta_ddot": X[:, 2], "tau_theta": tau[:, 0]}
+        {
+            "trajectory": groups,
+            "t": t,
+            "theta": X[:, 0],
+            "theta_dot": X[:, 1],
+            "theta_ddot": X[:, 2],
+            "tau_theta": tau[:, 0],
+        }
     )
     frame.to_csv(tmp_path / "d.csv", index=False)
     outs = []
     for delay in ("0", "0.03"):
-        code = main(["fit", str(tmp_path / "d.csv"), "--coordinates", "theta",
-                     "--angles", "theta", "--formulation",
-                     "strong", "--delay", delay, "--out", str(tmp_path / "m.json"),
-                     "--quiet"])
+        code = main(
+            [
+                "fit",
+                str(tmp_path / "d.csv"),
+                "--coordinates",
+                "theta",
+                "--angles",
+                "theta",
+                "--formulation",
+                "strong",
+                "--delay",
+                delay,
+                "--out",
+                str(tmp_path / "m.json"),
+                "--quiet",
+            ]
+        )
         assert code == 0, capsys.readouterr().err
         outs.append(capsys.readouterr().out)
     coefs = [
-        [float(c) for c in re.findall(r"([-\d.e]+)\*(?:theta_dot\*\*2|cos\(theta\))", o)]
+        [
+            float(c)
+            for c in re.findall(r"([-\d.e]+)\*(?:theta_dot\*\*2|cos\(theta\))", o)
+        ]
         for o in outs
     ]
     assert np.allclose(coefs[1], [0.5, 9.81], rtol=0.01), outs[1]  # measured 0.02 %
     assert not np.allclose(coefs[0], [0.5, 9.81], rtol=0.02), outs[0]
-    assert main(["fit", str(tmp_path / "d.csv"), "--coordinates", "theta",
-                 "--delay", "soon", "--out", str(tmp_path / "m.json")]) == 2
+    assert (
+        main(
+            [
+                "fit",
+                str(tmp_path / "d.csv"),
+                "--coordinates",
+                "theta",
+                "--delay",
+                "soon",
+                "--out",
+                str(tmp_path / "m.json"),
+            ]
+        )
+        == 2
+    )
     assert "--delay must be a number" in capsys.readouterr().err

@@ -137,8 +137,12 @@ def _cyclic_cart(cart, bob, b):
     )
     ranges = {"x": (0, 0), "theta": (-2, 2), "x_dot": (-0.5, 0.5), "theta_dot": (-1, 1)}
     system = System(
-        lag, ["x", "theta"], angles=["theta"], initial_ranges=ranges,
-        input_matrix=[[0.0], [1.0]], name="cyclic cart",
+        lag,
+        ["x", "theta"],
+        angles=["theta"],
+        initial_ranges=ranges,
+        input_matrix=[[0.0], [1.0]],
+        name="cyclic cart",
     )
     return system.with_damping(viscous={"theta": b})
 
@@ -209,15 +213,21 @@ def test_report_final_coefficients_honest_shares_and_invalid_start():
 
 
 def test_report_shows_final_coefficients_and_units_only_when_given():
-    system = single_pendulum().with_damping(viscous={"theta": 0.2}, coulomb={"theta": 0.1})
+    system = single_pendulum().with_damping(
+        viscous={"theta": 0.2}, coulomb={"theta": 0.1}
+    )
     data = make_dataset(
         system, n_trajectories=9, duration=3.0, excitation="sincos", random_state=0
     )
     est = LagrangianSINDy(system.paper_library(), formulation="strong")
     est.fit(data.X, data.tau, groups=data.groups)
     report = diagnose(est, data.X, data.tau, groups=data.groups)
-    final = dict(zip([t.name for t in report.final.dissipation_terms_],
-                     report.final.dissipation_coef_))
+    final = dict(
+        zip(
+            [t.name for t in report.final.dissipation_terms_],
+            report.final.dissipation_coef_,
+        )
+    )
     for step in report.steps:  # the table shows the final model's values
         assert step.coefficient == final[step.candidate.name]
     assert _coefficients(report)["viscous(theta)"] == pytest.approx(0.2, rel=0.10)
@@ -252,8 +262,11 @@ def test_coulomb_smoothing_from_the_velocity_scale(tmp_path):
     """A slow axis (top speed ~0.19 m/s): eps=0.01 biases viscous friction."""
     x, xd = sp.symbols("x x_dot", real=True)
     system = System(
-        xd**2 + 0 * x, ["x"], initial_ranges={"x": (0, 0), "x_dot": (-0.1, 0.1)},
-        input_matrix=[[1.0]], name="slow axis",
+        xd**2 + 0 * x,
+        ["x"],
+        initial_ranges={"x": (0, 0), "x_dot": (-0.1, 0.1)},
+        input_matrix=[[1.0]],
+        name="slow axis",
     ).with_damping(viscous={"x": 3.0}, coulomb={"x": 0.15}, eps=1e-4)
     data = make_dataset(
         system, n_trajectories=8, duration=4.0, excitation="sincos", random_state=3
@@ -301,7 +314,9 @@ def test_never_worse_and_no_effect_on_undamped_data(noise):
 
 # ----------------------------------------------------------------------- input delay
 @pytest.mark.parametrize(
-    "delay, noise", [(0.03, 0.0), (0.03, 2e-3), (0.0, 0.0)], ids=["30ms", "30ms-noisy", "none"]
+    "delay, noise",
+    [(0.03, 0.0), (0.03, 2e-3), (0.0, 0.0)],
+    ids=["30ms", "30ms-noisy", "none"],
 )
 def test_input_delay_is_an_effect(delay, noise):
     """Forced damped pendulum whose recorded input leads the acting force by 30 ms:
@@ -312,7 +327,12 @@ def test_input_delay_is_an_effect(delay, noise):
     system = single_pendulum(mass=0.8, length=0.5).with_damping(viscous={"theta": 0.05})
     kw = {"noise": noise, "protocol": "sensor"} if noise else {}
     data = make_dataset(
-        system, n_trajectories=10, duration=3.0, excitation="sincos", random_state=0, **kw
+        system,
+        n_trajectories=10,
+        duration=3.0,
+        excitation="sincos",
+        random_state=0,
+        **kw,
     )
     # recorded(t) = acting(t + delay): the input acts `delay` after it is recorded
     recorded = shift_input(data.tau, data.t, -delay, data.groups)

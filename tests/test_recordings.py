@@ -188,8 +188,9 @@ def test_environment_variable_still_overrides(tmp_path, monkeypatch):
 def test_cli_unwraps_angles_as_the_api_does(tmp_path, capsys):
     from lagsindy.systems import make_dataset, single_pendulum
 
-    data = make_dataset(single_pendulum(), n_trajectories=4, duration=3.0,
-                        random_state=0)
+    data = make_dataset(
+        single_pendulum(), n_trajectories=4, duration=3.0, random_state=0
+    )
     frame = data.to_frame()
     theta = frame["theta"].to_numpy() + np.pi  # pi = hanging down, as cameras give
     wrapped = np.angle(np.exp(1j * theta))
@@ -222,14 +223,25 @@ def test_cli_unwraps_angles_as_the_api_does(tmp_path, capsys):
 def test_cli_fits_the_segments_of_a_record_with_a_gap(tmp_path, capsys):
     from lagsindy.systems import make_dataset, single_pendulum
 
-    data = make_dataset(single_pendulum(), n_trajectories=2, duration=4.0,
-                        random_state=1)
+    data = make_dataset(
+        single_pendulum(), n_trajectories=2, duration=4.0, random_state=1
+    )
     frame = data.to_frame()[["trajectory", "t", "theta", "tau_theta"]]
     frame = frame.drop(index=range(150, 170))  # 0.2 s lost in trajectory 0
     frame.to_csv(tmp_path / "gap.csv", index=False)
-    args = ["fit", str(tmp_path / "gap.csv"), "--coordinates", "theta", "--angles",
-            "theta", "--formulation", "weak", "--out", str(tmp_path / "m.json"),
-            "--quiet"]
+    args = [
+        "fit",
+        str(tmp_path / "gap.csv"),
+        "--coordinates",
+        "theta",
+        "--angles",
+        "theta",
+        "--formulation",
+        "weak",
+        "--out",
+        str(tmp_path / "m.json"),
+        "--quiet",
+    ]
     code = main(args)
     captured = capsys.readouterr()
     assert code == 0, captured.err

@@ -154,7 +154,9 @@ def test_learned_model_extrapolates(factory):
     """A model learned from noise-free data tracks the truth over 5 s beyond training."""
     system = factory()
     data = make_dataset(system, n_trajectories=50, excitation="paper", random_state=7)
-    est = LagrangianSINDy(system.paper_library(), formulation="strong").fit(data.X, data.tau)
+    est = LagrangianSINDy(system.paper_library(), formulation="strong").fit(
+        data.X, data.tau
+    )
     x0 = data.initial_states[0]
     t = np.arange(0, 10.0, 0.01)  # 5 s of training window, then 5 s of extrapolation
     w = data.omega[0]

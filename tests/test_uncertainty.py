@@ -90,8 +90,13 @@ def test_report_table_and_determinism(noisy_pendulum):
     d = noisy_pendulum
     est = LagrangianSINDy(_small_library(), formulation="weak")
     rep = bootstrap(
-        est, d.X, d.tau, groups=d.groups, n_resamples=10, method="percentile",
-        random_state=3
+        est,
+        d.X,
+        d.tau,
+        groups=d.groups,
+        n_resamples=10,
+        method="percentile",
+        random_state=3,
     )
     assert isinstance(rep, BootstrapReport) and rep.fast_path
     frame = rep.to_frame()
@@ -109,8 +114,14 @@ def test_report_table_and_determinism(noisy_pendulum):
     ref = U.clone(est).fit(d.X, d.tau, groups=d.groups)
     np.testing.assert_array_equal(frame.coefficient, ref.coef_)
     again = bootstrap(
-        est, d.X, d.tau, groups=d.groups, n_resamples=10, method="percentile",
-        random_state=3, n_jobs=2
+        est,
+        d.X,
+        d.tau,
+        groups=d.groups,
+        n_resamples=10,
+        method="percentile",
+        random_state=3,
+        n_jobs=2,
     )
     np.testing.assert_array_equal(rep.samples, again.samples)
     np.testing.assert_array_equal(rep.low, again.low)
@@ -137,7 +148,9 @@ def test_block_bootstrap_of_one_record():
     with pytest.raises(ValueError, match="n_blocks"):
         bootstrap(est, d.X, d.tau, n_blocks=1, n_resamples=5)
     # few trajectories are cut into blocks too
-    few = bootstrap(est, d.X[:600], d.tau[:600], groups=np.repeat([0, 1], 300), n_resamples=5)
+    few = bootstrap(
+        est, d.X[:600], d.tau[:600], groups=np.repeat([0, 1], 300), n_resamples=5
+    )
     assert few.resampling == "blocks" and few.n_groups == 20
 
 
@@ -152,7 +165,9 @@ def test_dissipation_rows_and_passive_normalization():
         fixed_term=None,  # the case III search: full refits, normalized like the fit
         formulation="strong",
     )
-    rep = bootstrap(est, d.X, groups=d.groups, n_resamples=8, method="percentile", random_state=0)
+    rep = bootstrap(
+        est, d.X, groups=d.groups, n_resamples=8, method="percentile", random_state=0
+    )
     frame = rep.to_frame().set_index("term")
     assert not rep.fast_path
     assert list(frame.index[-2:]) == ["viscous(theta)", "coulomb(theta)"]
@@ -162,7 +177,10 @@ def test_dissipation_rows_and_passive_normalization():
     assert frame.loc[fixed, "low"] == frame.loc[fixed, "high"] == 1.0
     assert frame.loc["viscous(theta)", "inclusion"] == 1.0
     # viscous/kinetic = 0.3 / 0.5 = 0.6 in the theta_dot**2 = 1 scale
-    ratio = frame.loc["viscous(theta)", "coefficient"] / frame.loc["theta_dot**2", "coefficient"]
+    ratio = (
+        frame.loc["viscous(theta)", "coefficient"]
+        / frame.loc["theta_dot**2", "coefficient"]
+    )
     assert ratio == pytest.approx(0.6, rel=0.02)
 
 

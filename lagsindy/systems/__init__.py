@@ -5,10 +5,10 @@ from .cart_pendulum import cart_pendulum
 from .dataset import PROTOCOLS, Dataset, make_dataset
 from .double_pendulum import double_pendulum
 from .elastic_pendulum import elastic_pendulum
+from .planar_chain import chain_lagrangian, planar_chain
 from .single_pendulum import single_pendulum
 from .spherical_pendulum import spherical_pendulum
 from .spring_chain import spring_chain
-from .planar_chain import chain_lagrangian, planar_chain
 from .triple_pendulum import (
     multiarm_triple_pendulum,
     n_link_lagrangian,

@@ -87,8 +87,11 @@ def triple_pendulum(
         name="triple pendulum",
         description=(
             "three 1 kg point masses on 1 m rods, g = 9.81"
-            if not compound and damping is None and tuple(masses) == (1.0,) * 3
-            and tuple(lengths) == (1.0,) * 3 and g == 9.81
+            if not compound
+            and damping is None
+            and tuple(masses) == (1.0,) * 3
+            and tuple(lengths) == (1.0,) * 3
+            and g == 9.81
             else f"three {'compound links' if compound else 'point masses'}: masses "
             f"{list(masses)} kg, lengths {list(lengths)} m, g = {g}"
             + (f", joint damping {list(damping)}" if damping is not None else "")
