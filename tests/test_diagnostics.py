@@ -69,6 +69,7 @@ def test_no_false_positive_without_an_undeclared_effect(factory, noise):
     assert report.final is report.initial
 
 
+@pytest.mark.slow  # ~20 s of the default suite's 5-minute budget
 def test_no_false_positive_weak_form_double_pendulum():
     report, _ = _fit_and_diagnose(
         double_pendulum(), noise=0.01, formulation="weak", dt=0.01
@@ -76,6 +77,7 @@ def test_no_false_positive_weak_form_double_pendulum():
     assert report.steps == []
 
 
+@pytest.mark.slow  # ~20 s of the default suite's 5-minute budget
 def test_noisy_damping_found_with_weak_form():
     system = double_pendulum().with_damping(viscous={"theta1": 0.3})
     report, _ = _fit_and_diagnose(system, noise=0.01, formulation="weak", dt=0.01)

@@ -240,6 +240,7 @@ def test_custom_library_and_user_alpha(single_active):
     assert set(_learned(est)) == {"theta_dot**2", "cos(theta)"}
 
 
+@pytest.mark.slow  # ~20 s of the default suite's 5-minute budget
 def test_degenerate_case_III_model_is_flagged():
     """Fixing theta1_dot**2 on a triple pendulum yields a theta1-only Lagrangian."""
     from lagsindy.systems import triple_pendulum

@@ -247,6 +247,7 @@ def test_case_II_recovers_single_pendulum_ratio(single_passive):
     assert est.score(single_passive.X) > 0.9999
 
 
+@pytest.mark.slow  # about 137 s; it decides nothing while it is an xfail
 @pytest.mark.xfail(
     strict=False,
     reason="issue 12 item 5 (open): case II's start hinges on rounding. Measured on "
