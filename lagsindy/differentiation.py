@@ -204,6 +204,17 @@ def _pspline_spans(n: int) -> int:
     return int(max(1, min(round((n - 1) / 2), n - _PSPLINE_DEGREE - 1)))
 
 
+def _pspline_knots(t: np.ndarray) -> np.ndarray:
+    """Equally spaced knots of the quintic P-spline over ``t`` (exact end knots)."""
+    degree = _PSPLINE_DEGREE
+    n_spans = _pspline_spans(len(t))
+    h = (t[-1] - t[0]) / n_spans
+    knots = t[0] + h * np.arange(-degree, n_spans + degree + 1)
+    knots[degree] = t[0]  # exact ends, so design_matrix accepts t[0] and t[-1]
+    knots[-degree - 1] = t[-1]
+    return knots
+
+
 class _PSpline:
     r"""Penalized quintic spline (P-spline) on fixed sample times, fitted by GCV.
 
@@ -230,11 +241,7 @@ class _PSpline:
     def __init__(self, t: np.ndarray, penalty_order: int):
         n = len(t)
         degree = _PSPLINE_DEGREE
-        n_spans = _pspline_spans(n)
-        h = (t[-1] - t[0]) / n_spans
-        knots = t[0] + h * np.arange(-degree, n_spans + degree + 1)
-        knots[degree] = t[0]  # exact ends, so design_matrix accepts t[0] and t[-1]
-        knots[-degree - 1] = t[-1]
+        knots = _pspline_knots(t)
         B = BSpline.design_matrix(t, knots, degree).toarray()
         nb = B.shape[1]
         basis = BSpline(knots, np.eye(nb), degree)
@@ -302,11 +309,7 @@ class _BandedBasis:
     def __init__(self, t: np.ndarray):
         n = len(t)
         degree = _PSPLINE_DEGREE
-        n_spans = _pspline_spans(n)
-        h = (t[-1] - t[0]) / n_spans
-        knots = t[0] + h * np.arange(-degree, n_spans + degree + 1)
-        knots[degree] = t[0]  # exact ends, so design_matrix accepts t[0] and t[-1]
-        knots[-degree - 1] = t[-1]
+        knots = _pspline_knots(t)
         B = BSpline.design_matrix(t, knots, degree).tocsr()
         nb = B.shape[1]
         width = degree + 1

@@ -666,11 +666,11 @@ class MechanicalModel:
         )
         return states[:, 0] if batch is None else states.transpose(1, 0, 2)
 
-    def _scalar_rhs(self, tau, t, sampled, u_fn, reference, last):
-        """Right-hand side of one trajectory on Python floats (1 or 2 dof), or None.
+    def _math_terms(self):
+        """``f(q..., qd...)`` -> ``[M row-major..., bias - forces...]`` on floats, or None.
 
-        Numpy's per-call overhead on arrays of one sample dominates a small model's
-        right-hand side; the ``math`` module on floats is several times faster.
+        Lambdified with the ``math`` module; None when an expression needs a function
+        the math module lacks (the callers then keep the numpy path).
         """
         n = self.n_dof
         eq = self._derive()
@@ -682,7 +682,17 @@ class MechanicalModel:
             values = [float(v) for v in f(*([0.1] * (2 * n)))]
         except Exception:  # a function the math module lacks: use numpy
             return None
-        if len(values) != n * n + n:
+        return f if len(values) == n * n + n else None
+
+    def _scalar_rhs(self, tau, t, sampled, u_fn, reference, last):
+        """Right-hand side of one trajectory on Python floats (1 or 2 dof), or None.
+
+        Numpy's per-call overhead on arrays of one sample dominates a small model's
+        right-hand side; the ``math`` module on floats is several times faster.
+        """
+        n = self.n_dof
+        f = self._math_terms()
+        if f is None:
             return None
         b_mat = self.input_matrix
         if sampled:
@@ -731,16 +741,8 @@ class MechanicalModel:
         raises ZeroDivisionError, which the integrator treats as a failed step).
         """
         n = self.n_dof
-        eq = self._derive()
-        q_s, qd_s, _ = self.symbols
-        exprs = [eq["mass"][i, j] for i in range(n) for j in range(n)]
-        exprs += [eq["bias"][i] - eq["forces"][i] for i in range(n)]
-        try:
-            f = sp.lambdify(list(q_s) + list(qd_s), exprs, modules="math", cse=True)
-            values = [float(v) for v in f(*([0.1] * (2 * n)))]
-        except Exception:  # a function the math module lacks: use numpy
-            return None
-        if len(values) != n * n + n:
+        f = self._math_terms()
+        if f is None:
             return None
         arr = np.asarray(tau, dtype=float).reshape(t.size, -1) @ self.input_matrix.T
         forces = arr.tolist()
