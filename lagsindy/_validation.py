@@ -268,3 +268,121 @@ def n_features_message(n_features: int, n_dof: int | None) -> str:
         f"X must have 3 * n_dof = {3 * n_dof} columns {_LAYOUT_HINT} for the "
         f"library's {n_dof} coordinate(s), got n_features = {n_features}"
     )
+
+
+def validate_state(est, X, *, reset: bool, y=None, coordinates=None):
+    """Validate X (and y) for ``est``; float64 arrays with columns [q, qd, qdd].
+
+    DataFrame columns are selected by name first, so ``feature_names_in_`` is in
+    the canonical order; conversion errors name the column and row; then
+    scikit-learn's ``validate_data`` gives its usual messages (empty, too few
+    samples) and sets ``est.n_features_in_`` (when ``reset``); the layout and
+    finiteness checks here name the offending column and row.
+
+    Returns
+    -------
+    X : ndarray of shape (n_samples, 3 * n_dof)
+    y : ndarray of shape (n_samples, n_dof) or None
+    coordinates : list of str
+    """
+    from sklearn.utils.validation import validate_data
+
+    if is_frame(X):
+        if coordinates is None:
+            coordinates = coordinates_from_columns(X.columns)
+        X = select_state_columns(X, coordinates)
+        values = frame_as_float(X, "X")
+        X = X.__class__(values, columns=X.columns, index=X.index)
+    else:
+        names = None if coordinates is None else state_names(coordinates)
+        X = as_float_array(X, "X", names=names)
+    if not reset and coordinates is not None and X.shape[1] != 3 * len(coordinates):
+        raise ValueError(n_features_message(X.shape[1], len(coordinates)))
+    Xa = validate_data(
+        est,
+        X,
+        dtype=np.float64,
+        ensure_all_finite=False,
+        reset=reset,
+        ensure_min_samples=2 if reset else 1,
+    )
+    if coordinates is None:
+        if Xa.shape[1] % 3:
+            raise ValueError(n_features_message(Xa.shape[1], None))
+        coordinates = [f"q{i}" for i in range(Xa.shape[1] // 3)]
+    n_dof = len(coordinates)
+    if Xa.shape[1] != 3 * n_dof:
+        raise ValueError(n_features_message(Xa.shape[1], n_dof))
+    check_finite(Xa, state_names(coordinates), "X")
+    ya = None
+    if y is not None:
+        ya = validate_tau(y, Xa.shape[0], n_dof, coordinates)
+    return np.asarray(Xa, dtype=np.float64), ya, list(coordinates)
+
+
+def validate_tau(tau, n_samples, n_dof, coordinates=None) -> np.ndarray:
+    """Validate generalized forces: an array of shape (n_samples, n_dof)."""
+    names = (
+        [f"tau_{c}" for c in coordinates]
+        if coordinates is not None
+        else [f"tau[{i}]" for i in range(n_dof)]
+    )
+    if is_frame(tau):
+        if coordinates is not None:
+            tau = select_tau_columns(tau, coordinates)
+        arr = frame_as_float(tau, "tau")
+    else:
+        arr = as_float_array(tau, "tau", ndims=(1, 2), names=names)
+    if arr.ndim == 1:
+        if n_dof != 1:
+            raise ValueError(
+                f"tau must have shape (n_samples, n_dof={n_dof}), got a 1-D array; "
+                "give one generalized force column per coordinate (zeros where "
+                "nothing drives it)"
+            )
+        arr = arr[:, None]
+    if arr.shape[1] != n_dof:
+        raise ValueError(
+            f"tau must have shape (n_samples, n_dof={n_dof}), one generalized "
+            f"force column per coordinate {names}, got shape {arr.shape}"
+        )
+    if arr.shape[0] != n_samples:
+        raise ValueError(
+            f"X and tau have different numbers of rows: {n_samples} and "
+            f"{arr.shape[0]}; give one tau row per sample of X"
+        )
+    check_finite(arr, names, "tau")
+    return arr
+
+
+def raise_not_finite(gram, terms, Xa, tau, dtype):
+    """Explain non-finite Euler-Lagrange statistics: undefined terms or overflow."""
+    import torch
+
+    diag = torch.diagonal(gram, dim1=1, dim2=2)
+    bad = ~torch.isfinite(diag).all(dim=0).cpu().numpy()
+    bad_terms = [str(t) for t, b in zip(terms, bad[: len(terms)]) if b]
+    sizes = f"largest |X| = {np.abs(Xa).max():.3g}"
+    if tau is not None:
+        sizes += f", largest |tau| = {np.abs(tau).max():.3g}"
+    if bad_terms:
+        raise ValueError(
+            f"the Euler-Lagrange columns of the term(s) {bad_terms[:8]} are not "
+            f"finite on this data ({sizes}): a term may be undefined there (log or "
+            "sqrt of a negative number, division by zero) or its values overflow "
+            f"{dtype}. Remove those terms, or change units so that the values "
+            "are moderate."
+        )
+    raise ValueError(
+        f"the Euler-Lagrange regression overflows in {dtype} for this data "
+        f"({sizes}): change units so that the values are moderate"
+    )
+
+
+def as_frame(out, X, columns):
+    """``out`` as a DataFrame (a Series when 1-D) indexed like ``X`` if X is one."""
+    if not is_frame(X):
+        return out
+    if out.ndim == 1:
+        return pd.Series(out, index=X.index, name=columns[0])
+    return pd.DataFrame(out, index=X.index, columns=columns)

@@ -378,7 +378,7 @@ def _force_columns(est, X):
         from ._torch import to_numpy
 
         _, Xt = est._prepare_predict(X)
-        op, coef = est._support_operator(Xt.device, Xt.dtype)
+        op, coef = est.fitted_.support_operator(Xt.device, Xt.dtype)
         cols = to_numpy(op.columns(Xt))
         coef = to_numpy(coef)
     except Exception:  # noqa: BLE001 - any internal change: use refits

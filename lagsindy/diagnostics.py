@@ -72,6 +72,7 @@ from sklearn.utils.validation import check_is_fitted
 
 from ._expr import canonical, symbols_for
 from ._torch import to_numpy, to_tensor
+from ._validation import validate_state, validate_tau
 from .dissipation import DEFAULT_EPS, DissipationLibrary, make_term
 from .euler_lagrange import (
     EulerLagrangeOperator,
@@ -813,11 +814,11 @@ def _residual(est, X, tau):
 
 def _force_scale(est, Xt):
     """Per-coordinate RMS of the summed magnitudes of the model's force contributions."""
-    coef = est._all_coef()
+    coef = est.fitted_.all_coef()
     support = np.flatnonzero(coef)
     if support.size == 0:
         return np.ones(est.n_dof_)
-    cols = est._feature_operator(support, Xt.device, Xt.dtype).columns(Xt)
+    cols = est.fitted_.feature_operator(support, Xt.device, Xt.dtype).columns(Xt)
     size = (cols.abs() * torch.as_tensor(np.abs(coef[support]), dtype=Xt.dtype)).sum(2)
     return np.sqrt(np.mean(to_numpy(size) ** 2, axis=0))
 
@@ -933,8 +934,8 @@ def diagnose(
     0.2
     """
     check_is_fitted(est)
-    Xa, _, _ = est._check_X(X, reset=False, coordinates=est.coordinates_)
-    tau_a = None if tau is None else est._check_tau(tau, Xa.shape[0], est.n_dof_)
+    Xa, _, _ = validate_state(est, X, reset=False, coordinates=est.coordinates_)
+    tau_a = None if tau is None else validate_tau(tau, Xa.shape[0], est.n_dof_, est.coordinates_)
     if (tau_a is None) != (est.case_ != "forces"):
         raise ValueError(
             "diagnose the model with the kind of data it was fitted on: tau for a model "

@@ -72,6 +72,15 @@ class ForceTerm:
     rayleigh: sp.Expr | None = None
 
     @property
+    def eps(self) -> float | None:
+        """Smoothing velocity of a Coulomb term (from its force); ``None`` otherwise."""
+        if self.kind != "coulomb":
+            return None
+        force = next(f for f in self.forces if f != 0)
+        arg = next(iter(force.atoms(sp.tanh))).args[0]
+        return float(1 / arg.as_coeff_Mul()[0])
+
+    @property
     def dissipative(self) -> bool:
         """Whether the coefficient must be non-negative (the force opposes motion)."""
         return self.kind in DISSIPATIVE_KINDS
@@ -251,6 +260,20 @@ class DissipationLibrary(BaseEstimator):
         if not hasattr(self, "terms_"):
             self.build()
         return len(self.terms_)
+
+
+def library_of(terms, coordinates) -> DissipationLibrary:
+    """A :class:`DissipationLibrary` that builds exactly ``terms`` (kinds, eps)."""
+    eps = {t.coordinates[0]: t.eps for t in terms if t.kind == "coulomb"}
+    return DissipationLibrary(
+        kinds=(),
+        coordinates=list(coordinates),
+        eps=eps or DEFAULT_EPS,
+        terms=[
+            (t.kind, t.coordinates if t.kind == "relative" else t.coordinates[0])
+            for t in terms
+        ],
+    )
 
 
 def assemble(terms, coefficients, coordinates):

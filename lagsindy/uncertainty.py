@@ -39,10 +39,14 @@ from sklearn.base import BaseEstimator, MetaEstimatorMixin, RegressorMixin, clon
 from sklearn.utils import check_random_state
 from sklearn.utils.validation import check_is_fitted
 
-from ._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
-from .euler_lagrange import NOISE_ROWS, EulerLagrangeOperator, trajectory_segments
+from ._torch import resolve_device, resolve_dtype, to_tensor
+from ._validation import validate_state
+from .cases import SparseSolve
+from .formulation import window_stride
+from .formulation.operator import NOISE_ROWS, EulerLagrangeOperator
+from .formulation.scaling import BalancedGram
+from .formulation.weak import trajectory_segments
 from .library import CandidateLibrary
-from .solvers import BalancedGram
 
 __all__ = ["BootstrapReport", "LibraryBaggingLagrangianSINDy", "bootstrap"]
 
@@ -191,7 +195,7 @@ def _solve_from_gram(fitted, gram, n_rows, start=None):
     identifiable = balanced.identifiable().cpu().numpy()
     penalty = np.ones(n_features)
     for term in fitted.unpenalized if fitted.unpenalized is not None else []:
-        penalty[fitted._feature_index(term)] = 0.0
+        penalty[fitted.fitted_.feature_index(term)] = 0.0
     if fitted.case_ == "forces":
         free = np.flatnonzero(identifiable)
         return _staged_solve(
@@ -207,25 +211,21 @@ def _solve_from_gram(fitted, gram, n_rows, start=None):
 
 
 def _staged_solve(fitted, balanced, free, target, sign, penalty, reference, start):
-    """``LagrangianSINDy._solve`` with a warm start (the full fit's first stage).
+    """The estimator's staged solve with a warm start (the full fit's first stage).
 
     The first stage is a strictly convex problem (when its Gram block is definite),
     so the start changes only the iterations to reach ``solver_tol``, not the
     answer; later stages and the debiasing refit continue from it as in ``fit``.
     """
-    datafit, to_coef = balanced.problem(free, target, sign)
-    weights = torch.as_tensor(
-        penalty[free], dtype=datafit.rhs.dtype, device=datafit.rhs.device
+    state = fitted.fitted_
+    n_terms = len(state.terms)
+    dissipative = [False] * n_terms + [t.dissipative for t in state.dissipation_terms]
+    solver = SparseSolve.from_params(
+        fitted.get_params(deep=False), n_terms, dissipative, verbose=0
     )
-    w0 = None
-    if start is not None:
-        scale = to_coef(torch.ones_like(datafit.rhs))
-        w0 = (
-            torch.as_tensor(start[free], dtype=scale.dtype, device=scale.device) / scale
-        )
-    result = fitted._stages(datafit, free, weights, 0, reference=reference, w0=w0)
-    coef = np.zeros(balanced.n_features)
-    coef[free] = to_numpy(to_coef(result.coef))
+    coef, _ = solver.solve(
+        balanced, free, target, sign, penalty, reference, 0, start=start
+    )
     return coef
 
 
@@ -281,7 +281,7 @@ def _group_gram(fitted, Xa, tau, labels):
             tg,
             segs,
             window=window,
-            stride=max(1, window // 4),
+            stride=window_stride(window),
             dt=float(fitted.dt_),
             noise_cov=cov,
             noise_rows=max(NOISE_ROWS, len(g)),
@@ -334,7 +334,7 @@ def _refit_resample(base, Xa, tau, groups_rows, mult, weak):
             )
         except (ValueError, FloatingPointError, RuntimeError):
             return None
-    return est._all_coef()
+    return est.fitted_.all_coef()
 
 
 def _normalize_to(coef, ref):
@@ -460,7 +460,9 @@ def bootstrap(
     if not (isinstance(level, Real) and 0 < level < 1):
         raise ValueError(f"level must be in (0, 1), got {level!r}")
     full = clone(est).fit(X, tau, groups=groups)
-    Xa, tau_a, _ = full._check_X(X, reset=False, y=tau, coordinates=full.coordinates_)
+    Xa, tau_a, _ = validate_state(
+        full, X, reset=False, y=tau, coordinates=full.coordinates_
+    )
     n = Xa.shape[0]
     weak = getattr(full, "formulation_", full.formulation) == "weak"
     params = {"library": clone(full.library_)}
@@ -507,7 +509,7 @@ def bootstrap(
         )
 
     # Normalization of passive models: the full fit's fixed (or largest) term.
-    all_coef = full._all_coef()
+    all_coef = full.fitted_.all_coef()
     ref = None
     if full.case_ == "fixed":
         ref = full.library_.index(full.fixed_term_)
@@ -530,7 +532,7 @@ def bootstrap(
     if _fast_path_supported(full):
         grams, group_rows_n = _group_gram(full, Xa, tau_a, labels)
         if resampling == "blocks" and weak:
-            check = clone(base).fit(Xa, tau_a, groups=labels)._all_coef()
+            check = clone(base).fit(Xa, tau_a, groups=labels).fitted_.all_coef()
         else:
             check = all_coef
         seam = _fast_resample(full, grams, group_rows_n, np.ones(n_groups))
@@ -729,7 +731,9 @@ class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEsti
         lib_coords = None if library is None else library.coordinates
         if isinstance(lib_coords, str):
             lib_coords = [lib_coords]
-        _, _, coordinates = clone(base)._check_X(X, reset=True, coordinates=lib_coords)
+        _, _, coordinates = validate_state(
+            clone(base), X, reset=True, coordinates=lib_coords
+        )
         if library is None:
             library = CandidateLibrary.polynomial(
                 coordinates, angles="all", degree=2, raw_angles=True

@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 import torch
 
-import lagsindy.estimator as estimator_module
+import lagsindy.cases.acceleration as case_ii
+import lagsindy.cases.fixed as case_iii
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy.systems import make_dataset, single_pendulum
 
@@ -49,8 +50,8 @@ def passive():
 @pytest.fixture
 def subsampling(monkeypatch):
     """Make the row subsamples (case III ranking, case II) kick in on small data."""
-    monkeypatch.setattr(estimator_module, "_SELECTION_ROWS", 150)
-    monkeypatch.setattr(estimator_module, "_CASE_II_ROWS", 200)
+    monkeypatch.setattr(case_iii, "SELECTION_ROWS", 150)
+    monkeypatch.setattr(case_ii, "CASE_II_ROWS", 200)
 
 
 def library():

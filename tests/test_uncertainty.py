@@ -12,6 +12,7 @@ from lagsindy import (
     bootstrap,
 )
 from lagsindy import uncertainty as U
+from lagsindy._validation import validate_state
 from lagsindy.systems import make_dataset, single_pendulum
 
 SMALL_LIB = [
@@ -43,7 +44,9 @@ def noisy_pendulum():
 def _compare_paths(est, X, tau, groups, n_check=3):
     """Max difference between the fast path and full refits on a few resamples."""
     full = U.clone(est).fit(X, tau, groups=groups)
-    Xa, tau_a, _ = full._check_X(X, reset=False, y=tau, coordinates=full.coordinates_)
+    Xa, tau_a, _ = validate_state(
+        full, X, reset=False, y=tau, coordinates=full.coordinates_
+    )
     grams, rows = U._group_gram(full, Xa, tau_a, groups)
     weak = full.formulation == "weak"
     extra = {"dt": full.dt_, "noise_cov": full.noise_cov_} if weak else {}

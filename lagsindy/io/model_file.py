@@ -1,4 +1,4 @@
-"""Saved models (JSON, safe to share) and loaders for measured data.
+"""The model file: a fitted model as JSON (safe to share) and back.
 
 A fitted :class:`~lagsindy.LagrangianSINDy` is written as a small JSON document:
 the coordinates, the fitted library's terms as text, one coefficient per term, the
@@ -41,38 +41,36 @@ the mass matrix (``fixed_term`` is then the term whose coefficient is 1).
 coefficient], "rayleigh": Rayleigh function or null, "coefficient": float}``. On
 load each entry is rebuilt from its kind and coordinates and must match the stored
 expressions, so a tampered entry cannot smuggle in other forces.
+
+This module converts between the document and a
+:class:`~lagsindy.model.FittedLagrangian` plus the hyperparameters; it never imports
+the estimator (:mod:`lagsindy.io` turns the pair into one).
 """
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import re
 import warnings
 from numbers import Integral, Real
-from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import sympy as sp
 import torch
 from sympy.printing.str import StrPrinter
 
-from ._expr import (
+from .._expr import (
     MAX_EXPRESSION_LENGTH,
     ExpressionError,
     check_coordinate_names,
     parse_expression,
     state_names,
 )
-from .dissipation import DEFAULT_EPS, DissipationLibrary
+from ..dissipation import DEFAULT_EPS
 
 FORMAT = "lagsindy-model"
 SCHEMA_VERSION = 1
 SCHEMA_VERSIONS = (1,)
-#: Largest model file :func:`load_model` reads, in bytes.
-MAX_FILE_BYTES = 20_000_000
 #: Largest number of library terms (or dissipation entries) in a model file.
 MAX_TERMS = 20_000
 _MAX_NAME_LENGTH = 200
@@ -165,16 +163,22 @@ def _plain(value):
 
 # ----------------------------------------------------------------------------- save
 def model_to_dict(est) -> dict:
-    """The JSON document of a fitted estimator (see the module docstring)."""
+    """The JSON document of a fitted estimator (see the module docstring).
+
+    Reads the estimator's hyperparameters (``get_params``), its fitted state
+    (``fitted_``, a :class:`~lagsindy.model.FittedLagrangian`) and the column names
+    it was fitted on.
+    """
     from sklearn.utils.validation import check_is_fitted
 
-    from . import __version__
+    from .. import __version__
 
     check_is_fitted(est)
-    coords = list(est.coordinates_)
+    fitted = est.fitted_
+    coords = list(fitted.coordinates)
     allowed = state_names(coords, accelerations=False)
-    terms = [_to_text(t, allowed, "term") for t in est.library_.terms_]
-    coef = np.asarray(est.coef_, dtype=float)
+    terms = [_to_text(t, allowed, "term") for t in fitted.terms]
+    coef = np.asarray(fitted.coef, dtype=float)
     if not np.all(np.isfinite(coef)):
         raise ValueError("the model has non-finite coefficients; it cannot be saved")
     params = est.get_params(deep=False)
@@ -184,29 +188,27 @@ def model_to_dict(est) -> dict:
     if not isinstance(params.get("random_state"), Integral | type(None)):
         params["random_state"] = None  # a RandomState instance has no JSON form
     hyper = {k: _plain(v) for k, v in sorted(params.items())}
-    dissipation_names = {t.name for t in getattr(est, "dissipation_terms_", [])}
+    dissipation_names = {t.name for t in fitted.dissipation_terms}
     unpenalized = [
         t
         if isinstance(t, str) and t in dissipation_names
         else _to_text(
-            est.library_.terms_[est.library_.index(t)], allowed, "unpenalized term"
+            fitted.terms[fitted.library.index(t)], allowed, "unpenalized term"
         )
-        for t in (est.unpenalized if est.unpenalized is not None else [])
+        for t in (params["unpenalized"] or [])
     ]
     if hyper.get("unpenalized") is not None:
         hyper["unpenalized"] = unpenalized
-    fixed = est.fixed_term_
+    fixed = fitted.fixed_term
     if fixed is not None:
-        fixed = terms[est.library_.index(fixed)]
+        fixed = terms[fitted.library.index(fixed)]
     names = getattr(est, "feature_names_in_", None)
-    residual = getattr(est, "residual_", None)
+    residual = fitted.residual
     residual = (
         None if residual is None or not math.isfinite(residual) else float(residual)
     )
     dissipation = []
-    for term, d in zip(
-        getattr(est, "dissipation_terms_", []), getattr(est, "dissipation_coef_", [])
-    ):
+    for term, d in zip(fitted.dissipation_terms, fitted.dissipation_coef):
         dissipation.append(
             {
                 "name": term.name,
@@ -228,48 +230,18 @@ def model_to_dict(est) -> dict:
         "coordinates": coords,
         "terms": terms,
         "coefficients": [float(c) for c in coef],
-        "case": est.case_,
+        "case": fitted.case,
         "fixed_term": fixed,
         "unpenalized": unpenalized,
         "hyperparameters": hyper,
         "n_features_in": int(est.n_features_in_),
         "feature_names_in": None if names is None else [str(n) for n in names],
-        "tau_1d": bool(getattr(est, "_y_1d", False)),
-        "n_iter": int(getattr(est, "n_iter_", 0)),
+        "tau_1d": bool(fitted.tau_1d),
+        "n_iter": int(fitted.n_iter),
         "residual": residual,
         "dissipation": dissipation,
-        "normalization": getattr(est, "normalization_", None),
+        "normalization": fitted.normalization,
     }
-
-
-def save_model(est, path) -> Path:
-    """Write a fitted :class:`~lagsindy.LagrangianSINDy` as a JSON model file.
-
-    The file holds text and numbers only (no pickle), so it is safe to share; load
-    it with :func:`load_model` or :meth:`LagrangianSINDy.load`. Coefficients are
-    written with Python's exact float repr, so predictions of the loaded model agree
-    with the original's to rounding.
-
-    Parameters
-    ----------
-    est : LagrangianSINDy
-        A fitted estimator.
-    path : str or path-like
-        Destination (conventionally ``*.json``).
-
-    Returns
-    -------
-    pathlib.Path
-        The path written.
-    """
-    doc = model_to_dict(est)
-    path = Path(path)
-    # One field per line, values compact: readable and diff-friendly.
-    lines = [
-        f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in doc.items()
-    ]
-    path.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
-    return path
 
 
 # ----------------------------------------------------------------------------- load
@@ -357,16 +329,8 @@ def _parse(text, allowed, what):
 
 
 def _hyperparameters(hyper: dict) -> dict:
-    from .estimator import LagrangianSINDy
-
-    known = set(LagrangianSINDy().get_params(deep=False)) - {"library", "dissipation"}
-    unknown = sorted(set(hyper) - known)
-    if unknown:
-        raise ValueError(
-            f"the model file has unknown hyperparameters {unknown[:5]}; it may come "
-            "from "
-            "a newer lagsindy version"
-        )
+    """Check the saved hyperparameters' JSON values (their names are checked by the
+    estimator that receives them)."""
     for key, value in hyper.items():
         if isinstance(value, dict) or (
             isinstance(value, str) and len(value) > MAX_EXPRESSION_LENGTH
@@ -403,17 +367,21 @@ def _hyperparameters(hyper: dict) -> dict:
 
 
 def model_from_dict(doc: dict):
-    """A fitted :class:`~lagsindy.LagrangianSINDy` from a validated model document.
+    """Hyperparameters, fitted state and column names from a model document.
 
     Raises ``ValueError`` naming the first problem (unknown schema, missing field,
     wrong JSON type, invalid coordinate name or term, inconsistent lengths, non-finite
     number). Nothing in the document is evaluated as code.
-    """
-    from sklearn.base import clone
-    from sklearn.utils._param_validation import InvalidParameterError
 
-    from .estimator import LagrangianSINDy
-    from .library import CandidateLibrary
+    Returns
+    -------
+    params : dict
+        The hyperparameters (``library`` and ``dissipation`` excluded).
+    fitted : FittedLagrangian
+    feature_names_in : list of str or None
+    """
+    from ..library import CandidateLibrary
+    from ..model import FittedLagrangian
 
     if not isinstance(doc, dict):
         raise ValueError(
@@ -527,74 +495,31 @@ def model_from_dict(doc: dict):
 
     library = CandidateLibrary.from_terms(
         coords, list(terms), remove_trivial=False, remove_dependent=False
-    )
-    try:
-        est = LagrangianSINDy(library, **hyper)
-        est._validate_params()
-    except (InvalidParameterError, TypeError) as exc:
-        raise ValueError(
-            f"the model file's hyperparameters are not valid: {exc}"
-        ) from None
-    fitted = clone(library).build()
-    if len(fitted.terms_) != len(terms):
+    ).build()
+    if len(library.terms_) != len(terms):
         raise ValueError("the model file's terms do not form a valid library")
-    est.library_ = fitted
-    est.coordinates_ = list(fitted.coordinates_)
-    est.n_dof_ = n_dof
-    est.term_names_ = fitted.get_feature_names_out()
-    est.coef_ = np.asarray(coefs, dtype=float)
-    est.support_ = est.coef_ != 0
-    est.case_ = case
-    est.fixed_term_ = (
-        None if fixed is None else str(fitted.terms_[_index(fitted, fixed)])
-    )
-    est.normalization_ = normalization if case == "fixed" else None
     for text in unpenalized:
         if text not in {t.name for t in dissipation_terms}:
-            _index(fitted, text)
-    est.stages_ = []
-    # The weak form's sampling interval and noise covariance are not saved: refits
-    # (e.g. by diagnose) estimate them again from their data (dt_ from the `dt`
-    # hyperparameter when it was given).
-    est.dt_ = None if hyper.get("dt") is None else float(hyper["dt"])
-    est.noise_cov_ = None
-    est.n_iter_ = int(values["n_iter"])
-    est.residual_ = None if residual is None else float(residual)
-    est._y_1d = bool(values["tau_1d"])
-    est.n_features_in_ = 3 * n_dof
-    if names is not None:
-        est.feature_names_in_ = np.asarray(names, dtype=object)
-    est.dissipation_terms_ = dissipation_terms
-    est.dissipation_coef_ = np.asarray(dissipation_coef, dtype=float)
-    est.dissipation_removed_ = []
-    if dissipation_terms:
-        eps = {
-            t.coordinates[0]: _coulomb_eps(t)
-            for t in dissipation_terms
-            if t.kind == "coulomb"
-        }
-        est.set_params(
-            dissipation=DissipationLibrary(
-                kinds=(),
-                coordinates=coords,
-                eps=eps or DEFAULT_EPS,
-                terms=[
-                    (
-                        t.kind,
-                        t.coordinates if t.kind == "relative" else t.coordinates[0],
-                    )
-                    for t in dissipation_terms
-                ],
-            )
-        )
-    est._set_model()
-    return est
-
-
-def _coulomb_eps(term) -> float:
-    force = next(f for f in term.forces if f != 0)
-    arg = next(iter(force.atoms(sp.tanh))).args[0]
-    return float(1 / arg.as_coeff_Mul()[0])
+            _index(library, text)
+    fitted = FittedLagrangian(
+        library=library,
+        coef=np.asarray(coefs, dtype=float),
+        case=case,
+        dissipation_terms=dissipation_terms,
+        dissipation_coef=np.asarray(dissipation_coef, dtype=float),
+        fixed_term=(
+            None if fixed is None else str(library.terms_[_index(library, fixed)])
+        ),
+        normalization=normalization if case == "fixed" else None,
+        # The weak form's sampling interval and noise covariance are not saved:
+        # refits (e.g. by diagnose) estimate them again from their data (dt from
+        # the `dt` hyperparameter when it was given).
+        dt=None if hyper.get("dt") is None else float(hyper["dt"]),
+        n_iter=int(values["n_iter"]),
+        residual=None if residual is None else float(residual),
+        tau_1d=bool(values["tau_1d"]),
+    )
+    return hyper, fitted, names
 
 
 def _same_forces(a, b, coords) -> bool:
@@ -615,7 +540,7 @@ def _same_forces(a, b, coords) -> bool:
 
 def _dissipation_entries(entries, coords, allowed):
     """Validate the ``dissipation`` field and rebuild its terms from kind and coordinates."""
-    from .dissipation import KINDS, make_term
+    from ..dissipation import KINDS, make_term
 
     if len(entries) > MAX_TERMS:
         raise ValueError(f"the model file has {len(entries)} dissipation entries")
@@ -689,289 +614,3 @@ def _index(library, text):
         raise ValueError(
             f"the model file names a term that is not among its terms: {exc}"
         ) from None
-
-
-def load_model(path):
-    """Load a model saved by :func:`save_model` (no pickle, nothing evaluated).
-
-    Parameters
-    ----------
-    path : str or path-like
-
-    Returns
-    -------
-    LagrangianSINDy
-        A fitted estimator: ``predict``, ``predict_acceleration``, ``score``,
-        ``simulate``, ``equation`` and ``coef_table`` work as on the original;
-        ``stages_`` is empty (the sparsification path is not saved) and the
-        ``library`` parameter is the fitted library's terms (a refit searches them).
-
-    Raises
-    ------
-    FileNotFoundError
-        When the file does not exist.
-    ValueError
-        When the file is not a valid model file (the message names the problem).
-    """
-    path = Path(path)
-    size = path.stat().st_size
-    if size > MAX_FILE_BYTES:
-        raise ValueError(
-            f"{path} has {size} bytes, more than a model file may have "
-            f"({MAX_FILE_BYTES})"
-        )
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8")
-        doc = json.loads(
-            text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys
-        )
-    except UnicodeDecodeError:
-        raise ValueError(f"{path} is not a text (UTF-8) model file") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path} is not valid JSON: {exc}") from None
-    except RecursionError:
-        raise ValueError(f"{path} is nested too deeply to be a model file") from None
-    except ValueError as exc:  # NaN/Infinity, repeated keys, oversized integers
-        raise ValueError(f"{path}: {exc}") from None
-    try:
-        return model_from_dict(doc)
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
-
-
-# ----------------------------------------------------------------------------- data
-MULTIARM_ENV = "LAGSINDY_MULTIARM_DIR"
-_MULTIARM_FILES = {
-    "single": "SinglePendulumDataForParameterEstimation.mat",
-    "double": "DoublePendulumDataForParameterEstimation.mat",
-    "triple": "TriplePendulumDataForParameterEstimation.mat",
-}
-_MULTIARM_PARAMETER_FILES = {
-    "single": "EstimatedParameters_SinglePendulum.mat",
-    "double": "EstimatedParameters_DoublePendulum.mat",
-    "triple": "EstimatedParameters_TriplePendulum.mat",
-}
-# The order of the authors' parameter vectors (see the data README).
-MULTIARM_PARAMETER_NAMES = {
-    "single": ("a1", "m1", "I1", "k1", "g"),
-    "double": ("m1", "m2", "a1", "a2", "L1", "I1", "I2", "k1", "k2", "g"),
-    "triple": (
-        *("m1", "m2", "m3", "a1", "a2", "a3", "L1", "L2"),
-        *("I1", "I2", "I3", "k1", "k2", "k3", "g"),
-    ),
-}
-_MULTIARM_SHIPPED = Path(__file__).resolve().parent / "data" / "multiarm_pendulum"
-
-
-def find_multiarm_pendulum(start=None) -> Path:
-    """Locate the MultiArm-Pendulum recordings.
-
-    The recordings ship with lagsindy (``lagsindy/data/multiarm_pendulum``, MIT
-    license, see its ``README.md`` and ``LICENSE``), so this normally returns that
-    folder. Order: ``$LAGSINDY_MULTIARM_DIR`` if set (an override, e.g. for a newer
-    download); then ``shared/data/multiarm_pendulum`` in ``start`` or one of its
-    parents, when ``start`` is given; then the shipped folder.
-
-    Parameters
-    ----------
-    start : str or path-like, default=None
-        A folder whose parents hold ``shared/data/multiarm_pendulum``.
-
-    Returns
-    -------
-    pathlib.Path
-        The folder holding the ``.mat`` files.
-
-    Raises
-    ------
-    FileNotFoundError
-        With a message saying where the data were looked for and how to get them.
-    """
-    env = os.environ.get(MULTIARM_ENV)
-    if env:
-        p = Path(env)
-        if p.is_dir():
-            return p
-        raise FileNotFoundError(
-            f"${MULTIARM_ENV} is set to {env}, which is not a folder; unset it to use "
-            "the recordings shipped with lagsindy, or point it at the folder holding "
-            "the .mat files"
-        )
-    tried = []
-    if start is not None:
-        s = Path(start).resolve()
-        for folder in [s, *s.parents]:
-            candidate = folder / "shared" / "data" / "multiarm_pendulum"
-            tried.append(str(candidate))
-            if candidate.is_dir():
-                return candidate
-    tried.append(str(_MULTIARM_SHIPPED))
-    if (_MULTIARM_SHIPPED / _MULTIARM_FILES["single"]).is_file():
-        return _MULTIARM_SHIPPED
-    raise FileNotFoundError(
-        f"the MultiArm-Pendulum recordings were not found (looked in {tried}); this "
-        "lagsindy installation lacks its data files. Reinstall lagsindy, or download "
-        "ParameterEstimation/ from github.com/dynamicslab/MultiArm-Pendulum and set "
-        f"${MULTIARM_ENV} to that folder"
-    )
-
-
-def _multiarm_file(path, which: str, files: dict) -> Path:
-    if which not in files:
-        raise ValueError(f"which must be 'single', 'double' or 'triple', got {which!r}")
-    p = find_multiarm_pendulum() if path is None else Path(path)
-    if p.is_dir():
-        p = p / files[which]
-    if not p.is_file():
-        raise FileNotFoundError(
-            f"no MultiArm-Pendulum file at {p}; pass the folder holding "
-            f"{files[which]}, or path=None for the recordings shipped with lagsindy"
-        )
-    return p
-
-
-def load_multiarm_pendulum(
-    path=None, which: str = "single", split: str = "id"
-) -> pd.DataFrame:
-    """Load the MultiArm-Pendulum free-swing recordings (Kaheman et al., 2022).
-
-    Encoder recordings of a real single, double or triple pendulum (cart locked, no
-    input), sampled at 1 kHz, split by the authors into consecutive identification
-    (``"id"``) and validation (``"vad"``) segments. Angles are absolute joint angles
-    in radians with ``pi`` meaning hanging straight down; the velocities were
-    filtered by the authors. Accelerations are not recorded. The recordings ship
-    with lagsindy (MIT license); :func:`load_multiarm_parameters` gives the authors'
-    fitted parameters.
-
-    Parameters
-    ----------
-    path : str or path-like, default=None
-        The ``.mat`` file, or the folder holding it. ``None``: the shipped
-        recordings (or ``$LAGSINDY_MULTIARM_DIR``); see
-        :func:`find_multiarm_pendulum`.
-    which : {"single", "double", "triple"}, default="single"
-        Which pendulum.
-    split : {"id", "vad"}, default="id"
-        The authors' identification or validation segments.
-
-    Returns
-    -------
-    pandas.DataFrame
-        Columns ``trajectory`` (segment index), ``t`` (seconds, continuous over the
-        record), the angles ``theta`` (single), ``theta1, theta2`` (double) or
-        ``theta1, theta2, theta3`` (triple), and the authors' filtered velocities
-        ``theta_dot_filtered`` (``theta1_dot_filtered``, ...).
-
-    Raises
-    ------
-    ValueError
-        If ``which`` or ``split`` is unknown, or the file is not a MultiArm-Pendulum
-        data file.
-    FileNotFoundError
-        If the file is missing (the message says where it was looked for).
-
-    References
-    ----------
-    E. Kaheman, U. Fasel, J. J. Bramburger, B. Strom, J. N. Kutz and S. L. Brunton,
-    "The Experimental Multi-Arm Pendulum on a Cart: A Benchmark System for Chaos,
-    Learning, and Control", arXiv:2205.06231, 2022. Data: MIT license.
-
-    Examples
-    --------
-    >>> from lagsindy.io import load_multiarm_pendulum
-    >>> df = load_multiarm_pendulum(which="triple")
-    >>> [c for c in df.columns if not c.endswith("filtered")]
-    ['trajectory', 't', 'theta1', 'theta2', 'theta3']
-    """
-    from scipy.io import loadmat
-
-    if split not in ("id", "vad"):
-        raise ValueError(
-            f"split must be 'id' (identification) or 'vad' (validation), got {split!r}"
-        )
-    p = _multiarm_file(path, which, _MULTIARM_FILES)
-    mat = loadmat(p)
-    key_y, key_t = f"Y_{split}", f"Time_{split}"
-    if key_y not in mat or key_t not in mat:
-        raise ValueError(
-            f"{p} lacks {key_y!r}/{key_t!r}: not a MultiArm-Pendulum data file"
-        )
-    segments = mat[key_y].ravel()
-    times = mat[key_t].ravel()
-    n = {"single": 1, "double": 2, "triple": 3}[which]
-    angles = ["theta"] if n == 1 else [f"theta{i + 1}" for i in range(n)]
-    frames = []
-    for k, (y, t) in enumerate(zip(segments, times)):
-        y = np.asarray(y, dtype=float)
-        t = np.asarray(t, dtype=float).ravel()
-        if y.shape != (2 * n, t.size):
-            raise ValueError(
-                f"segment {k} of {p} has shape {y.shape}, expected ({2 * n}, {t.size})"
-            )
-        cols = {"trajectory": np.full(t.size, k), "t": t}
-        for i, a in enumerate(angles):
-            cols[a] = y[i]
-        for i, a in enumerate(angles):
-            cols[f"{a}_dot_filtered"] = y[n + i]
-        frames.append(pd.DataFrame(cols))
-    return pd.concat(frames, ignore_index=True)
-
-
-def load_multiarm_parameters(which: str = "single", path=None) -> dict:
-    """The MultiArm-Pendulum authors' fitted parameters, by name.
-
-    Per joint ``j``: mass ``mj`` (kg), distance ``aj`` from the joint to the centre
-    of mass (m), inertia ``Ij`` about the centre of mass (kg m^2), joint
-    coefficient ``kj``; arm lengths ``Lj`` (m) between joints; gravity ``g``. For
-    the triple pendulum the joint coefficients act on relative joint velocities
-    (see ``TriplePendulumODE_Mounted.m`` next to the data, the authors' equations
-    of motion).
-
-    Parameters
-    ----------
-    which : {"single", "double", "triple"}, default="single"
-        Which pendulum.
-    path : str or path-like, default=None
-        The parameter ``.mat`` file or its folder; ``None``: the shipped data.
-
-    Returns
-    -------
-    dict of str to float
-        ``single``: a1, m1, I1, k1, g; ``double``: m1, m2, a1, a2, L1, I1, I2, k1,
-        k2, g; ``triple``: m1, m2, m3, a1, a2, a3, L1, L2, I1, I2, I3, k1, k2, k3, g
-        (the authors' order).
-
-    Examples
-    --------
-    >>> from lagsindy.io import load_multiarm_parameters
-    >>> round(load_multiarm_parameters("triple")["g"], 2)
-    9.81
-    """
-    from scipy.io import loadmat
-
-    p = _multiarm_file(path, which, _MULTIARM_PARAMETER_FILES)
-    mat = loadmat(p)
-    if "EstimatedParameters" not in mat:
-        raise ValueError(f"{p} lacks 'EstimatedParameters': not a parameter file")
-    values = np.asarray(mat["EstimatedParameters"], dtype=float).ravel()
-    names = MULTIARM_PARAMETER_NAMES[which]
-    if values.size != len(names):
-        raise ValueError(
-            f"{p} holds {values.size} parameters, expected {len(names)} ({names})"
-        )
-    return {name: float(v) for name, v in zip(names, values)}
-
-
-__all__ = [
-    "FORMAT",
-    "SCHEMA_VERSION",
-    "expression_to_string",
-    "find_multiarm_pendulum",
-    "load_model",
-    "load_multiarm_parameters",
-    "load_multiarm_pendulum",
-    "model_from_dict",
-    "model_to_dict",
-    "save_model",
-]

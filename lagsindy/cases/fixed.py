@@ -1,0 +1,237 @@
+"""Case III: passive data; the scale is fixed by a known term or by the mass matrix.
+
+Passive data determine the Lagrangian only up to a factor, so one linear condition
+fixes it: a term's coefficient is 1 (the paper), or the data mean of the trace of the
+learned mass matrix is 1. Without a ``fixed_term`` every candidate term and the mass
+normalization are tried and the model that best predicts the measured accelerations
+is kept.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+from sklearn.metrics import r2_score
+
+from .._torch import to_numpy
+from ..formulation.operator import EulerLagrangeOperator, forward_accelerations
+from ..solvers import GramQuadratic
+from . import Problem, Solution
+
+# Rows used to rank the candidate fixed terms of case III (a random subsample).
+SELECTION_ROWS = 4000
+SELECTION_TOP = 12
+# Candidate models within this factor of the best unexplained acceleration variance
+# count as ties, resolved towards the sparsest.
+SELECTION_TIE = 1.1
+
+
+def fit_fixed(problem: Problem) -> Solution:
+    """Case III: fix the scale, by one known term or by the mass matrix, and fit.
+
+    Returns the coefficients, the solver result, the index of the term whose
+    coefficient is 1 in the returned scale and the normalization (``"term"`` or
+    ``"mass"``).
+    """
+    p = problem
+    terms, identifiable, penalty = p.terms, p.identifiable, p.penalty
+    n_terms = len(terms)
+    fixed_term, verbose = p.fixed_term, p.solver.verbose
+    with_mass = fixed_term is None or (
+        isinstance(fixed_term, str) and fixed_term == "mass"
+    )
+    if fixed_term is not None and not with_mass:
+        candidates = [p.library.index(fixed_term)]
+        if not identifiable[candidates[0]]:
+            raise ValueError(
+                f"the fixed term {fixed_term!r} has a zero Euler-Lagrange column "
+                "on this data, so it cannot set the scale; choose another term"
+            )
+    elif fixed_term is None:
+        candidates = [k for k in np.flatnonzero(identifiable) if k < n_terms]
+    else:
+        candidates = []
+    fits = []
+    single = len(candidates) + int(with_mass) == 1
+    # A fixed term with a positive kinetic part fixes the sign of the scale, so
+    # dissipation can be constrained non-negative; a potential term does not.
+    traces = (
+        mass_traces(p) if p.dissipation_terms and candidates else np.zeros(p.n_features)
+    )
+    if with_mass:
+        with warnings.catch_warnings():
+            if not single:
+                warnings.simplefilter("ignore")
+            coef, result, r = solve_mass(p, verbose if single else 0)
+        fits.append(("mass", r, coef, result))
+    for r in candidates:
+        free = np.array([k for k in np.flatnonzero(identifiable) if k != r])
+        with warnings.catch_warnings():
+            # Warnings of candidates that lose are noise; the winner's are re-raised.
+            if not single:
+                warnings.simplefilter("ignore")
+            # In the search over every term, one start ranks the candidates;
+            # the shortlist is re-solved with every start below.
+            coef, result = p.solver.solve(
+                p.balanced,
+                free,
+                r,
+                -1.0,
+                penalty,
+                1.0,
+                verbose if single else 0,
+                starts=None if single else 1,
+                constrain=bool(traces[r] > 0),
+            )
+        coef[r] = 1.0
+        fits.append(("term", r, coef, result))
+    if single:
+        kind, r, coef, result = fits[0]
+        return Solution(coef, result, r, kind)
+    # Rank the term candidates by relative residual, then score the best few (and
+    # the mass normalization) on accelerations.
+    term_fits = sorted((f for f in fits if f[0] == "term"), key=lambda f: f[3].cost)
+    resolved = []
+    for _, r, _, _ in term_fits[:SELECTION_TOP]:
+        free = np.array([k for k in np.flatnonzero(identifiable) if k != r])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            coef, result = p.solver.solve(
+                p.balanced, free, r, -1.0, penalty, 1.0, 0, constrain=traces[r] > 0
+            )
+        coef[r] = 1.0
+        resolved.append(("term", r, coef, result))
+    shortlist = [f for f in fits if f[0] == "mass"] + resolved
+    rows = p.solver.subsample_rows(p.Xt.shape[0], SELECTION_ROWS)
+    Xs = p.Xt[torch.as_tensor(rows, device=p.Xt.device)]
+    scored = []
+    for kind, r, coef, result in shortlist:
+        score = acceleration_r2(p, coef, Xs)
+        if verbose:
+            label = "mass normalization" if kind == "mass" else f"fixed term {terms[r]}"
+            print(
+                f"[lagsindy] {label}: {int((coef != 0).sum())} terms, relative "
+                f"residual {result.cost:.3g}, acceleration R2 {score:.4f}"
+            )
+        scored.append((score if np.isfinite(score) else -np.inf, kind, r, coef, result))
+    # Models whose unexplained acceleration variance is within 10 % of the best are
+    # equally good (with noise, extra terms buy a little in-sample R^2): take the
+    # sparsest of them, then the mass normalization, then the earlier library term,
+    # so that rounding (e.g. the order of the rows) cannot pick between them.
+    top = max(s_[0] for s_ in scored)
+    near = [s_ for s_ in scored if 1 - s_[0] <= SELECTION_TIE * (1 - top) + 1e-9]
+    _, kind, r, coef, result = min(
+        near,
+        key=lambda s_: (int((s_[3] != 0).sum()), -1 if s_[1] == "mass" else s_[2]),
+    )
+    return Solution(coef, result, r, kind)
+
+
+def mass_traces(p: Problem) -> np.ndarray:
+    """Mean over (a subsample of) the data of tr(M_k) for every feature."""
+    rows = p.solver.subsample_rows(p.Xt.shape[0], SELECTION_ROWS)
+    Xs = p.Xt[torch.as_tensor(rows, device=p.Xt.device)]
+    d = p.n_dof
+    op = EulerLagrangeOperator(
+        p.coordinates, p.terms, dtype=p.Xt.dtype, device=p.Xt.device
+    )
+    mass = op.mass_matrices(Xs[:, :d], Xs[:, d : 2 * d])
+    traces = np.zeros(p.n_features)
+    traces[: op.n_terms] = to_numpy(torch.diagonal(mass, dim1=2, dim2=3).sum(2).mean(0))
+    return traces
+
+
+def solve_mass(p: Problem, verbose):
+    r"""Case III with the scale fixed by the mass matrix: mean tr(M(c)) = 1.
+
+    Passive data fix the Lagrangian only up to a factor. Fixing one coefficient
+    to 1 lets a combination of other terms cancel it where the data lie (on a
+    pendulum swinging by +-1 rad, ``theta_dot**2 * (1 - cos(theta) -
+    sin(theta)**2 / 2)`` nearly vanishes), giving a Lagrangian that is almost zero
+    on the data and fits the residual trivially. Fixing instead the data mean of
+    the trace of the learned mass matrix, :math:`\sum_k c_k \overline{\mathrm{tr}
+    M_k} = 1` (scaled units), rules such models out. The constraint is eliminated
+    through a pivot term (the largest contributor to the trace, found in two
+    passes), and the sparse problem is solved as in case III.
+    """
+    balanced = p.balanced
+    traces = mass_traces(p)
+    free = np.flatnonzero(p.identifiable)
+    scale = to_numpy(balanced.col_scale)
+    t_scaled = np.where(scale > 0, traces / np.where(scale > 0, scale, 1.0), 0.0)
+    if not np.any(t_scaled[free] != 0):
+        raise ValueError(
+            "no candidate term has a kinetic (velocity-squared) part on this data, "
+            "so the mass matrix cannot fix the scale; give a fixed_term"
+        )
+    pivot = int(free[np.argmax(np.abs(t_scaled[free]))])
+    for _ in range(3):
+        coef, result = _solve_pivot(p, free, pivot, t_scaled, verbose)
+        share = np.abs(traces * coef)
+        new = int(np.argmax(share))
+        if new == pivot:
+            break
+        pivot = new
+    # Report in the scale where the largest kinetic contributor has coefficient 1.
+    coef = coef / coef[pivot]
+    for st in result.stages:
+        if st.coef[pivot] != 0:
+            st.coef = st.coef / st.coef[pivot]
+    return coef, result, pivot
+
+
+def _solve_pivot(p: Problem, free, pivot, t_scaled, verbose):
+    """Minimise the EL residual subject to sum_k t_k w_k = 1, pivot eliminated."""
+    balanced = p.balanced
+    dtype, device = balanced.gram.dtype, balanced.gram.device
+    f = np.asarray(free)
+    j = int(np.flatnonzero(f == pivot)[0])
+    others = np.delete(np.arange(len(f)), j)
+    g, s = balanced.block(f)
+    t = torch.as_tensor(t_scaled[f], dtype=dtype, device=device)
+    # w = T u + y0 with u the other coefficients: the constraint holds for any u.
+    T = torch.eye(len(f), dtype=dtype, device=device)[
+        :, torch.as_tensor(others, device=device)
+    ]
+    T[j, :] = -t[torch.as_tensor(others, device=device)] / t[j]
+    y0 = torch.zeros(len(f), dtype=dtype, device=device)
+    y0[j] = 1.0 / t[j]
+    gq = T.T @ g @ T
+    bq = -(T.T @ g @ y0)
+    c0 = float(y0 @ g @ y0)
+    if c0 <= 0:
+        raise ValueError("the pivot term's Euler-Lagrange column is zero on the data")
+    dq = torch.sqrt(torch.clamp(torch.diagonal(gq), min=0))
+    dq = torch.where(dq > 0, dq, torch.ones_like(dq))
+    datafit = GramQuadratic(gq / (dq[:, None] * dq[None, :]), bq / (dq * c0**0.5), 1.0)
+    weights = torch.as_tensor(p.penalty[f[others]], dtype=dtype, device=device)
+    result = p.solver.stages(datafit, f[others], weights, verbose, reference=1.0)
+
+    def to_coef(u_scaled):
+        w = T @ (u_scaled * c0**0.5 / dq) + y0
+        full = np.zeros(balanced.n_features)
+        full[f] = to_numpy(w / s)
+        return full
+
+    coef = to_coef(result.coef)
+    for st in result.stages:
+        st.coef = to_coef(torch.as_tensor(st.coef, dtype=dtype, device=device))
+        st.support = np.concatenate([[pivot], f[others][st.support]])
+    return coef, result
+
+
+def acceleration_r2(p: Problem, coef, Xt) -> float:
+    """Variance-weighted R^2 of the accelerations the model ``coef`` predicts."""
+    support = np.flatnonzero(coef)
+    if support.size == 0:
+        return -np.inf
+    op = p.feature_operator(support, Xt.device, Xt.dtype)
+    c = torch.as_tensor(coef[support], dtype=Xt.dtype, device=Xt.device)
+    pred = to_numpy(forward_accelerations(op, c, Xt, None))
+    n = p.n_dof
+    true = to_numpy(Xt[:, 2 * n : 3 * n])
+    if not np.all(np.isfinite(pred)):
+        return -np.inf
+    return float(r2_score(true, pred, multioutput="variance_weighted"))

@@ -1,0 +1,222 @@
+"""The staged sparse solve with an estimator's settings, shared by the cases.
+
+:class:`SparseSolve` carries the solver hyperparameters of
+:class:`~lagsindy.LagrangianSINDy` (``lam``, thresholds, stages, ``debias``...) and
+what they need to know about the features (which are Lagrangian terms, which are
+dissipative). The cases (and the bootstrap, which re-solves from Gram statistics)
+call it instead of the estimator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from sklearn.utils import check_random_state
+
+from .._torch import to_numpy
+from ..formulation.scaling import dense_residual
+from ..solvers import GramQuadratic, staged_fista
+
+# Starts of the staged path: lam, lam / lam_decay, ...; and the relative residual
+# margin within which the sparsest of their results is preferred.
+LAM_STARTS = 2
+PATH_TIE = 0.1
+# Absolute relative-residual margin below which a path is not restarted (clean data:
+# residuals at rounding level differ by large factors that mean nothing).
+PATH_FLOOR = 1e-9
+
+
+@dataclass
+class SparseSolve:
+    """Settings of the staged sparse solve (see ``LagrangianSINDy``'s parameters).
+
+    ``n_terms`` features are Lagrangian terms (threshold ``threshold``), the rest
+    dissipation terms (``dissipation_threshold``); ``dissipative[k]`` says whether
+    feature ``k`` must stay non-negative.
+    """
+
+    lam: float
+    alpha: float | None
+    threshold: float
+    dissipation_threshold: float
+    lam_decay: float
+    step_growth: float
+    max_stages: int
+    max_iter: int
+    tol: float
+    solver_tol: float
+    debias: bool
+    n_terms: int
+    dissipative: np.ndarray
+    random_state: object = None
+    verbose: int = 0
+
+    @classmethod
+    def from_params(cls, params: dict, n_terms: int, dissipative, **kwargs):
+        """From an estimator's ``get_params()`` (extra keys are ignored)."""
+        names = (
+            "lam alpha threshold dissipation_threshold lam_decay step_growth "
+            "max_stages max_iter tol solver_tol debias random_state verbose"
+        ).split()
+        values = {k: params[k] for k in names}
+        values.update(kwargs)
+        return cls(n_terms=n_terms, dissipative=np.asarray(dissipative, bool), **values)
+
+    def thresholds(self, features) -> np.ndarray:
+        return np.where(
+            np.asarray(features) < self.n_terms,
+            self.threshold,
+            self.dissipation_threshold,
+        )
+
+    def nonneg(self, features, device):
+        """Mask of the dissipative features (coefficients kept non-negative)."""
+        mask = self.dissipative[np.asarray(features, dtype=np.int64)]
+        if not mask.any():
+            return None
+        return torch.as_tensor(mask, dtype=torch.bool, device=device)
+
+    def subsample_rows(self, n, size):
+        """Sorted row indices of a subsample of at most ``size`` of ``n`` rows.
+
+        All rows when they fit; otherwise a random choice seeded by ``random_state``,
+        or evenly spaced rows when it is ``None``, so a fit never draws from (or
+        changes) numpy's or torch's global random state.
+        """
+        if n <= size:
+            return np.arange(n)
+        if self.random_state is None:
+            return np.unique(np.linspace(0, n - 1, size).round().astype(np.int64))
+        rng = check_random_state(self.random_state)
+        return np.sort(rng.choice(n, size=size, replace=False))
+
+    def staged(self, datafit, lam, features, weights, verbose, **kwargs):
+        return staged_fista(
+            datafit,
+            lam=lam,
+            penalty_weights=weights,
+            threshold=torch.as_tensor(
+                self.thresholds(features), dtype=weights.dtype, device=weights.device
+            ),
+            lam_decay=self.lam_decay,
+            step_growth=self.step_growth,
+            alpha=self.alpha,
+            max_stages=self.max_stages,
+            max_iter=self.max_iter,
+            tol=self.tol,
+            solver_tol=self.solver_tol,
+            debias=self.debias,
+            verbose=verbose,
+            **kwargs,
+        )
+
+    def stages(
+        self, datafit, features, weights, verbose, starts=None, constrain=True, **kwargs
+    ):
+        """The staged sparse solve of ``datafit`` (features: their library indices).
+
+        ``weights`` are the features' L1 weights; ``kwargs`` go to
+        :func:`~lagsindy.solvers.staged_fista` (``reference``, ``w0``).
+        """
+        # ``starts`` (default LAM_STARTS) first-stage weights are tried.
+        # The first stage's L1 weight can be too strong for a given problem: on
+        # nearly collinear columns (the weak form's window averages, real data) it
+        # shrinks the true terms below the threshold and the hard threshold removes
+        # them for good (the MultiArm double pendulum, weak form: lam=1e-3 kept 10
+        # terms at relative residual 6.1e-4, lam=1e-4 the six physical ones at
+        # 2.8e-5). The path is therefore also started from lam / lam_decay, and the
+        # sparsest path whose residual is within PATH_TIE of the best is kept (then
+        # the larger lam), so a weaker start only wins by fitting clearly better.
+        # No path's residual can be below the dense least-squares residual of all
+        # the features, so when the first path is within PATH_TIE of that bound no
+        # other start can fit clearly better and it is not run (most fits).
+        starts = LAM_STARTS if starts is None else starts
+        # Dissipation that opposes motion (viscous, relative, drag, Coulomb) cannot
+        # have a negative coefficient: projected in FISTA and in the refit. Only where
+        # the scale's sign is physical (forces given, or a positive kinetic energy
+        # fixes it); case II's sign is chosen after the fit.
+        if constrain and isinstance(datafit, GramQuadratic):
+            kwargs["nonneg"] = self.nonneg(features, weights.device)
+        if not isinstance(datafit, GramQuadratic) or self.lam == 0 or starts <= 1:
+            return self.staged(datafit, self.lam, features, weights, verbose, **kwargs)
+        results = []
+        bound = None
+        for k in range(starts):
+            lam = self.lam / self.lam_decay**k if self.lam_decay > 1 else self.lam
+            res = self.staged(datafit, lam, features, weights, verbose, **kwargs)
+            results.append(res)
+            if self.lam_decay <= 1:
+                break
+            if bound is None:
+                bound = dense_residual(datafit)
+            if res.cost <= (1 + PATH_TIE) * bound + PATH_FLOOR:
+                break
+            if verbose:
+                print(
+                    f"[lagsindy] relative residual {res.cost:.3g} is above the dense "
+                    f"least-squares bound {bound:.3g}: restarting the path from "
+                    f"lam={lam / self.lam_decay:.3g}"
+                )
+        best = min(r.cost for r in results)
+        near = [r for r in results if r.cost <= (1 + PATH_TIE) * best + 1e-12]
+        return min(near, key=lambda r: int((r.coef != 0).sum()))
+
+    def solve(
+        self,
+        balanced,
+        free,
+        target,
+        sign,
+        penalty,
+        reference,
+        verbose,
+        starts=None,
+        constrain=True,
+        start=None,
+    ):
+        """Sparse fit of ``sign * column[target]`` by the columns ``free``.
+
+        Returns the coefficients over all features (zero outside ``free``) and the
+        staged result, whose stage records are mapped to coefficient units over all
+        features. ``start``: a warm start in coefficient units over all features.
+        """
+        datafit, to_coef = balanced.problem(free, target, sign)
+        weights = torch.as_tensor(
+            penalty[free], dtype=datafit.rhs.dtype, device=datafit.rhs.device
+        )
+        scale = to_coef(torch.ones_like(datafit.rhs))
+        kwargs = {}
+        if start is not None:
+            kwargs["w0"] = (
+                torch.as_tensor(start[free], dtype=scale.dtype, device=scale.device)
+                / scale
+            )
+        result = self.stages(
+            datafit,
+            free,
+            weights,
+            verbose,
+            reference=reference,
+            starts=starts,
+            constrain=constrain,
+            **kwargs,
+        )
+        coef = np.zeros(balanced.n_features)
+        coef[free] = to_numpy(to_coef(result.coef))
+        remap_stages(result.stages, free, to_numpy(scale), balanced.n_features)
+        return coef, result
+
+
+def remap_stages(stages, free, scale, n_features):
+    """Stage records in coefficient units over all ``n_features`` features.
+
+    ``free`` are the features of the solved problem and ``scale`` converts its
+    variables to coefficients (``coef = w * scale``).
+    """
+    for st in stages:
+        full = np.zeros(n_features)
+        full[free] = st.coef * scale
+        st.coef = full
+        st.support = free[st.support]

@@ -1,0 +1,573 @@
+r"""Euler-Lagrange regression tensors by torch automatic differentiation.
+
+For a library of candidate functions :math:`\phi_k(q, \dot q)` the Euler-Lagrange
+operator applied to each candidate is, per sample (paper eqs. 5-8),
+
+.. math::
+
+    \Theta_{:, k} = M_k \ddot q + N_k \dot q - O_k, \quad
+    M_k = \nabla_{\dot q}^\top \nabla_{\dot q} \phi_k, \;
+    N_k = \nabla_q^\top \nabla_{\dot q} \phi_k, \;
+    O_k = \nabla_q \phi_k,
+
+so that a Lagrangian :math:`L = \sum_k c_k \phi_k` has generalized forces
+:math:`\tau = \Theta c`. Derivatives come from ``torch.func`` (forward mode, vmapped
+over samples); :math:`M_k \ddot q + N_k \dot q` is computed as one Jacobian-vector
+product of :math:`\nabla_{\dot q}\phi_k` along :math:`(\dot q, \ddot q)`, which avoids
+forming the Hessians when only :math:`\Theta` is needed.
+
+Non-conservative force columns (Rayleigh dissipation, Coulomb friction, ...) enter
+the same tensor as ``-Q_j(q, qdot)`` so that ``Theta @ c = tau`` still holds.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import sympy as sp
+import torch
+from torch.func import jacfwd, jvp, vmap
+
+from .._batched import TermKernels, compile_terms
+from .._expr import compile_torch, symbols_for
+
+DEFAULT_CHUNK_SIZE = 32_768
+# Samples used to evaluate the weak form's noise correction (a sum over samples).
+NOISE_ROWS = 10_000
+
+TermFunction = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+
+
+@contextlib.contextmanager
+def _quiet_forward_ad():
+    """Silence torch's own deprecation notice raised when forward AD first loads."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*torch.jit.script.*is deprecated")
+        yield
+
+
+def _chunks(n: int, size: int):
+    size = max(1, int(size))
+    for start in range(0, n, size):
+        yield slice(start, min(n, start + size))
+
+
+def _columns_one(fn: TermFunction):
+    grad_qd = jacfwd(fn, argnums=1)  # (p, dof)
+
+    def one(q, qd, qdd):
+        _, total = jvp(grad_qd, (q, qd), (qd, qdd))  # M qdd + N qd, (p, dof)
+        o = jacfwd(fn, argnums=0)(q, qd)  # (p, dof)
+        return (total - o).transpose(0, 1)  # (dof, p)
+
+    return one
+
+
+def lagrangian_columns(
+    fn: TermFunction,
+    q: torch.Tensor,
+    qd: torch.Tensor,
+    qdd: torch.Tensor,
+    *,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> torch.Tensor:
+    """Euler-Lagrange columns of candidate functions at each sample.
+
+    Parameters
+    ----------
+    fn : callable
+        ``fn(q, qd) -> Tensor (n_terms,)`` for one sample (see
+        :func:`lagsindy._expr.compile_torch`), differentiated by ``torch.func``; or
+        :class:`lagsindy._batched.TermKernels` (from
+        :func:`lagsindy._batched.compile_terms`), whose terms in the batched
+        monomial form are evaluated as a few batched kernels instead.
+    q, qd, qdd : Tensor of shape (n_samples, n_dof)
+        Positions, velocities and accelerations.
+    chunk_size : int, default=32768
+        Samples processed at once (bounds memory).
+
+    Returns
+    -------
+    Tensor of shape (n_samples, n_dof, n_terms)
+        ``Theta[s, i, k] = (M_k qdd + N_k qd - O_k)_i`` at sample ``s``.
+    """
+    if isinstance(fn, TermKernels):
+        return fn.columns_t(q, qd, qdd, _general_columns(chunk_size)).permute(2, 0, 1)
+    batched = vmap(_columns_one(fn))
+    with _quiet_forward_ad():
+        parts = [
+            batched(q[sl], qd[sl], qdd[sl]) for sl in _chunks(q.shape[0], chunk_size)
+        ]
+    return torch.cat(parts, dim=0)
+
+
+def lagrangian_components(
+    fn: TermFunction,
+    q: torch.Tensor,
+    qd: torch.Tensor,
+    *,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The paper's ``M_k``, ``N_k`` and ``O_k`` for every candidate at each sample.
+
+    Returns
+    -------
+    M : Tensor of shape (n_samples, n_terms, n_dof, n_dof)
+        ``d2 phi_k / dqd_i dqd_j``.
+    N : Tensor of shape (n_samples, n_terms, n_dof, n_dof)
+        ``d2 phi_k / dqd_i dq_j``.
+    O : Tensor of shape (n_samples, n_terms, n_dof)
+        ``d phi_k / dq_i``.
+    """
+    if isinstance(fn, TermKernels):
+        return fn.components(q, qd, _general_components(chunk_size))
+    grad_qd = jacfwd(fn, argnums=1)
+
+    def one(q1, qd1):
+        n_mat, m_mat = jacfwd(grad_qd, argnums=(0, 1))(q1, qd1)
+        o = jacfwd(fn, argnums=0)(q1, qd1)
+        return m_mat, n_mat, o
+
+    batched = vmap(one)
+    ms, ns, os_ = [], [], []
+    for sl in _chunks(q.shape[0], chunk_size):
+        with _quiet_forward_ad():
+            m_mat, n_mat, o = batched(q[sl], qd[sl])
+        ms.append(m_mat)
+        ns.append(n_mat)
+        os_.append(o)
+    return torch.cat(ms), torch.cat(ns), torch.cat(os_)
+
+
+def _general_columns(chunk_size):
+    def general(f, q, qd, qdd):
+        return lagrangian_columns(f, q, qd, qdd, chunk_size=chunk_size)
+
+    return general
+
+
+def _general_components(chunk_size):
+    def general(f, q, qd):
+        return lagrangian_components(f, q, qd, chunk_size=chunk_size)
+
+    return general
+
+
+class EulerLagrangeOperator:
+    """Regression tensor of a Lagrangian library and optional force terms.
+
+    Parameters
+    ----------
+    coordinates : sequence of str
+        Coordinate names (their order is the dof order).
+    terms : sequence of sympy.Expr
+        Lagrangian candidate functions of the coordinates and velocities.
+    forces : sequence of sequence of sympy.Expr, optional
+        Generalized force vectors ``Q_j(q, qd)`` (one entry per coordinate) of
+        non-conservative candidates; their columns are ``-Q_j``.
+    dtype : torch.dtype, default=torch.float64
+    device : str or torch.device, default="cpu"
+    chunk_size : int, default=32768
+
+    Notes
+    -----
+    Columns are ordered: Lagrangian terms first, then force terms.
+    """
+
+    def __init__(
+        self,
+        coordinates: Sequence[str],
+        terms: Sequence[sp.Expr],
+        forces: Sequence[Sequence[sp.Expr]] | None = None,
+        *,
+        dtype: torch.dtype = torch.float64,
+        device="cpu",
+        chunk_size: int = DEFAULT_CHUNK_SIZE,
+    ):
+        self.coordinates = list(coordinates)
+        self.terms = list(terms)
+        self.forces = [list(f) for f in (forces or [])]
+        self.dtype = dtype
+        self.device = torch.device(device)
+        self.chunk_size = chunk_size
+        q, qd, _ = symbols_for(self.coordinates)
+        self._symbols = (q, qd)
+        # Terms that are monomials in q, qd, sin and cos of linear forms of q go
+        # through batched kernels; the others through torch.func (lagsindy._batched).
+        self._fn = compile_terms(self.terms, self.coordinates) if self.terms else None
+        flat = [e for f in self.forces for e in f]
+        self._force_fn = compile_torch(flat, (q, qd)) if flat else None
+
+    @property
+    def n_dof(self) -> int:
+        return len(self.coordinates)
+
+    @property
+    def n_terms(self) -> int:
+        return len(self.terms)
+
+    @property
+    def n_columns(self) -> int:
+        return len(self.terms) + len(self.forces)
+
+    def _split(self, X: torch.Tensor):
+        n = self.n_dof
+        return X[:, :n], X[:, n : 2 * n], X[:, 2 * n : 3 * n]
+
+    def columns(self, X: torch.Tensor) -> torch.Tensor:
+        """Regression tensor of shape (n_samples, n_dof, n_columns) at ``X``.
+
+        ``X`` has columns ``[q..., qd..., qdd...]``.
+        """
+        q, qd, qdd = self._split(X)
+        parts = []
+        if self._fn is not None:
+            parts.append(
+                lagrangian_columns(self._fn, q, qd, qdd, chunk_size=self.chunk_size)
+            )
+        if self._force_fn is not None:
+            parts.append(-self.force_values(q, qd))
+        if not parts:
+            return X.new_zeros((X.shape[0], self.n_dof, 0))
+        return torch.cat(parts, dim=2)
+
+    def force_values(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
+        """Generalized forces ``Q_j`` of the force terms, shape (n_samples, n_dof, n_forces)."""
+        if self._force_fn is None:
+            return q.new_zeros((q.shape[0], self.n_dof, 0))
+        values = vmap(self._force_fn)(q, qd)  # (n, n_forces * n_dof)
+        return values.reshape(q.shape[0], len(self.forces), self.n_dof).transpose(1, 2)
+
+    def mass_matrices(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
+        """``M_k`` of every Lagrangian term, shape (n_samples, n_terms, n_dof, n_dof)."""
+        if self._fn is None:
+            return q.new_zeros((q.shape[0], 0, self.n_dof, self.n_dof))
+        return self._fn.mass_matrices(q, qd, _general_components(self.chunk_size))
+
+    def gram(self, X: torch.Tensor, y: torch.Tensor | None = None, extra=None):
+        """Per-dof Gram statistics of ``A = [Theta | extra | y]``, accumulated in chunks.
+
+        Parameters
+        ----------
+        X : Tensor of shape (n_samples, 3 * n_dof)
+        y : Tensor of shape (n_samples, n_dof), optional
+            Target generalized forces, appended as the last column of ``A``.
+        extra : Tensor of shape (n_samples, n_dof, n_extra), optional
+            Further left-hand-side columns given per sample (e.g. a measured input,
+            to test an input gain error).
+
+        Returns
+        -------
+        Tensor of shape (n_dof, n_columns (+1), n_columns (+1))
+            ``G[i] = A[:, i, :].T @ A[:, i, :]``, so Theta is never held in memory
+            whole.
+        """
+        n_extra = 0 if extra is None else extra.shape[2]
+        width = self.n_columns + n_extra + (0 if y is None else 1)
+        out = X.new_zeros((self.n_dof, width, width))
+        for sl in _chunks(X.shape[0], self.chunk_size):
+            # layout (n_dof, columns, samples): one matrix product per dof
+            parts = [self._columns_t(X[sl])]
+            if extra is not None:
+                parts.append(extra[sl].permute(1, 2, 0))
+            if y is not None:
+                parts.append(y[sl].T.unsqueeze(1))
+            a_t = torch.cat(parts, dim=1)
+            out += a_t @ a_t.transpose(1, 2)
+        return out
+
+    def _columns_t(self, X: torch.Tensor) -> torch.Tensor:
+        """:meth:`columns` in the layout (n_dof, n_columns, n_samples)."""
+        q, qd, qdd = self._split(X)
+        if not isinstance(self._fn, TermKernels) and self._fn is not None:
+            return self.columns(X).permute(1, 2, 0)  # a plain per-sample function
+        parts = []
+        if self._fn is not None:
+            parts.append(
+                self._fn.columns_t(q, qd, qdd, _general_columns(self.chunk_size))
+            )
+        if self._force_fn is not None:
+            parts.append(-self.force_values(q, qd).permute(1, 2, 0))
+        if not parts:
+            return X.new_zeros((self.n_dof, 0, X.shape[0]))
+        return torch.cat(parts, dim=1)
+
+    def weak_gram(
+        self,
+        X: torch.Tensor,
+        y: torch.Tensor | None,
+        segments,
+        *,
+        window: int,
+        stride: int,
+        dt: float,
+        noise_cov: torch.Tensor | None = None,
+        noise_rows: int = NOISE_ROWS,
+        extra: torch.Tensor | None = None,
+        return_noise: bool = False,
+    ):
+        r"""Per-dof Gram statistics of the weak (integral) Euler-Lagrange equations.
+
+        Multiplying the Euler-Lagrange equations by a test function :math:`\psi_w`
+        supported on a window of ``window`` samples and integrating by parts gives,
+        for each window and coordinate,
+
+        .. math::
+
+            \sum_k c_k \int \big(-\dot\psi_w \partial_{\dot q}\phi_k
+            - \psi_w \partial_q \phi_k\big) dt - \sum_j d_j \int \psi_w Q_j dt
+            = \int \psi_w \tau\, dt,
+
+        which needs no accelerations and averages measurement noise over the window.
+        With ``noise_cov`` (the covariance :math:`\Lambda` of white noise on
+        :math:`[q, \dot q]`), the noise-induced part of the Gram matrix,
+        :math:`\sum_w \sum_s J_{ws}^\top \Lambda J_{ws}` to first order in the noise
+        (:math:`J_{ws}` the sensitivity of window :math:`w`'s columns to sample
+        :math:`s`), is subtracted: an errors-in-variables correction of the
+        attenuation that noisy regressors cause. The correction is a sum over samples;
+        it is evaluated on at most ``noise_rows`` samples drawn with a fixed seed and
+        scaled up (an unbiased estimate).
+
+        Parameters
+        ----------
+        X : Tensor of shape (n_samples, >= 2 * n_dof)
+            Rows ``[q, qd, ...]``; accelerations are not used.
+        y : Tensor of shape (n_samples, n_dof) or None
+            Generalized forces (assumed noise-free or independent of the noise on X).
+        segments : list of LongTensor
+            Rows of each trajectory, in time order, uniformly sampled; each at least
+            ``window`` long.
+        window, stride : int
+            Samples per test function, and between window starts.
+        dt : float
+            Sampling interval.
+        noise_cov : Tensor of shape (2 * n_dof, 2 * n_dof), optional
+        noise_rows : int, default=10000
+        extra : Tensor of shape (n_samples, n_dof, n_extra), optional
+            Further left-hand-side integrands given per sample, integrated against
+            the test functions like forces (no noise correction for them).
+        return_noise : bool, default=False
+            Return the uncorrected Gram and the noise part separately (their
+            difference is the corrected Gram).
+
+        Returns
+        -------
+        gram : Tensor of shape (n_dof, P, P)
+            With ``P = n_columns (+ n_extra) (+ 1 for y)``; corrected for noise when
+            ``noise_cov`` is given.
+        noise : Tensor of shape (n_dof, P, P)
+            Only with ``return_noise=True`` (then ``gram`` is uncorrected).
+        n_windows : int
+        """
+        d = self.n_dof
+        psi, dpsi = (k.to(X) for k in bump_function(window, dt))
+        order = torch.cat(list(segments))
+        q, qd = X[order, :d], X[order, d : 2 * d]
+        # Integrands per sample: a-weighted (with dpsi) and b-weighted (with psi) parts.
+        a_parts, b_parts = [], []
+        if self._fn is not None:
+            g = lagrangian_gradients(self._fn, q, qd, chunk_size=self.chunk_size)
+            a_parts.append(g[:, :, d:].transpose(1, 2))  # dphi/dqd: (n, d, p)
+            b_parts.append(g[:, :, :d].transpose(1, 2))  # dphi/dq
+        if self._force_fn is not None:
+            forces = self.force_values(q, qd)  # (n, d, f)
+            a_parts.append(torch.zeros_like(forces))
+            b_parts.append(forces)
+        if extra is not None:
+            e = extra[order]
+            a_parts.append(torch.zeros_like(e))
+            b_parts.append(-e)  # the column below is then +int psi e
+        if y is not None:
+            tau = y[order].unsqueeze(2)
+            a_parts.append(torch.zeros_like(tau))
+            b_parts.append(-tau)  # so that the column below is +int psi tau
+        a_int = torch.cat(a_parts, dim=2)
+        b_int = torch.cat(b_parts, dim=2)
+        width = a_int.shape[2]
+        gram = X.new_zeros((d, width, width))
+        n_windows = 0
+        start = 0
+        weights = []
+        for seg in segments:
+            n = len(seg)
+            sl = slice(start, start + n)
+            start += n
+            cols = -dt * (
+                _correlate(a_int[sl], dpsi, stride) + _correlate(b_int[sl], psi, stride)
+            )
+            n_windows += cols.shape[0]
+            gram += torch.einsum("wip,wiq->ipq", cols, cols)
+            if noise_cov is not None:
+                weights.append(_window_weights(n, -dt * dpsi, -dt * psi, stride))
+        noise = torch.zeros_like(gram)
+        if noise_cov is not None:
+            a2, ab, b2 = (torch.cat(w) for w in zip(*weights))
+            noise = self._weak_noise_gram(
+                q, qd, (a2, ab, b2), noise_cov, width, noise_rows
+            )
+        if return_noise:
+            return gram, noise, n_windows
+        return gram - noise, n_windows
+
+    def _weak_noise_gram(self, q, qd, weights, noise_cov, width, noise_rows):
+        """First-order noise contribution to the weak Gram (see :meth:`weak_gram`)."""
+        d = self.n_dof
+        n = q.shape[0]
+        a2, ab, b2 = weights
+        if n > noise_rows:
+            pick = np.sort(
+                np.random.default_rng(0).choice(n, noise_rows, replace=False)
+            )
+            idx = torch.as_tensor(pick, device=q.device)
+            q, qd, a2, ab, b2 = q[idx], qd[idx], a2[idx], ab[idx], b2[idx]
+            factor = n / noise_rows
+        else:
+            factor = 1.0
+        # h1[s, k, i, x] = d(a-integrand_k,i)/dx_s, h2 likewise for the b-integrand.
+        h1_parts, h2_parts = [], []
+        if self._fn is not None:
+            fn = self._fn
+
+            def grads(q1, qd1):
+                return torch.cat(
+                    [jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1
+                )
+
+            with _quiet_forward_ad():
+                jq, jqd = vmap(jacfwd(grads, argnums=(0, 1)))(q, qd)
+            hess = torch.cat([jq, jqd], dim=3)  # (n, p, 2d, 2d)
+            h1_parts.append(hess[:, :, d:, :])
+            h2_parts.append(hess[:, :, :d, :])
+        if self._force_fn is not None:
+            n_f = len(self.forces)
+
+            def forces_one(q1, qd1):
+                return self._force_fn(q1, qd1).reshape(n_f, d)
+
+            with _quiet_forward_ad():
+                fq, fqd = vmap(jacfwd(forces_one, argnums=(0, 1)))(q, qd)
+            jac = torch.cat([fq, fqd], dim=3)  # (n, f, d, 2d)
+            h1_parts.append(torch.zeros_like(jac))
+            h2_parts.append(jac)
+        h1 = torch.cat(h1_parts, dim=1)
+        h2 = torch.cat(h2_parts, dim=1)
+        p0 = h1.shape[1]
+        # sum_s [h1 h2]^T (W_s kron Lambda) [h1 h2], W_s = [[a2, ab], [ab, b2]]
+        out = q.new_zeros((d, width, width))
+        for i in range(d):
+            m1, m2 = h1[:, :, i, :], h2[:, :, i, :]  # (n, P0, 2d)
+            l1, l2 = m1 @ noise_cov, m2 @ noise_cov
+            block = (
+                torch.einsum("skx,slx->kl", l1 * a2[:, None, None], m1)
+                + torch.einsum("skx,slx->kl", l1 * ab[:, None, None], m2)
+                + torch.einsum("skx,slx->kl", l2 * ab[:, None, None], m1)
+                + torch.einsum("skx,slx->kl", l2 * b2[:, None, None], m2)
+            )
+            out[i, :p0, :p0] = factor * block
+        return out
+
+
+def forward_accelerations(
+    operator: EulerLagrangeOperator,
+    coef: torch.Tensor,
+    X: torch.Tensor,
+    tau: torch.Tensor | None = None,
+) -> torch.Tensor:
+    r"""Accelerations of the model ``sum_k c_k phi_k`` (paper eq. 10).
+
+    :math:`\ddot q = M(c)^{+} (\tau - h(c))` with :math:`M(c) = \sum_k c_k M_k`
+    (Moore-Penrose pseudo-inverse, as in the paper) and the velocity/position part
+    :math:`h(c) = \Theta c - M(c) \ddot q` read off the regression tensor, so that
+    force columns (dissipation) enter too. The ``qdd`` columns of ``X`` only serve to
+    form :math:`h`; they cancel out.
+
+    Returns
+    -------
+    Tensor of shape (n_samples, n_dof)
+    """
+    n = operator.n_dof
+    q, qd, qdd = X[:, :n], X[:, n : 2 * n], X[:, 2 * n : 3 * n]
+    theta = operator.columns(X)
+    mass = operator.mass_matrices(q, qd)
+    mc = torch.einsum("skij,k->sij", mass, coef[: operator.n_terms])
+    bias = theta @ coef - torch.einsum("sij,sj->si", mc, qdd)
+    rhs = -bias if tau is None else tau - bias
+    return (torch.linalg.pinv(mc, hermitian=True) @ rhs.unsqueeze(-1)).squeeze(-1)
+
+
+# ----------------------------------------------------------------------------- weak form
+def lagrangian_gradients(
+    fn: TermFunction,
+    q: torch.Tensor,
+    qd: torch.Tensor,
+    *,
+    chunk_size: int = DEFAULT_CHUNK_SIZE,
+) -> torch.Tensor:
+    """``[d phi_k / dq, d phi_k / dqd]`` per sample, shape (n_samples, n_terms, 2 * n_dof)."""
+    if isinstance(fn, TermKernels):
+
+        def general(f, q1, qd1):
+            return lagrangian_gradients(f, q1, qd1, chunk_size=chunk_size)
+
+        return fn.gradients(q, qd, general)
+
+    def one(q1, qd1):
+        return torch.cat(
+            [jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1
+        )
+
+    batched = vmap(one)
+    with _quiet_forward_ad():
+        parts = [batched(q[sl], qd[sl]) for sl in _chunks(q.shape[0], chunk_size)]
+    return torch.cat(parts, dim=0)
+
+
+def bump_function(window: int, dt: float, power: int = 4):
+    r"""Bump test function on ``window`` samples and its time derivative.
+
+    :math:`\psi(s) = (1 - s^2)^{m}` for :math:`s \in [-1, 1]` across the window, with
+    ``m = power``; :math:`\psi` and its first ``m - 1`` derivatives vanish at both
+    ends, so integration by parts has no boundary terms and the rectangle rule is
+    accurate.
+
+    Returns
+    -------
+    psi, dpsi : Tensor of shape (window,)
+        Values and time derivatives (per second) at the samples.
+    """
+    s = torch.linspace(-1.0, 1.0, window, dtype=torch.float64)
+    half = (window - 1) / 2 * dt
+    psi = (1 - s**2) ** power
+    dpsi = -2 * power * s * (1 - s**2) ** (power - 1) / half
+    return psi, dpsi
+
+
+def _correlate(signal: torch.Tensor, kernel: torch.Tensor, stride: int) -> torch.Tensor:
+    """Sliding sums ``sum_j kernel[j] signal[start + j]`` along dim 0, every ``stride``."""
+    n = signal.shape[0]
+    flat = signal.reshape(n, -1).T.unsqueeze(1)  # (channels, 1, n)
+    out = torch.nn.functional.conv1d(
+        flat, kernel.view(1, 1, -1).to(signal), stride=stride
+    )
+    return out.squeeze(1).T.reshape(-1, *signal.shape[1:])
+
+
+def _window_weights(n: int, kernel_a, kernel_b, stride: int):
+    """Per-sample sums over windows of a^2, a b and b^2 (for the noise correction)."""
+    k = kernel_a.shape[0]
+    n_win = (n - k) // stride + 1
+    starts = kernel_a.new_zeros((1, 1, n_win))
+    starts[..., :] = 1.0
+    out = []
+    for kern in (kernel_a * kernel_a, kernel_a * kernel_b, kernel_b * kernel_b):
+        # scatter each window's kernel onto its samples: a transposed correlation
+        full = torch.nn.functional.conv_transpose1d(
+            starts, kern.view(1, 1, -1), stride=stride
+        )
+        res = kernel_a.new_zeros(n)
+        res[: full.shape[-1]] = full.flatten()[:n]
+        out.append(res)
+    return tuple(out)

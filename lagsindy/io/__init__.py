@@ -1,0 +1,167 @@
+"""Saved models (JSON, safe to share) and loaders for measured data.
+
+* :mod:`~lagsindy.io.model_file`: the model document (format, validation, parsing)
+  and its conversion to and from a :class:`~lagsindy.model.FittedLagrangian`;
+* :mod:`~lagsindy.io.datasets`: the MultiArm pendulum recordings that ship with
+  lagsindy.
+
+:func:`save_model` and :func:`load_model` are the entry points. The package never
+imports :mod:`lagsindy.estimator`: :func:`load_model` takes the estimator class from
+the public ``lagsindy`` namespace and hands it the file's hyperparameters and state.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .datasets import (
+    MULTIARM_ENV,
+    MULTIARM_PARAMETER_NAMES,
+    find_multiarm_pendulum,
+    load_multiarm_parameters,
+    load_multiarm_pendulum,
+)
+from .model_file import (  # noqa: F401 - _FIELDS, _OPTIONAL: for tests of the layout
+    _FIELDS,
+    _OPTIONAL,
+    FORMAT,
+    MAX_TERMS,
+    SCHEMA_VERSION,
+    SCHEMA_VERSIONS,
+    _reject_constant,
+    _unique_keys,
+    expression_to_string,
+    model_from_dict,
+    model_to_dict,
+)
+
+#: Largest model file :func:`load_model` reads, in bytes.
+MAX_FILE_BYTES = 20_000_000
+
+__all__ = [
+    "FORMAT",
+    "MAX_FILE_BYTES",
+    "MAX_TERMS",
+    "MULTIARM_ENV",
+    "MULTIARM_PARAMETER_NAMES",
+    "SCHEMA_VERSION",
+    "SCHEMA_VERSIONS",
+    "expression_to_string",
+    "find_multiarm_pendulum",
+    "load_model",
+    "load_multiarm_parameters",
+    "load_multiarm_pendulum",
+    "model_from_dict",
+    "model_to_dict",
+    "read_model",
+    "save_model",
+]
+
+
+def save_model(est, path) -> Path:
+    """Write a fitted :class:`~lagsindy.LagrangianSINDy` as a JSON model file.
+
+    The file holds text and numbers only (no pickle), so it is safe to share; load
+    it with :func:`load_model` or :meth:`LagrangianSINDy.load`. Coefficients are
+    written with Python's exact float repr, so predictions of the loaded model agree
+    with the original's to rounding.
+
+    Parameters
+    ----------
+    est : LagrangianSINDy
+        A fitted estimator.
+    path : str or path-like
+        Destination (conventionally ``*.json``).
+
+    Returns
+    -------
+    pathlib.Path
+        The path written.
+    """
+    doc = model_to_dict(est)
+    path = Path(path)
+    # One field per line, values compact: readable and diff-friendly.
+    lines = [
+        f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in doc.items()
+    ]
+    path.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
+    return path
+
+
+def read_model(path):
+    """Read a model file: hyperparameters, fitted state and column names.
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    params : dict
+    fitted : FittedLagrangian
+    feature_names_in : list of str or None
+
+    Raises
+    ------
+    FileNotFoundError
+        When the file does not exist.
+    ValueError
+        When the file is not a valid model file (the message names the problem).
+    """
+    path = Path(path)
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise ValueError(
+            f"{path} has {size} bytes, more than a model file may have "
+            f"({MAX_FILE_BYTES})"
+        )
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+        doc = json.loads(
+            text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys
+        )
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not a text (UTF-8) model file") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ValueError(f"{path} is nested too deeply to be a model file") from None
+    except ValueError as exc:  # NaN/Infinity, repeated keys, oversized integers
+        raise ValueError(f"{path}: {exc}") from None
+    try:
+        return model_from_dict(doc)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+
+
+def load_model(path):
+    """Load a model saved by :func:`save_model` (no pickle, nothing evaluated).
+
+    Parameters
+    ----------
+    path : str or path-like
+
+    Returns
+    -------
+    LagrangianSINDy
+        A fitted estimator: ``predict``, ``predict_acceleration``, ``score``,
+        ``simulate``, ``equation`` and ``coef_table`` work as on the original;
+        ``stages_`` is empty (the sparsification path is not saved) and the
+        ``library`` parameter is the fitted library's terms (a refit searches them).
+
+    Raises
+    ------
+    FileNotFoundError
+        When the file does not exist.
+    ValueError
+        When the file is not a valid model file (the message names the problem).
+    """
+    import lagsindy
+
+    params, fitted, names = read_model(path)
+    try:
+        return lagsindy.LagrangianSINDy._from_saved(params, fitted, names)
+    except ValueError as exc:
+        raise ValueError(f"{Path(path)}: {exc}") from None

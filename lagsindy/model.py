@@ -1,0 +1,295 @@
+"""The fitted state of a Lagrangian model, defined once.
+
+:class:`FittedLagrangian` holds what a fit (or a model file) determines: the library,
+the coefficients of its terms and of the dissipation terms, how the scale was fixed,
+and what the formulation measured. From these it assembles the readable model
+(:class:`~lagsindy.dynamics.MechanicalModel`) and evaluates it (forces, accelerations,
+the learned mass matrix). :class:`~lagsindy.LagrangianSINDy` produces one in ``fit``
+and exposes its fields as fitted attributes; :mod:`lagsindy.io` writes and reads it
+without knowing the estimator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import sympy as sp
+import torch
+
+from ._torch import to_numpy, to_tensor
+from .dynamics import MechanicalModel
+from .formulation import feature_operator
+from .formulation.operator import forward_accelerations
+
+# Fraction of samples with a singular or indefinite learned mass matrix above which
+# the fit warns.
+MASS_BAD_FRACTION = 0.01
+
+
+@dataclass
+class MassCheck:
+    """Where the learned mass matrix :math:`M = \\partial^2 L / \\partial\\dot q^2`
+    fails to be definite on the data (the model then predicts no accelerations).
+
+    Attributes
+    ----------
+    fraction : float
+        Fraction of the checked samples where M is singular or indefinite (the
+        model's overall sign is a convention, so a negative definite M counts as
+        definite).
+    coordinates : list of str
+        The coordinates along which M degenerates there (largest components of the
+        eigenvectors of its wrong-signed or near-zero eigenvalues), most often first.
+    n_samples : int
+        Samples checked (at most 500, evenly spaced).
+    """
+
+    fraction: float
+    coordinates: list
+    n_samples: int
+
+    @property
+    def ok(self) -> bool:
+        """True when M is definite at all but at most 1 % of the samples."""
+        return self.fraction <= MASS_BAD_FRACTION
+
+
+def mass_matrix_check(mass, coordinates, rtol: float = 1e-10) -> MassCheck:
+    """Check mass matrices of shape (n_samples, n_dof, n_dof); see :class:`MassCheck`.
+
+    An eigenvalue counts as zero below ``rtol`` times the largest at that sample.
+    """
+    mass = torch.as_tensor(mass)
+    sym = (mass + mass.transpose(1, 2)) / 2
+    eig, vec = torch.linalg.eigh(sym)
+    big = eig.abs().max(dim=1).values.clamp(min=1e-300)
+    sign = torch.where(eig.sum(dim=1) < 0, -1.0, 1.0).to(eig)
+    good = eig * sign[:, None] > rtol * big[:, None]
+    bad_rows = ~good.all(dim=1)
+    n = int(mass.shape[0])
+    fraction = float(bad_rows.double().mean()) if n else 0.0
+    counts = np.zeros(len(coordinates))
+    if bool(bad_rows.any()):
+        # weight of each coordinate in the bad directions
+        weight = (vec**2) * (~good)[:, None, :].to(vec)
+        counts = to_numpy(weight[bad_rows].sum(dim=2).gt(0.25).sum(dim=0)).astype(float)
+    order = np.argsort(-counts, kind="stable")
+    names = [coordinates[i] for i in order if counts[i] > 0]
+    return MassCheck(fraction, names, n)
+
+
+@dataclass(eq=False)
+class FittedLagrangian:
+    """A learned Lagrangian (and dissipation) over a built candidate library.
+
+    Parameters
+    ----------
+    library : CandidateLibrary
+        The built library (``library.terms_``, ``library.coordinates_``).
+    coef : ndarray of shape (n_terms,)
+        Coefficients of the library's terms (zero where pruned).
+    case : {"forces", "fixed", "acceleration"}
+    dissipation_terms : list of ForceTerm
+    dissipation_coef : ndarray of shape (n_dissipation_terms,)
+    dissipation_removed : list of (name, reason)
+        Dissipation candidates dropped because a Lagrangian column covers them.
+    dissipation_library : DissipationLibrary or None
+        The built dissipation library the terms came from.
+    fixed_term : str or None
+        The term whose coefficient is 1 in the reported scale (case III).
+    normalization : {"term", "mass"} or None
+    formulation : {"strong", "weak"} or None
+        ``None`` for a model read from a file (the file does not say).
+    dt, noise_cov : float, ndarray or None
+        What the weak formulation used.
+    stages : list of Stage
+    n_iter : int
+    residual : float or None
+    tau_1d : bool
+        The forces were given as a 1-D array (predictions are then 1-D).
+    mass_check : MassCheck or None
+    """
+
+    library: object
+    coef: np.ndarray
+    case: str
+    dissipation_terms: list = field(default_factory=list)
+    dissipation_coef: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    dissipation_removed: list = field(default_factory=list)
+    dissipation_library: object = None
+    fixed_term: str | None = None
+    normalization: str | None = None
+    formulation: str | None = None
+    dt: float | None = None
+    noise_cov: np.ndarray | None = None
+    stages: list = field(default_factory=list)
+    n_iter: int = 0
+    residual: float | None = None
+    tau_1d: bool = False
+    mass_check: MassCheck | None = None
+
+    def __post_init__(self):
+        from .dissipation import assemble
+
+        self.coef = np.asarray(self.coef, dtype=float)
+        self.dissipation_coef = np.asarray(self.dissipation_coef, dtype=float)
+        self.coordinates = list(self.library.coordinates_)
+        terms = self.library.terms_
+        self.lagrangian = sp.Add(
+            *[sp.Float(c) * t for c, t in zip(self.coef, terms) if c != 0]
+        )
+        rayleigh, forces = assemble(
+            self.dissipation_terms, self.dissipation_coef, self.coordinates
+        )
+        self.dissipation = {"D": rayleigh, "forces": forces}
+        self.model = MechanicalModel(
+            self.lagrangian,
+            self.coordinates,
+            dissipation=rayleigh,
+            forces=forces,
+            name="learned model",
+        )
+        self._cache = None
+
+    # ------------------------------------------------------------------ names
+    @property
+    def n_dof(self) -> int:
+        return len(self.coordinates)
+
+    @property
+    def terms(self) -> list:
+        return self.library.terms_
+
+    @property
+    def feature_names(self) -> np.ndarray:
+        """Lagrangian term names, then dissipation term names."""
+        names = list(self.library.get_feature_names_out())
+        return np.asarray(
+            names + [t.name for t in self.dissipation_terms], dtype=object
+        )
+
+    def all_coef(self) -> np.ndarray:
+        """Coefficients of the Lagrangian terms followed by the dissipation terms."""
+        return np.concatenate([self.coef, self.dissipation_coef])
+
+    def feature_index(self, name) -> int:
+        """Index of a Lagrangian term or a dissipation term name among all features."""
+        return feature_index(
+            self.library, self.dissipation_terms, self.dissipation_removed, name
+        )
+
+    def attributes(self) -> dict:
+        """The fitted attributes of :class:`~lagsindy.LagrangianSINDy` (``coef_``...)."""
+        out = {
+            "library_": self.library,
+            "coordinates_": list(self.coordinates),
+            "n_dof_": self.n_dof,
+            "term_names_": self.library.get_feature_names_out(),
+            "feature_names_": self.feature_names,
+            "coef_": self.coef,
+            "support_": self.coef != 0,
+            "dissipation_terms_": self.dissipation_terms,
+            "dissipation_coef_": self.dissipation_coef,
+            "dissipation_removed_": self.dissipation_removed,
+            "case_": self.case,
+            "fixed_term_": self.fixed_term,
+            "normalization_": self.normalization,
+            "dt_": self.dt,
+            "noise_cov_": self.noise_cov,
+            "stages_": self.stages,
+            "n_iter_": self.n_iter,
+            "residual_": self.residual,
+            "lagrangian_": self.lagrangian,
+            "dissipation_": self.dissipation,
+            "model_": self.model,
+        }
+        optional = {
+            "dissipation_library_": self.dissipation_library,
+            "formulation_": self.formulation,
+            "mass_check_": self.mass_check,
+        }
+        out.update({k: v for k, v in optional.items() if v is not None})
+        return out
+
+    # ------------------------------------------------------------------ evaluation
+    def feature_operator(self, indices, device, dtype):
+        """Euler-Lagrange operator of the features at ``indices``."""
+        return feature_operator(
+            self.coordinates, self.terms, self.dissipation_terms, indices, device, dtype
+        )
+
+    def support_operator(self, device, dtype):
+        """Compiled operator of the support and its coefficients (cached, not pickled)."""
+        key = (str(device), str(dtype))
+        if self._cache is None or self._cache[0] != key:
+            all_coef = self.all_coef()
+            support = np.flatnonzero(all_coef)
+            op = self.feature_operator(support, device, dtype)
+            coef = torch.as_tensor(all_coef[support], dtype=dtype, device=device)
+            self._cache = (key, op, coef)
+        return self._cache[1], self._cache[2]
+
+    def forces(self, Xt) -> np.ndarray:
+        """Generalized forces (inverse dynamics) at the rows of ``Xt``."""
+        op, coef = self.support_operator(Xt.device, Xt.dtype)
+        if coef.numel() == 0:
+            return np.zeros((Xt.shape[0], self.n_dof))
+        return to_numpy(op.columns(Xt) @ coef)
+
+    def accelerations(self, Xt, tau=None) -> np.ndarray:
+        """Forward dynamics ``M(c)^+ (tau - h(c))`` at the rows of ``Xt``."""
+        op, coef = self.support_operator(Xt.device, Xt.dtype)
+        if coef.numel() == 0:
+            return np.zeros((Xt.shape[0], self.n_dof))
+        tau_t = (
+            None if tau is None else to_tensor(tau, dtype=Xt.dtype, device=Xt.device)
+        )
+        return to_numpy(forward_accelerations(op, coef, Xt, tau_t))
+
+    def check_mass(self, Xt) -> MassCheck:
+        """The learned mass matrix checked on (up to 500 evenly spaced) rows of ``Xt``."""
+        op, coef = self.support_operator(Xt.device, Xt.dtype)
+        d = self.n_dof
+        if op.n_terms == 0:
+            return MassCheck(1.0, list(self.coordinates), 0)
+        rows = torch.linspace(
+            0, Xt.shape[0] - 1, min(Xt.shape[0], 500), device=Xt.device
+        ).long()
+        q, qd = Xt[rows, :d], Xt[rows, d : 2 * d]
+        mass = torch.einsum("skij,k->sij", op.mass_matrices(q, qd), coef[: op.n_terms])
+        return mass_matrix_check(mass, self.coordinates)
+
+    def coef_table(self):
+        """The coefficients as a DataFrame (see ``LagrangianSINDy.coef_table``)."""
+        import pandas as pd
+
+        extra = [t.name for t in self.dissipation_terms]
+        names = [str(t) for t in self.library.get_feature_names_out()]
+        coef = self.all_coef()
+        return pd.DataFrame(
+            {
+                "term": names + extra,
+                "kind": ["lagrangian"] * len(names) + ["dissipation"] * len(extra),
+                "coefficient": np.asarray(coef, dtype=float),
+                "kept": coef != 0,
+            }
+        )
+
+    def __getstate__(self):
+        state = dict(self.__dict__)
+        state["_cache"] = None  # compiled torch functions are not picklable
+        return state
+
+
+def feature_index(library, dissipation_terms, removed, name) -> int:
+    """Index of a Lagrangian term or a dissipation term name among all features."""
+    if isinstance(name, str):
+        key = name.replace(" ", "")
+        for j, t in enumerate(dissipation_terms):
+            if t.name == key:
+                return len(library.terms_) + j
+        for t_name, reason in removed:
+            if t_name == key:
+                raise ValueError(f"dissipation term {name!r} was removed: {reason}")
+    return library.index(name)

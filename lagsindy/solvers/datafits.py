@@ -1,0 +1,171 @@
+"""Datafits of the sparse solvers: quadratic forms on Gram statistics (cases I and
+III) and the acceleration loss of case II."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+
+# --------------------------------------------------------------------------- datafits
+class GramQuadratic:
+    r"""Least squares :math:`\frac{1}{2n}\|y - A w\|^2` from its Gram statistics.
+
+    Parameters
+    ----------
+    gram : Tensor of shape (p, p)
+        :math:`A^\top A / n`.
+    rhs : Tensor of shape (p,)
+        :math:`A^\top y / n`.
+    const : float
+        :math:`y^\top y / n`, so that :meth:`value` is the true objective.
+    """
+
+    def __init__(self, gram: torch.Tensor, rhs: torch.Tensor, const: float):
+        self.gram = gram
+        self.rhs = rhs
+        self.const = float(const)
+        self._lipschitz = None
+
+    @property
+    def n_features(self) -> int:
+        return self.rhs.shape[0]
+
+    def zeros(self) -> torch.Tensor:
+        return torch.zeros_like(self.rhs)
+
+    def value(self, w: torch.Tensor) -> float:
+        return float(0.5 * w @ (self.gram @ w) - self.rhs @ w + 0.5 * self.const)
+
+    def gradient(self, w: torch.Tensor) -> torch.Tensor:
+        return self.gram @ w - self.rhs
+
+    def lipschitz(self) -> float:
+        """Largest eigenvalue of the Gram matrix."""
+        if self._lipschitz is None:
+            if self.n_features == 0:
+                self._lipschitz = 0.0
+            else:
+                self._lipschitz = float(
+                    torch.linalg.eigvalsh(self.gram)[-1].clamp(min=0)
+                )
+        return self._lipschitz
+
+    def relative_residual(self, w: torch.Tensor) -> float:
+        """:math:`\\|y - A w\\|^2 / \\|y\\|^2` (1 for ``w = 0``)."""
+        if self.const <= 0:
+            return 0.0
+        return max(0.0, 2.0 * self.value(w) / self.const)
+
+    def restrict(self, idx) -> GramQuadratic:
+        idx = torch.as_tensor(idx, dtype=torch.long, device=self.rhs.device)
+        return GramQuadratic(self.gram[idx][:, idx], self.rhs[idx], self.const)
+
+    def least_squares(self, w0=None, rtol: float = 1e-13) -> torch.Tensor:
+        """Minimum-norm unpenalised minimiser (eigen-decomposition of the Gram).
+
+        ``w0`` is accepted for symmetry with non-convex datafits and ignored.
+        """
+        if self.n_features == 0:
+            return self.rhs.clone()
+        evals, evecs = torch.linalg.eigh(self.gram)
+        keep = evals > rtol * evals[-1].clamp(min=1e-300)
+        inv = torch.where(
+            keep, 1.0 / torch.where(keep, evals, torch.ones_like(evals)), 0.0
+        )
+        return evecs @ (inv * (evecs.T @ self.rhs))
+
+
+class AccelerationDatafit:
+    r"""Case II datafit: error of the accelerations predicted by the Lagrangian.
+
+    .. math::
+
+        f(w) = \frac{1}{2n} \sum_s \| D^{-1} (\ddot q_s -
+        \ddot q_{pred,s}(c)) \|^2, \quad
+        \ddot q_{pred} = -\Big(\sum_k c_k M_k\Big)^{+} \sum_k c_k (N_k \dot q - O_k),
+
+    with :math:`c = w / s` (column scales ``s``) and :math:`D` the per-coordinate
+    RMS of the measured accelerations (paper eqs. 10-11). The prediction does not
+    change when :math:`c` is scaled, so the L1 penalty alone would shrink :math:`c`
+    to zero; :meth:`project` fixes the gauge :math:`\|w\|_2 = 1`, on which the L1
+    norm is smallest for sparse :math:`w`. No global Lipschitz constant exists
+    (``lipschitz()`` is ``None``), so solvers use backtracking.
+
+    Parameters
+    ----------
+    mass : Tensor of shape (n_samples, p, n_dof, n_dof)
+        :math:`M_k` per sample.
+    bias : Tensor of shape (n_samples, p, n_dof)
+        :math:`N_k \dot q - O_k` per sample.
+    qdd : Tensor of shape (n_samples, n_dof)
+        Measured accelerations.
+    scale : Tensor of shape (p,)
+        Column scales ``s``.
+    """
+
+    def __init__(self, mass, bias, qdd, scale):
+        self.mass, self.bias, self.qdd, self.scale = mass, bias, qdd, scale
+        rms = torch.sqrt((qdd**2).mean(dim=0))
+        self.acc_scale = torch.where(rms > 0, rms, torch.ones_like(rms))
+        self.const = float(((qdd / self.acc_scale) ** 2).sum(dim=1).mean())
+
+    @property
+    def n_features(self) -> int:
+        return self.scale.shape[0]
+
+    def zeros(self):
+        return torch.zeros_like(self.scale)
+
+    def lipschitz(self):
+        return None
+
+    def project(self, w):
+        norm = torch.linalg.vector_norm(w)
+        return w / norm if float(norm) > 0 else w
+
+    def predict(self, w):
+        c = w / self.scale
+        mc = torch.einsum("skij,k->sij", self.mass, c)
+        bc = torch.einsum("ski,k->si", self.bias, c)
+        # A direct solve: a singular M(c) gives non-finite values, which the line
+        # search rejects (cheaper than a pseudo-inverse and its SVD gradient).
+        out, info = torch.linalg.solve_ex(mc, bc)
+        if bool((info != 0).any()):
+            return torch.full_like(out, math.inf)
+        return -out
+
+    def _loss(self, w):
+        r = (self.qdd - self.predict(w)) / self.acc_scale
+        return 0.5 * (r**2).sum(dim=1).mean()
+
+    def value(self, w) -> float:
+        v = float(self._loss(w))
+        return v if math.isfinite(v) else math.inf
+
+    def gradient(self, w):
+        w = w.detach().requires_grad_(True)
+        with torch.enable_grad():
+            loss = self._loss(w)
+            (grad,) = torch.autograd.grad(loss, w)
+        return torch.nan_to_num(grad.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+
+    def relative_residual(self, w) -> float:
+        if self.const <= 0:
+            return 0.0
+        return 2.0 * self.value(w) / self.const
+
+    def restrict(self, idx):
+        idx = torch.as_tensor(idx, dtype=torch.long, device=self.scale.device)
+        return AccelerationDatafit(
+            self.mass[:, idx], self.bias[:, idx], self.qdd, self.scale[idx]
+        )
+
+    def least_squares(self, w0=None, max_iter: int = 2000, tol: float = 1e-10):
+        """Unpenalised minimiser from ``w0`` (local: the problem is not convex)."""
+        from .fista import proximal_gradient
+        from .penalties import L1
+
+        res = proximal_gradient(self, L1(0.0), w0, max_iter=max_iter, tol=tol)
+        return res.coef
