@@ -3,6 +3,7 @@
 import builtins
 import json
 import pickle
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -518,3 +519,36 @@ def test_multiarm_loader_reads_the_recordings():
         "theta1_dot_filtered",
         "theta2_dot_filtered",
     ]
+
+
+# --------------------------------------------------------------------------- 0.1.0 files
+_V010 = Path(__file__).resolve().parent / "data" / "models_0_1"
+
+
+@pytest.mark.parametrize(
+    "name", ["forces", "forces_1d", "fixed_term", "fixed_mass", "cart_dissipation"]
+)
+def test_models_saved_by_0_1_0_load_and_predict_identically(name):
+    """Files written by lagsindy 0.1.0 (tests/data/models_0_1/make.py) load, print
+    the same Lagrangian and predict what 0.1.0 predicted."""
+    import json
+
+    recorded = json.loads((_V010 / "predictions.json").read_text())
+    assert recorded["lagsindy_version"] == "0.1.0"
+    entry = recorded["models"][name]
+    est = lio.load_model(_V010 / f"{name}.json")
+    X = np.asarray(entry["X"])
+    assert est.equation() == entry["equation"]
+    # measured: identical to the last bit on this machine; 1e-12 leaves room for
+    # another BLAS (the forces are O(1..100))
+    np.testing.assert_allclose(est.predict(X), entry["predict"], rtol=1e-12, atol=1e-12)
+    tau = entry.get("tau")
+    if tau is not None:
+        tau = np.asarray(tau)
+        tau = tau if tau.ndim == 2 else tau[:, None]
+    np.testing.assert_allclose(
+        est.predict_acceleration(X, tau),
+        entry["predict_acceleration"],
+        rtol=1e-10,
+        atol=1e-10,
+    )
