@@ -117,6 +117,15 @@ def _state_frame(df, coords, args, source):
     return _state_and_groups(df, coords, args, source)[0]
 
 
+def _derivatives_estimated(df, coords, args):
+    """Whether q_dot and q_ddot are estimated from q (not read from the CSV)."""
+    from .._expr import state_names
+
+    if getattr(args, "derivatives", None) is not None:
+        return True
+    return not all(n in df.columns for n in state_names(coords))
+
+
 def _state_and_groups(df, coords, args, source, angles=()):
     """X ``[q, q_dot, q_ddot]`` and the trajectory labels to fit with.
 
@@ -130,10 +139,9 @@ def _state_and_groups(df, coords, args, source, angles=()):
 
     names = state_names(coords)
     q = _numeric(df, coords, source)
-    have_derivatives = all(n in df.columns for n in names)
     method = getattr(args, "derivatives", None)
     groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
-    if have_derivatives and method is None:
+    if not _derivatives_estimated(df, coords, args):
         X = pd.DataFrame(_numeric(df, names, source), columns=names, index=df.index)
         return X, groups
     from ..differentiation import derivatives

@@ -354,6 +354,16 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("data", help="CSV file")
     _add_fit_options(fit, required=True)
     fit.add_argument("--out", required=True, help="where to save the model (JSON)")
+    fit.add_argument(
+        "--held-out",
+        type=float,
+        default=0.2,
+        metavar="SHARE",
+        help="share of the trajectories (of one trajectory: its final time block) "
+        "held out to report R^2 on data the fit did not see, from a second fit on "
+        "the rest (the saved model is the fit on all data); 0: no held-out score "
+        "and no second fit (default: 0.2; skipped with --quiet)",
+    )
     _add_derivative_options(fit)
     fit.add_argument(
         "--quiet",
