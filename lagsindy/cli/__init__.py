@@ -1,0 +1,92 @@
+"""The ``lagsindy`` command (also ``python -m lagsindy``).
+
+Subcommands: ``demo``, ``simulate``, ``simulate-model``, ``fit``, ``diagnose`` and
+``predict``; each has ``--help``. Bad input (a missing file, an unknown column, a
+wrong shape, NaN, an invalid model file) ends with ONE line on stderr and exit status
+2, never a traceback (``--debug`` shows it).
+
+The package imports only the standard library and numpy at import time: torch, sympy,
+scikit-learn and pandas are imported inside the commands that need them, so
+``lagsindy --help`` answers at once. Modules: :mod:`.parser` (options, help texts,
+defaults), :mod:`.commands` (one function per subcommand) and :mod:`._io` (CSV and
+model files in and out). The subcommands look their handler up here when they run
+(``_fit``, ``_demo``, ...), so patching ``lagsindy.cli._fit`` takes effect.
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+
+from ._io import CLIError
+from ._io import _check_out as _check_out
+from ._io import _input_columns as _input_columns
+from ._io import _load as _load
+from ._io import _numeric as _numeric
+from ._io import _read_csv as _read_csv
+from ._io import _state_and_groups as _state_and_groups
+from ._io import _state_frame as _state_frame
+from .commands import _apply_delay as _apply_delay
+from .commands import _demo as _demo
+from .commands import _diagnose as _diagnose
+from .commands import _fit as _fit
+from .commands import _fit_csv as _fit_csv
+from .commands import _library as _library
+from .commands import _predict as _predict
+from .commands import _simulate as _simulate
+from .commands import _simulate_model as _simulate_model
+from .commands import _warn_missing_coupling as _warn_missing_coupling
+from .parser import SYSTEM_NAMES, build_parser
+
+__all__ = ["CLIError", "SYSTEM_NAMES", "build_parser", "main"]
+
+# Warnings that are information, not a doubt about the result: --quiet drops them.
+_INFO_WARNINGS = (
+    "it will compute on the CPU",
+    "they used the longest odd window they hold",
+)
+
+
+def _one_line(exc) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 600 else text[:597] + "..."
+
+
+def main(argv=None) -> int:
+    """Run the ``lagsindy`` command; returns the exit status."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, usage errors
+        return int(exc.code or 0)
+    prog = f"lagsindy {args.command}"
+
+    quiet = getattr(args, "quiet", False)
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        text = _one_line(message)
+        if quiet and any(s in text for s in _INFO_WARNINGS):
+            return
+        print(f"{prog}: warning: {text}", file=sys.stderr)
+
+    try:
+        with warnings.catch_warnings():
+            warnings.showwarning = show
+            return args.func(args)
+    except (CLIError, ValueError, OSError) as exc:
+        if args.debug:
+            raise
+        if isinstance(exc, FileNotFoundError) and exc.filename:
+            message = f"file not found: {exc.filename}"
+        else:
+            message = _one_line(exc)
+        print(f"{prog}: error: {message}", file=sys.stderr)
+        return 2
+    except RuntimeError as exc:  # an integration that failed
+        if args.debug:
+            raise
+        print(f"{prog}: error: {_one_line(exc)}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
