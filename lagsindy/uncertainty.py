@@ -699,11 +699,11 @@ class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEsti
         self.verbose = verbose
 
     def _base(self):
-        from .estimator import LagrangianSINDy
+        if self.estimator is not None:
+            return clone(self.estimator)
+        import lagsindy  # the public facade: this module never imports the estimator
 
-        return (
-            clone(self.estimator) if self.estimator is not None else LagrangianSINDy()
-        )
+        return lagsindy.LagrangianSINDy()
 
     def fit(self, X, y=None, groups=None):
         """Fit the bagged ensemble, then the base estimator on the kept terms.
