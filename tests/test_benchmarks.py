@@ -131,7 +131,7 @@ def test_paper_tables_tiny(tiny_results):
 needs_pysindy = pytest.mark.skipif(
     importlib.util.find_spec("pysindy") is None
     or importlib.util.find_spec("cvxpy") is None,
-    reason="pysindy[cvxpy] not installed (pip install -e .[bench])",
+    reason="pysindy[cvxpy] not installed (pip install -e .[test])",
 )
 
 
