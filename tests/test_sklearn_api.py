@@ -17,7 +17,9 @@ from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 # The generic checks feed random X with 1, 2, 4, 5 or 10 columns. X here is the
 # structured layout [q..., q_dot..., q_ddot...], so n_features must be 3 * n_dof: the
 # checks below fail only because their X has a column count that is not a multiple
-# of 3. What each would test is tested with valid data further down.
+# of 3. What each would test is tested with valid data further down. The waiver is
+# strict both ways: a listed check that passes fails the test (drop it from the
+# list), and so does one that fails for another reason than the layout.
 _LAYOUT = "random X with n_features not divisible by 3 (X must be [q, q_dot, q_ddot])"
 EXPECTED_FAILED_CHECKS = {
     "check_estimators_dtypes": _LAYOUT,
@@ -39,12 +41,22 @@ EXPECTED_FAILED_CHECKS = {
 }
 
 
-@parametrize_with_checks(
-    [LagrangianSINDy()],
-    expected_failed_checks=lambda est: EXPECTED_FAILED_CHECKS,
-)
+def _check_name(check):
+    return getattr(check, "func", check).__name__
+
+
+@parametrize_with_checks([LagrangianSINDy()])
 def test_sklearn_common_checks(estimator, check):
-    check(estimator)
+    if _check_name(check) not in EXPECTED_FAILED_CHECKS:
+        check(estimator)
+        return
+    # (check_positive_only_tag_during_fit re-raises our ValueError as an assertion)
+    with pytest.raises((ValueError, AssertionError)) as err:
+        check(estimator)
+    layout = err.value if isinstance(err.value, ValueError) else err.value.__cause__
+    assert isinstance(layout, ValueError), err.value
+    assert "columns [q..., q_dot..., q_ddot...], but n_features =" in str(layout)
+    assert "is not divisible by 3" in str(layout)
 
 
 @pytest.fixture(scope="module")
@@ -165,10 +177,22 @@ def test_cross_val_score_and_pipeline(data):
 
 
 def test_float32_and_int_inputs_are_accepted(data):
+    ref = LagrangianSINDy(single_pendulum().paper_library()).fit(data.X, data.tau)
     est = LagrangianSINDy(single_pendulum().paper_library())
     est.fit(data.X.astype(np.float32), data.tau.astype(np.float32))
     assert est.coef_.dtype == np.float64
-    est.predict(np.round(data.X[:10]).astype(int))
+    # float32 input is computed in float64: only the input rounding (6e-8) remains.
+    # Measured relative change 1.7e-9; computing in float32 gives 1.6e-6.
+    np.testing.assert_array_equal(est.support_, ref.support_)
+    np.testing.assert_allclose(
+        est.coef_, ref.coef_, rtol=0, atol=2e-8 * np.abs(ref.coef_).max()
+    )
+    # integer X predicts as the same values in float64 (measured: identical)
+    X_int = np.round(data.X[:10]).astype(int)
+    out = est.predict(X_int)
+    assert out.dtype == np.float64 and out.shape == (10, 1)
+    np.testing.assert_array_equal(out, est.predict(X_int.astype(np.float64)))
+    assert np.abs(out).max() > 0.1  # a real model, not zeros
 
 
 def test_cart_grid_with_groups_n_jobs():
