@@ -1,0 +1,448 @@
+"""Held-out scoring of supports, and refits, for :func:`~lagsindy.diagnose`.
+
+:class:`_Statistics` holds per-fold Gram statistics (weak or strong form) of every
+library term, candidate and the target; :class:`_Scorer` refits any support by least
+squares on the other folds and measures the held-out residual; :func:`_fit_model`
+reruns the estimator's sparse search with effects as known terms.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import torch
+from sklearn.base import clone
+from sklearn.model_selection import GroupKFold
+
+from .._torch import to_numpy
+from ..dissipation import DEFAULT_EPS, DissipationLibrary
+from ..formulation.operator import EulerLagrangeOperator
+from ..formulation.weak import (
+    estimate_noise_covariance,
+    estimate_sampling_interval,
+    trajectory_segments,
+    window_stride,
+)
+from .catalogue import _DISSIPATIVE, _NONNEGATIVE
+
+# A refit whose mass matrix is singular or indefinite at more than this fraction of
+# the checked samples cannot predict accelerations: the fold (or model) is degenerate.
+_MASS_BAD_FRACTION = 0.01
+# Samples per fold at which mass matrices are checked.
+_MASS_ROWS = 150
+# Samples for the noise correction of each fold's weak statistics.
+_NOISE_ROWS = 4000
+
+
+def _columns(est, candidates):
+    """The columns of :class:`_Statistics` for ``est``'s terms and the candidates.
+
+    Returns the Euler-Lagrange operator over the library terms and conservative
+    candidates, and forces and dissipative candidates; ``index`` (column of every
+    term, force and gain candidate by name); which columns must be non-negative;
+    and the number of Lagrangian columns.
+    """
+    cons = [c for c in candidates if c.kind == "conservative"]
+    diss = [c for c in candidates if c.kind in _DISSIPATIVE]
+    gain = [c for c in candidates if c.kind == "gain"]
+    lib_terms = list(est.library_.terms_) + [c.term for c in cons]
+    forces = list(est.dissipation_terms_) + [c.term for c in diss]
+    coords = list(est.coordinates_)
+    op = EulerLagrangeOperator(coords, lib_terms, forces=[f.forces for f in forces])
+    n_lib, n_force = len(lib_terms), len(forces)
+    n_features = n_lib + n_force + len(gain)
+    index = {str(t): k for k, t in enumerate(lib_terms)}
+    index.update({f.name: n_lib + k for k, f in enumerate(forces)})
+    index.update({c.name: n_lib + n_force + k for k, c in enumerate(gain)})
+    nonneg = np.zeros(n_features, dtype=bool)
+    for k, f in enumerate(forces):
+        nonneg[n_lib + k] = f.kind in _NONNEGATIVE
+    return op, index, nonneg, n_lib
+
+
+def _start_coefficients(est, index, n_features, n_lib, passive):
+    """The starting model's coefficients over the columns, and the fixed column.
+
+    Passive data: coefficients relative to the fixed term (its column, or the
+    largest Lagrangian coefficient's with mass normalization or in case II).
+    """
+    start_coef = np.zeros(n_features)
+    for t, c in zip(est.library_.terms_, est.coef_):
+        start_coef[index[str(t)]] = c
+    for f, c in zip(est.dissipation_terms_, est.dissipation_coef_):
+        start_coef[index[f.name]] = c
+    fixed_col = None
+    if passive:
+        if est.fixed_term_ is not None:
+            fixed_col = index[str(est.fixed_term_)]
+        else:  # mass normalization or case II: the largest term sets the scale
+            fixed_col = int(np.argmax(np.abs(start_coef[:n_lib])))
+        start_coef = start_coef / start_coef[fixed_col]
+    return start_coef, fixed_col
+
+
+def _segments(Xt, d, groups, dt):
+    """Time-ordered row blocks of every trajectory."""
+    if groups is not None:
+        return [s.cpu().numpy() for s in trajectory_segments(Xt, d, groups)]
+    return [s.cpu().numpy() for s in trajectory_segments(Xt, d, None, dt=dt)]
+
+
+def _make_folds(segments, n_splits):
+    """Folds as lists of row blocks: whole trajectories, else time blocks."""
+    if len(segments) >= n_splits:
+        labels = np.concatenate([np.full(len(s), k) for k, s in enumerate(segments)])
+        rows = np.concatenate(segments)
+        folds = []
+        for _, test in GroupKFold(n_splits).split(rows, groups=labels):
+            ids = np.unique(labels[test])
+            folds.append([segments[k] for k in ids])
+        return folds, "trajectories"
+    longest = max(len(s) for s in segments)
+    if longest < 2 * n_splits:
+        raise ValueError(
+            f"need at least n_splits={n_splits} trajectories, or trajectories of at "
+            f"least {2 * n_splits} samples to cut into time blocks; got "
+            f"{len(segments)} trajector(ies) of at most {longest} samples"
+        )
+    folds = [[] for _ in range(n_splits)]
+    for seg in segments:
+        for k, block in enumerate(np.array_split(seg, n_splits)):
+            if len(block):
+                folds[k].append(block)
+    return folds, "time blocks"
+
+
+def _time_folds(est, Xt, groups, n_splits, window):
+    """Sampling interval, trajectories, folds and test-function window of the data.
+
+    Returns ``(dt, segments, folds, fold_kind, window)``; ``dt`` is None when it
+    cannot be estimated, and ``window`` is odd and at most half the shortest block.
+    """
+    d = est.n_dof_
+    dt = getattr(est, "dt_", None) or est.dt
+    if dt is None:
+        rough = _segments(Xt, d, groups, 0.0) if groups is not None else None
+        rough = (
+            [torch.as_tensor(s) for s in rough]
+            if rough is not None
+            else [torch.arange(Xt.shape[0])]
+        )
+        try:
+            dt = estimate_sampling_interval(Xt, d, rough)
+        except ValueError:
+            dt = None
+    segments = _segments(Xt, d, groups, dt if dt and dt > 0 else 0.0)
+    folds, fold_kind = _make_folds(segments, n_splits)
+    shortest_block = min(max(len(b) for b in blocks) for blocks in folds)
+    win = int(window or getattr(est, "window", 81) or 81)
+    win = min(win, shortest_block // 2)
+    if win % 2 == 0:
+        win -= 1
+    return dt, segments, folds, fold_kind, win
+
+
+class _Statistics:
+    """Per-fold Gram statistics of every library term, candidate and the target.
+
+    Column layout: ``[library terms + conservative candidates | model forces +
+    dissipative candidates | gain candidates | target]``. ``kind`` is ``"weak"``
+    (integrated residual over windows) or ``"strong"`` (pointwise).
+    """
+
+    def __init__(self, op, Xt, tau_t, extra, folds, kind, *, window=None, dt=None):
+        d = op.n_dof
+        self.kind = kind
+        raw, fit = [], []
+        for blocks in folds:
+            if kind == "weak":
+                segs = [torch.as_tensor(b) for b in blocks if len(b) >= window]
+                if not segs:
+                    raise _NoWindows()
+                cov = estimate_noise_covariance(Xt, segs, d)
+                g, noise, n_w = op.weak_gram(
+                    Xt,
+                    tau_t,
+                    segs,
+                    window=window,
+                    stride=window_stride(window),
+                    dt=dt,
+                    noise_cov=cov,
+                    noise_rows=_NOISE_ROWS,
+                    extra=extra,
+                    return_noise=True,
+                )
+                if n_w == 0:
+                    raise _NoWindows()
+                raw.append(to_numpy(g))
+                fit.append(to_numpy(g - noise))
+            else:
+                rows = torch.as_tensor(np.concatenate(blocks))
+                g = op.gram(
+                    Xt[rows],
+                    None if tau_t is None else tau_t[rows],
+                    extra=None if extra is None else extra[rows],
+                )
+                raw.append(to_numpy(g))
+                fit.append(raw[-1])
+        self.raw = np.stack(raw)  # (K, d, P, P)
+        self.fit = np.stack(fit)
+
+
+class _NoWindows(Exception):
+    pass
+
+
+class _Scorer:
+    """Held-out score of any support over the columns of :class:`_Statistics`."""
+
+    def __init__(self, stats, n_features, target, fixed_col, nonneg, weights, mass):
+        self.stats = stats
+        self.n_features = n_features
+        self.target = target  # column index (case I) or None
+        self.fixed_col = fixed_col  # passive: column with coefficient 1
+        self.nonneg = nonneg  # bool per feature
+        self.w = weights  # (d,)
+        self.mass = mass  # per fold (rows, n_lib, d, d) mass matrices, or None
+        full = np.einsum("i,kipq->pq", weights, stats.fit)
+        diag = np.sqrt(np.clip(np.diag(full), 0, None))
+        self.col = np.where(diag > 0, diag, 1.0)
+        # The target (or the fixed term) keeps its units, so the SSE is in force
+        # units squared, comparable with the reference scales, and coefficients
+        # unscale by their own column alone.
+        self.col[fixed_col if target is None else target] = 1.0
+        self._cache = {}
+
+    def _combine(self, g):
+        return np.einsum("i,ipq->pq", self.w, g) / np.outer(self.col, self.col)
+
+    def _solve(self, g, free):
+        """LS coefficients (scaled) over ``free``; non-negative where required."""
+        t = self.fixed_col if self.target is None else self.target
+        sign = -1.0 if self.target is None else 1.0
+        active = list(free)
+        for _ in range(len(free) + 1):
+            coef = _lstsq(g[np.ix_(active, active)], sign * g[active, t])
+            neg = [(c, j) for c, j in zip(coef, active) if self.nonneg[j] and c < 0]
+            if not neg:
+                return active, coef
+            active.remove(min(neg)[1])
+        return active, coef
+
+    def _sse(self, g_test, active, coef):
+        """Weighted SSE per coordinate of the held-out residual."""
+        t = self.fixed_col if self.target is None else self.target
+        sign = -1.0 if self.target is None else 1.0
+        out = []
+        for gi in g_test:
+            gs = gi / np.outer(self.col, self.col)
+            yy = gs[t, t]
+            b = sign * gs[active, t]
+            out.append(
+                max(yy - 2 * coef @ b + coef @ gs[np.ix_(active, active)] @ coef, 0)
+            )
+        return np.asarray(out)
+
+    def coefficients(self, support):
+        """Full-data LS coefficients (unscaled) of ``support``, as {column: value}."""
+        free = [j for j in support if j != self.fixed_col]
+        g = self._combine(self.stats.fit.sum(0))
+        active, coef = self._solve(g, free)
+        out = {j: c / self.col[j] for j, c in zip(active, coef)}
+        if self.fixed_col is not None:
+            out[self.fixed_col] = 1.0
+        return out
+
+    def score(self, support):
+        """Held-out relative RMS residual, per-fold values and degenerate folds."""
+        key = tuple(sorted(support))
+        if key in self._cache:
+            return self._cache[key]
+        free = [j for j in key if j != self.fixed_col]
+        K = self.stats.raw.shape[0]
+        total = self._combine(self.stats.fit.sum(0))
+        sse, ref, bad = np.zeros(K), np.zeros(K), []
+        for k in range(K):
+            train = total - self._combine(self.stats.fit[k])
+            active, coef = self._solve(train, free)
+            if self.mass is not None and not self._mass_ok(k, active, coef):
+                bad.append(k)
+            sse[k] = float(self.w @ self._sse(self.stats.raw[k], active, coef))
+            ref[k] = float(self.w @ self.reference[k])
+        # Degenerate folds are left out, unless every fold is degenerate (the
+        # support itself cannot predict accelerations; valid() then rejects it).
+        keep = np.ones(K, dtype=bool)
+        if len(bad) < K:
+            keep[bad] = False
+        folds = np.where(keep, sse / np.maximum(ref, 1e-300), np.nan)
+        den = ref[keep].sum()
+        value = np.sqrt(sse[keep].sum() / den) if den > 0 else np.inf
+        out = (float(value), folds, bad if len(bad) < K else [])
+        self._cache[key] = out
+        return out
+
+    def _mass_ok(self, k, active, coef):
+        n_lib = self.mass[k].shape[1]
+        c = np.zeros(n_lib)
+        for j, v in zip(active, coef):
+            if j < n_lib:
+                c[j] = v / self.col[j]
+        if self.fixed_col is not None and self.fixed_col < n_lib:
+            c[self.fixed_col] = 1.0
+        return _mass_definite(self.mass[k], c)
+
+
+def _mass_definite(mass, c):
+    m = np.einsum("skij,k->sij", mass, c)
+    eig = np.linalg.eigvalsh((m + np.swapaxes(m, 1, 2)) / 2)
+    big = np.maximum(np.abs(eig).max(axis=1), 1e-300)
+    definite = (eig > 1e-8 * big[:, None]).all(axis=1) | (
+        eig < -1e-8 * big[:, None]
+    ).all(axis=1)
+    return (1.0 - definite.mean()) <= _MASS_BAD_FRACTION
+
+
+def _mass_samples(op, Xt, folds):
+    """Mass matrices of every column at samples of each fold, and of all the data.
+
+    ``_MASS_ROWS`` samples per fold (for the folds' refits) and 400 of all the data
+    (for the full-data fit), drawn with a fixed seed.
+    """
+    d = op.n_dof
+    rng = np.random.default_rng(0)
+    mass = []
+    for blocks in folds:
+        rows = np.concatenate(blocks)
+        pick = np.sort(rng.choice(rows, size=min(len(rows), _MASS_ROWS), replace=False))
+        with torch.no_grad():
+            mass.append(to_numpy(op.mass_matrices(Xt[pick, :d], Xt[pick, d : 2 * d])))
+    n = Xt.shape[0]
+    all_rows = np.sort(rng.choice(n, size=min(n, 400), replace=False))
+    mass_all = to_numpy(op.mass_matrices(Xt[all_rows, :d], Xt[all_rows, d : 2 * d]))
+    return mass, mass_all
+
+
+def _weighted_scorer(stats, start_coef, n_features, target, fixed_col, nonneg, mass):
+    """A :class:`_Scorer` whose equations are weighted by the starting model's forces.
+
+    Each coordinate's weight is the inverse energy of the starting model's force
+    contributions on it (the sum of the magnitudes of its terms), or of the measured
+    force (``target``) when larger; its per-fold ``reference`` scales are the same
+    energies on each fold.
+    """
+    full = stats.fit.sum(0)  # (d, P, P)
+    d = full.shape[0]
+    mag = np.sqrt(np.clip(np.einsum("ipp->ip", full)[:, :n_features], 0, None))
+    model = mag @ np.abs(start_coef)  # (d,)
+    meas = (
+        np.zeros(d)
+        if target is None
+        else np.sqrt(np.clip(full[:, target, target], 0, None))
+    )
+    scale = np.maximum(model, meas) ** 2
+    w = 1.0 / np.where(scale > 0, scale, 1.0)
+    sc = _Scorer(stats, n_features, target, fixed_col, nonneg, w, mass)
+    ref = []
+    for g in stats.raw:
+        magk = np.sqrt(np.clip(np.einsum("ipp->ip", g)[:, :n_features], 0, None))
+        mk = magk @ np.abs(start_coef)
+        tk = (
+            np.zeros(d)
+            if target is None
+            else np.sqrt(np.clip(g[:, target, target], 0, None))
+        )
+        ref.append(np.maximum(mk, tk) ** 2)
+    sc.reference = ref
+    return sc
+
+
+def _lstsq(g, b):
+    if len(b) == 0:
+        return np.zeros(0)
+    evals, evecs = np.linalg.eigh((g + g.T) / 2)
+    keep = evals > 1e-12 * max(evals[-1], 1e-300)
+    inv = np.where(keep, 1.0 / np.where(keep, evals, 1.0), 0.0)
+    return evecs @ (inv * (evecs.T @ b))
+
+
+def _normalization(est):
+    """The case III scale the fitted estimator chose, to keep it in refits."""
+    return "mass" if getattr(est, "normalization_", None) == "mass" else est.fixed_term_
+
+
+def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=True):
+    """Refit ``est``'s configuration: the Lagrangian's sparse search runs again.
+
+    ``effects`` enter as known (unpenalized) terms, ``penalized`` as candidates.
+    ``fit=False`` returns the configured (unfitted, quiet) estimator.
+    """
+    new = clone(est)
+    unpenalized = list(est.unpenalized or [])
+    library = clone(est.library_)
+    cons = [c for c in list(effects) + list(penalized) if c.kind == "conservative"]
+    if cons:
+        library.set_params(terms=list(library.terms or []) + [c.term for c in cons])
+        unpenalized += [str(c.term) for c in effects if c.kind == "conservative"]
+    diss = [c for c in list(effects) + list(penalized) if c.kind in _DISSIPATIVE]
+    if diss:
+        base = est.dissipation
+        dlib = (
+            DissipationLibrary(kinds=(), coordinates=est.coordinates_)
+            if base is None
+            else clone(base)
+        )
+        old = dlib.eps
+        merged = {
+            c: (old.get(c, DEFAULT_EPS) if isinstance(old, dict) else float(old))
+            for c in est.coordinates_
+        }
+        for c in diss:
+            if c.kind == "coulomb":
+                merged[c.coordinates[0]] = (eps or {}).get(
+                    c.coordinates[0], DEFAULT_EPS
+                )
+        specs = list(dlib.terms or [])
+        specs += [
+            (c.kind, c.coordinates if c.kind == "relative" else c.coordinates[0])
+            for c in diss
+        ]
+        dlib.set_params(terms=specs, eps=merged)
+        new.set_params(dissipation=dlib)
+        unpenalized += [c.name for c in effects if c.kind in _DISSIPATIVE]
+    new.set_params(library=library, unpenalized=unpenalized or None)
+    if est.case_ == "fixed":
+        new.set_params(fixed_term=_normalization(est))
+    new.set_params(verbose=0)  # refits are quiet; the result keeps est's verbose
+    if not fit:
+        return new
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        new.fit(X, tau, groups=groups)
+    return new.set_params(verbose=est.verbose)
+
+
+def _adjusted_tau(tau, gains):
+    if tau is None or not gains:
+        return tau
+    out = tau.copy()
+    for i, gamma in gains.items():
+        out[:, i] = out[:, i] * (1.0 + gamma)
+    return out
+
+
+def _residual(est, X, tau):
+    """Euler-Lagrange (force) residual per sample: tau - Theta c (or -Theta c)."""
+    pred = np.asarray(est.predict(X), dtype=float).reshape(len(X), -1)
+    return (np.zeros_like(pred) if tau is None else tau) - pred
+
+
+def _force_scale(est, Xt):
+    """Per-coordinate RMS of the summed magnitudes of the model's force terms."""
+    coef = est.fitted_.all_coef()
+    support = np.flatnonzero(coef)
+    if support.size == 0:
+        return np.ones(est.n_dof_)
+    cols = est.fitted_.feature_operator(support, Xt.device, Xt.dtype).columns(Xt)
+    size = (cols.abs() * torch.as_tensor(np.abs(coef[support]), dtype=Xt.dtype)).sum(2)
+    return np.sqrt(np.mean(to_numpy(size) ** 2, axis=0))
