@@ -13,6 +13,8 @@ with ``device="cuda"`` and the speed-up is reported.
 
     python -m benchmarks.speed            # writes benchmarks/results/speed.md
     python -m benchmarks.speed --quick    # smaller, for a smoke check
+    python -m benchmarks.speed --ratios   # only the passive-search / diagnosis
+                                          # section (replaced in speed.md)
 """
 
 from __future__ import annotations
@@ -93,14 +95,15 @@ def measure(spec):
         torch.cuda.reset_peak_memory_stats()
     rss_before = _rss_kib()
     peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    times, est = [], None
+    times, cpu, est = [], [], None
     for _ in range(spec["repeats"]):
         est = LagrangianSINDy(library, device=device)
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         est.fit(X, tau)
         if device == "cuda":
             torch.cuda.synchronize()
         times.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
     # KiB on Linux. The kernel updates ru_maxrss lazily, so it can trail the current
     # size read from /proc by a few pages: the peak is at least either reading.
     peak = max(
@@ -111,6 +114,7 @@ def measure(spec):
         "n_terms": len(library),
         "time": statistics.median(times),
         "times": times,
+        "cpu": statistics.median(cpu),
         "threads": torch.get_num_threads(),
         "rss_before_mib": rss_before / 1024,
         "peak_rss_mib": peak / 1024,
@@ -470,11 +474,431 @@ def floor_section(baseline=None, repeats=3, quick=False):
     return "\n".join(lines)
 
 
-def _replace_section(old_text, section):
-    """``old_text`` with its hardware-floor section replaced by ``section``."""
-    marker = "\n## At the hardware floor"
-    head = old_text.split(marker)[0].rstrip("\n") + "\n"
-    return head + section
+# ------------------------------------------------- passive search and diagnosis
+RATIOS_MARKER = "\n## Passive search and diagnosis against one fit"
+# Functions whose cumulative CPU time the profile of one passive search reports:
+# (label, file suffix, function names).
+SEARCH_STEPS = [
+    ("whole fit", "lagsindy/estimator.py", ("fit",)),
+    ("Gram statistics (weak form)", "formulation/__init__.py", ("gram_statistics",)),
+    (
+        "- of which the noise correction",
+        "formulation/operator.py",
+        ("_weak_noise_gram",),
+    ),
+    ("case III search (`fit_fixed`)", "cases/fixed.py", ("fit_fixed",)),
+    ("- sparse solves: ranking + shortlist", "cases/sparse.py", ("solve",)),
+    ("- - of which staged FISTA runs", "cases/sparse.py", ("staged",)),
+    ("- - of which dense bounds (eigh)", "formulation/scaling.py", ("dense_residual",)),
+    ("- mass normalization", "cases/fixed.py", ("solve_mass",)),
+    (
+        "- acceleration scoring of the shortlist",
+        "cases/fixed.py",
+        ("acceleration_r2", "acceleration_r2s"),
+    ),
+    ("mass-matrix check of the result", "lagsindy/estimator.py", ("_checked_mass",)),
+]
+
+# The same for one ``diagnose`` of the case I model.
+DIAGNOSE_STEPS = [
+    ("whole diagnose", "lagsindy/diagnostics.py", ("diagnose",)),
+    ("weak Gram statistics, every call", "formulation/operator.py", ("weak_gram",)),
+    (
+        "- of which the noise correction",
+        "formulation/operator.py",
+        ("_weak_noise_gram",),
+    ),
+    (
+        "fold statistics (`_Statistics` and other `__init__`s)",
+        "lagsindy/diagnostics.py",
+        ("__init__",),
+    ),
+    ("refits from rows (`LagrangianSINDy.fit`)", "lagsindy/estimator.py", ("fit",)),
+    ("input delay search (`estimate_delay`)", "lagsindy/delay.py", ("estimate_delay",)),
+    ("candidate catalogue (`_catalogue`)", "lagsindy/diagnostics.py", ("_catalogue",)),
+]
+
+
+def _timed(fn):
+    start, start_cpu = time.perf_counter(), time.process_time()
+    out = fn()
+    return out, time.perf_counter() - start, time.process_time() - start_cpu
+
+
+def _profile_steps(fn, steps=None):
+    """CPU seconds and calls of ``steps`` (default :data:`SEARCH_STEPS`) in one
+    profiled call of ``fn``."""
+    import cProfile
+    import pstats
+
+    prof = cProfile.Profile(time.process_time)
+    prof.enable()
+    fn()
+    prof.disable()
+    stats = pstats.Stats(prof).stats
+    found = []
+    for label, suffix, names in SEARCH_STEPS if steps is None else steps:
+        calls, seconds = 0, 0.0
+        for (path, _, name), (_, ncalls, _, cumtime, _) in stats.items():
+            if name in names and path.replace("\\", "/").endswith(suffix):
+                calls += ncalls
+                seconds += cumtime
+        found.append((label, calls, seconds))
+    return found
+
+
+def measure_ratios(spec):
+    """Case I fit, case III (fixed term, search) and ``diagnose``, in one process.
+
+    The cart-pendulum with the paper's library: ``n_trajectories`` forced (sincos)
+    and as many passive trajectories (``make_dataset``, seed 0), fitted with the
+    estimator's defaults (``formulation="auto"``: the weak form) and ``groups``.
+    Every run (the four fits, then ``diagnose`` of the case I model and of the
+    search's model just fitted) alternates, ``repeats`` times; the best (smallest)
+    wall and CPU (``time.process_time``) time of each, since on a shared machine
+    the load only ever adds time. Then a profile of the passive search (the less
+    disturbed of two profiled runs).
+    """
+    import warnings
+
+    import torch
+
+    from lagsindy import diagnose
+
+    warnings.simplefilter("ignore")
+    system = cart_pendulum()
+    library = system.paper_library()
+    n = spec["n_trajectories"]
+    forced = make_dataset(system, n_trajectories=n, excitation="sincos", random_state=0)
+    passive = make_dataset(system, n_trajectories=n, excitation=None, random_state=0)
+    LagrangianSINDy(library).fit(forced.X[:1000], forced.tau[:1000])  # warm-up
+    fits = {
+        "case I": lambda: LagrangianSINDy(library).fit(
+            forced.X, forced.tau, groups=forced.groups
+        ),
+        "case I, strong form": lambda: LagrangianSINDy(
+            library, formulation="strong"
+        ).fit(forced.X, forced.tau),
+        "case III, fixed term": lambda: LagrangianSINDy(
+            library, fixed_term=system.fixed_term
+        ).fit(passive.X, groups=passive.groups),
+        "case III, search": lambda: LagrangianSINDy(library).fit(
+            passive.X, groups=passive.groups
+        ),
+    }
+    models = {}
+    runs = dict(fits)
+    if spec.get("diagnose", True):
+        runs["diagnose, case I model"] = lambda: diagnose(
+            models["case I"], forced.X, forced.tau, groups=forced.groups
+        )
+        runs["diagnose, searched passive model"] = lambda: diagnose(
+            models["case III, search"], passive.X, groups=passive.groups
+        )
+    wall = {k: [] for k in runs}
+    cpu = {k: [] for k in runs}
+    load = [_load()]
+    for _ in range(spec["repeats"]):
+        for name, run in runs.items():
+            result, w, c = _timed(run)
+            if name in fits:
+                models[name] = result
+            wall[name].append(w)
+            cpu[name].append(c)
+    profiles = [_profile_steps(fits["case III, search"]) for _ in range(2)]
+    diagnose_profile = None
+    if spec.get("diagnose", True):
+        diagnose_profile = _profile_steps(
+            runs["diagnose, case I model"], DIAGNOSE_STEPS
+        )
+    load.append(_load())
+    out = {
+        **spec,
+        "rows": int(forced.X.shape[0]),
+        "n_terms": len(library),
+        "threads": torch.get_num_threads(),
+        "wall": {k: min(v) for k, v in wall.items()},
+        "cpu": {k: min(v) for k, v in cpu.items()},
+        "wall_all": wall,
+        "cpu_all": cpu,
+        "learned": {k: m.equation(4) for k, m in models.items()},
+        "search_choice": f"{models['case III, search'].normalization_}, "
+        f"{models['case III, search'].fixed_term_}",
+        "profile": min(profiles, key=lambda steps: steps[0][2]),
+        "diagnose_profile": diagnose_profile,
+        "load": load,
+    }
+    import lagsindy
+
+    out["lagsindy"] = os.path.dirname(lagsindy.__file__)
+    return out
+
+
+def _ratio_rows(res, label):
+    base_wall, base_cpu = res["wall"]["case I"], res["cpu"]["case I"]
+    rows = []
+    for name in res["wall"]:
+        rows.append(
+            f"| {name} | {label} | {res['wall'][name]:.2f} s | "
+            f"{res['cpu'][name]:.2f} s | {res['wall'][name] / base_wall:.2f} | "
+            f"**{res['cpu'][name] / base_cpu:.2f}** |"
+        )
+    return rows
+
+
+def _least_disturbed(results):
+    """The process whose case I fit was fastest (CPU), among those without errors."""
+    ok = [r for r in results if "error" not in r]
+    return min(ok, key=lambda r: r["cpu"]["case I"]) if ok else results[0]
+
+
+def ratios_section(baseline=None, repeats=3, quick=False, processes=2):
+    """Markdown: issue 16's (a) 50k x 39 fit, (b) 1M x 169 memory, (c) ratios.
+
+    (a) and (c) run in ``processes`` fresh processes each (alternating 'after' and
+    'before' for (c)): on a loaded 2-core machine a process with two torch threads
+    is now and then several times slower throughout (CPU time = wall time: its two
+    threads share one core and wait for each other), so every process is reported
+    and the targets are judged on the least disturbed one.
+    """
+    small = quick or tiny()
+    processes = 1 if small else processes
+    load_start = _load()
+    lines = [
+        RATIOS_MARKER.strip("\n") + " (issue 16)",
+        "",
+        f"Load average (1 min) at the start: {load_start:.1f} on {os.cpu_count()} "
+        "cores. The machine is shared, so wall times vary with the load; CPU times "
+        "(`time.process_time`, all of the process's threads: a torch thread that "
+        "spins while waiting counts too) vary less, and the ratios are taken within "
+        "one process. Each measurement runs in "
+        f"{processes} fresh process(es) (#1, #2...), one after the other: a process "
+        "whose two torch threads end up on one busy core is several times slower "
+        "throughout (its CPU time then equals its wall time), so all are shown.",
+        "",
+        "### (a) Case I fit, cart-pendulum, 50k rows x 39 terms",
+        "",
+        "| data | formulation | process | best wall (median) | best CPU | "
+        "torch threads |",
+        "|---|---|---|---|---|---|",
+    ]
+    n_default = 3 if small else 100
+    for k in range(processes):
+        r = _run_in(
+            {"n_trajectories": n_default, "repeats": 1 if small else repeats},
+            "default",
+        )
+        print("default", r, flush=True)
+        for form in ("auto", "strong"):
+            if "error" in r:
+                lines.append(f"| - | {form} | #{k + 1} | error: {r['error']} | - | - |")
+                break
+            lines.append(
+                f"| {n_default} trajectories x 500 samples ({r['rows']} rows), "
+                f"paper library ({r['n_terms']} terms) | {form} "
+                f"({r['formulation'][form]}) | #{k + 1} | "
+                f"{r['wall'][form]:.3g} s ({r['wall_median'][form]:.3g} s) | "
+                f"{r['cpu'][form]:.3g} s | {r['threads']} |"
+            )
+    rows = 2000 if small else 50_000
+    for k in range(processes):
+        r = run_measurement(
+            {
+                "n_rows": rows,
+                "degree": 3,
+                "device": "cpu",
+                "repeats": 1 if small else repeats,
+            }
+        )
+        print("random rows", r, flush=True)
+        lines.append(
+            f"| {rows} random rows (`random_rows`), cart library degree 3 | strong "
+            f"(fallback: rows not time-ordered) | #{k + 1} | "
+            + (
+                f"error: {r['error']} | - | - |"
+                if "error" in r
+                else f"{min(r['times']):.3g} s ({r['time']:.3g} s) | "
+                f"{r['cpu']:.3g} s (median) | {r['threads']} |"
+            )
+        )
+    lines += ["", "Target: <= 0.1 s on 2 cores.", ""]
+    lines += [
+        "### (b) Memory: 1M rows x 169 terms, case I on CPU",
+        "",
+        "| rows x terms | fit wall | fit CPU | RSS before the fit | peak RSS |",
+        "|---|---|---|---|---|",
+    ]
+    big = 20_000 if small else 1_000_000
+    r = run_measurement({"n_rows": big, "degree": 5, "device": "cpu", "repeats": 1})
+    print("memory", r, flush=True)
+    if "error" in r:
+        lines.append(f"| {big} x deg 5 | error: {r['error']} | - | - | - |")
+    else:
+        lines.append(
+            f"| {big} x {r['n_terms']} | {r['time']:.3g} s | {r['cpu']:.3g} s | "
+            f"{r['rss_before_mib']:.0f} MiB | **{r['peak_rss_mib']:.0f} MiB** |"
+        )
+    lines += ["", "Target: under 2 GB (2048 MiB) peak.", ""]
+    n_traj = 3 if small else 20
+    spec = {"n_trajectories": n_traj, "repeats": 1 if small else repeats}
+    after, before = [], []
+    for _ in range(processes):
+        after.append(_run_in(spec, "ratios"))
+        print("ratios after", after[-1], flush=True)
+        if baseline:
+            before.append(
+                _run_in({**spec, "diagnose": False}, "ratios", code_root=baseline)
+            )
+            print("ratios before", before[-1], flush=True)
+    lines += [
+        "### (c) Passive search and diagnosis against one case I fit",
+        "",
+        f"Cart-pendulum, paper library, `make_dataset(system, n_trajectories={n_traj}, "
+        'excitation=..., random_state=0)`: forced (`"sincos"`) for case I, passive '
+        "(`None`) for case III, the same size; estimator defaults "
+        '(`formulation="auto"`: weak) with `groups`; `diagnose(est, X, tau, '
+        f"groups=...)` with its defaults. Best of {spec['repeats']} alternating runs "
+        "(each run: the four fits, then the two diagnoses). Ratios are to the case I "
+        "fit in the same process."
+        + (
+            f" 'before' imports lagsindy from `{baseline}` (commit "
+            f"{_commit(baseline)}), same data, without the diagnoses (unchanged code)."
+            if baseline
+            else ""
+        ),
+        "",
+        "| run | code | process | wall | CPU | wall / case I | CPU / case I |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for label, results in (("after", after), ("before", before)):
+        for k, res in enumerate(results):
+            if "error" in res:
+                lines.append(
+                    f"| - | {label} | #{k + 1} | error: {res['error']} | - | - | - |"
+                )
+                continue
+            lines += _ratio_rows(res, f"{label} | #{k + 1}")
+    best = _least_disturbed(after)
+    if "error" not in best:
+        cpu = best["cpu"]
+        search = cpu["case III, search"] / cpu["case I"]
+        lines += [
+            "",
+            f"Search chose: {best['search_choice']}; learned `"
+            f"{best['learned']['case III, search']}`.",
+            "",
+            "Targets, in the least disturbed 'after' process (#"
+            f"{after.index(best) + 1}): passive search <= 2x a case I fit: "
+            f"{'met' if search <= 2 else 'NOT met'} ({search:.2f}x CPU)",
+        ]
+        if "diagnose, case I model" in cpu:
+            diag = cpu["diagnose, case I model"] / cpu["case I"]
+            lines[-1] += (
+                f"; diagnose <= 3x a fit: {'met' if diag <= 3 else 'NOT met'} "
+                f"({diag:.1f}x CPU for the case I model)."
+            )
+        lines += [
+            "",
+            "Where one passive search goes (cProfile with `time.process_time`, the "
+            "less disturbed of two profiled fits in the least disturbed process of "
+            "each code; cumulative per function, so nested rows are parts of the row "
+            "above; the profiler's own overhead inflates the many small calls):",
+            "",
+            "| step | code | calls | CPU | share |",
+            "|---|---|---|---|---|",
+        ]
+        for label, results in (("after", after), ("before", before)):
+            if not results:
+                continue
+            res = _least_disturbed(results)
+            if "error" in res:
+                continue
+            total = res["profile"][0][2]
+            for step, calls, seconds in res["profile"]:
+                lines.append(
+                    f"| {step} | {label} | {calls} | {seconds:.2f} s | "
+                    f"{100 * seconds / total:.0f} % |"
+                )
+        if best.get("diagnose_profile"):
+            total = best["diagnose_profile"][0][2]
+            lines += [
+                "",
+                "Where one `diagnose` of the case I model goes (cProfile, one run; "
+                "`_Statistics` builds the held-out folds' weak Gram statistics; rows "
+                "overlap, e.g. the delay search refits the model):",
+                "",
+                "| step | calls | CPU | share |",
+                "|---|---|---|---|",
+            ]
+            for step, calls, seconds in best["diagnose_profile"]:
+                lines.append(
+                    f"| {step} | {calls} | {seconds:.2f} s | "
+                    f"{100 * seconds / total:.0f} % |"
+                )
+    loads = [x for r in after + before if "load" in r for x in r["load"]]
+    lines += [
+        "",
+        "Load average (1 min) during (c): "
+        + (f"{min(loads):.1f} .. {max(loads):.1f}" if loads else "-")
+        + f"; at the end {_load():.1f}.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def measure_default(spec):
+    """Case I on the default data (100 x 500 sincos trajectories): auto and strong."""
+    import warnings
+
+    import torch
+
+    warnings.simplefilter("ignore")
+    system = cart_pendulum()
+    library = system.paper_library()
+    data = make_dataset(
+        system,
+        n_trajectories=spec["n_trajectories"],
+        excitation="sincos",
+        random_state=0,
+    )
+    LagrangianSINDy(library).fit(data.X[:1000], data.tau[:1000])  # warm-up
+    wall = {"auto": [], "strong": []}
+    cpu = {"auto": [], "strong": []}
+    used = {}
+    for _ in range(spec["repeats"]):
+        for form in wall:
+            est, w, c = _timed(
+                lambda form=form: LagrangianSINDy(library, formulation=form).fit(
+                    data.X, data.tau
+                )
+            )
+            wall[form].append(w)
+            cpu[form].append(c)
+            used[form] = est.formulation_
+    return {
+        **spec,
+        "rows": int(data.X.shape[0]),
+        "n_terms": len(library),
+        "threads": torch.get_num_threads(),
+        "wall": {k: min(v) for k, v in wall.items()},
+        "cpu": {k: min(v) for k, v in cpu.items()},
+        "wall_median": {k: statistics.median(v) for k, v in wall.items()},
+        "formulation": used,
+    }
+
+
+def _replace_section(old_text, section, marker="\n## At the hardware floor"):
+    """``old_text`` with the section that starts at ``marker`` replaced by ``section``.
+
+    The section runs up to the next level-2 heading (or the end); when ``old_text``
+    has none, ``section`` is appended.
+    """
+    if marker not in old_text:
+        return old_text.rstrip("\n") + "\n" + section
+    head, rest = old_text.split(marker, 1)
+    after = rest.find("\n## ")
+    tail = "" if after < 0 else rest[after:]
+    return head.rstrip("\n") + "\n" + section.rstrip("\n") + "\n" + tail
 
 
 def main(argv=None):
@@ -496,7 +920,14 @@ def main(argv=None):
         default=None,
         help="another checkout (path) to time as 'before' in the floor section",
     )
+    parser.add_argument(
+        "--ratios",
+        action="store_true",
+        help="only the passive-search / diagnosis section (replaced in speed.md)",
+    )
     parser.add_argument("--_measure", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--_ratios", default=None, help=argparse.SUPPRESS)
+    parser.add_argument("--_default", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--_floor", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--_simulate", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -509,8 +940,33 @@ def main(argv=None):
     if args._simulate is not None:
         print(json.dumps(measure_simulation(json.loads(args._simulate))))
         return
+    if args._ratios is not None:
+        print(json.dumps(measure_ratios(json.loads(args._ratios))))
+        return
+    if args._default is not None:
+        print(json.dumps(measure_default(json.loads(args._default))))
+        return
     quick = args.quick or tiny()
     name = "speed_quick.md" if quick else "speed.md"
+    if args.ratios:
+        section = ratios_section(
+            args.baseline, repeats=1 if quick else min(args.repeats, 3), quick=quick
+        )
+        path = _common.RESULTS / name
+        old = (
+            path.read_text()
+            if path.exists()
+            else header("Fit time: cart-pendulum, case I", command("speed", argv))
+        )
+        stamp = "\n".join(
+            header("Passive search", command("speed", argv)).splitlines()[2:]
+        )
+        write(
+            name,
+            _replace_section(old, "\n" + section + "\n" + stamp, RATIOS_MARKER),
+        )
+        print(section)
+        return
     if args.floor_only:
         section = floor_section(
             args.baseline, repeats=1 if quick else min(args.repeats, 3), quick=quick

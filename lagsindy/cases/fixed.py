@@ -16,7 +16,7 @@ import torch
 from sklearn.metrics import r2_score
 
 from .._torch import to_numpy
-from ..formulation.operator import EulerLagrangeOperator, forward_accelerations
+from ..formulation.operator import EulerLagrangeOperator
 from ..solvers import GramQuadratic
 from . import Problem, Solution
 
@@ -94,21 +94,31 @@ def fit_fixed(problem: Problem) -> Solution:
     # the mass normalization) on accelerations.
     term_fits = sorted((f for f in fits if f[0] == "term"), key=lambda f: f[3].cost)
     resolved = []
-    for _, r, _, _ in term_fits[:SELECTION_TOP]:
+    for _, r, _, ranked in term_fits[:SELECTION_TOP]:
         free = np.array([k for k in np.flatnonzero(identifiable) if k != r])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
+            # The ranking's one-start result is this solve's first start: only the
+            # later starts are run, and only where the first stays above the bound.
             coef, result = p.solver.solve(
-                p.balanced, free, r, -1.0, penalty, 1.0, 0, constrain=traces[r] > 0
+                p.balanced,
+                free,
+                r,
+                -1.0,
+                penalty,
+                1.0,
+                0,
+                constrain=traces[r] > 0,
+                first=ranked,
             )
         coef[r] = 1.0
         resolved.append(("term", r, coef, result))
     shortlist = [f for f in fits if f[0] == "mass"] + resolved
     rows = p.solver.subsample_rows(p.Xt.shape[0], SELECTION_ROWS)
     Xs = p.Xt[torch.as_tensor(rows, device=p.Xt.device)]
+    scores = acceleration_r2s(p, [f[2] for f in shortlist], Xs)
     scored = []
-    for kind, r, coef, result in shortlist:
-        score = acceleration_r2(p, coef, Xs)
+    for (kind, r, coef, result), score in zip(shortlist, scores):
         if verbose:
             label = "mass normalization" if kind == "mass" else f"fixed term {terms[r]}"
             print(
@@ -224,14 +234,55 @@ def _solve_pivot(p: Problem, free, pivot, t_scaled, verbose):
 
 def acceleration_r2(p: Problem, coef, Xt) -> float:
     """Variance-weighted R^2 of the accelerations the model ``coef`` predicts."""
-    support = np.flatnonzero(coef)
-    if support.size == 0:
-        return -np.inf
-    op = p.feature_operator(support, Xt.device, Xt.dtype)
-    c = torch.as_tensor(coef[support], dtype=Xt.dtype, device=Xt.device)
-    pred = to_numpy(forward_accelerations(op, c, Xt, None))
+    return acceleration_r2s(p, [coef], Xt)[0]
+
+
+def acceleration_r2s(p: Problem, coefs, Xt) -> list:
+    """:func:`acceleration_r2` of several models, from one evaluation of the columns.
+
+    The Euler-Lagrange columns and per-term mass matrices of the union of the models'
+    supports are evaluated once on ``Xt`` (one operator, not one per model); each
+    model then uses its own support's slices of them.
+    """
+    supports = [np.flatnonzero(c) for c in coefs]
+    nonempty = [s_ for s_ in supports if s_.size]
+    if not nonempty:
+        return [-np.inf] * len(coefs)
+    union = np.unique(np.concatenate(nonempty))
+    op = p.feature_operator(union, Xt.device, Xt.dtype)
     n = p.n_dof
-    true = to_numpy(Xt[:, 2 * n : 3 * n])
-    if not np.all(np.isfinite(pred)):
-        return -np.inf
-    return float(r2_score(true, pred, multioutput="variance_weighted"))
+    q, qd, qdd = Xt[:, :n], Xt[:, n : 2 * n], Xt[:, 2 * n : 3 * n]
+    theta = op.columns(Xt)  # (rows, n_dof, features of the union)
+    mass = op.mass_matrices(q, qd)  # (rows, terms of the union, n_dof, n_dof)
+    true = to_numpy(qdd)
+    scores = []
+    for coef, support in zip(coefs, supports):
+        if support.size == 0:
+            scores.append(-np.inf)
+            continue
+        pos = np.searchsorted(union, support)
+        pred = to_numpy(
+            _accelerations(
+                theta[:, :, pos],
+                mass[:, pos[pos < op.n_terms]],
+                torch.as_tensor(coef[support], dtype=Xt.dtype, device=Xt.device),
+                qdd,
+            )
+        )
+        if not np.all(np.isfinite(pred)):
+            scores.append(-np.inf)
+            continue
+        scores.append(float(r2_score(true, pred, multioutput="variance_weighted")))
+    return scores
+
+
+def _accelerations(theta, mass, coef, qdd):
+    """Passive accelerations ``M(c)^+ (-h(c))`` from precomputed columns and masses.
+
+    :func:`~lagsindy.formulation.operator.forward_accelerations` with ``tau=None``,
+    given the model's columns ``theta`` (Lagrangian terms, then force terms) and
+    the per-term mass matrices ``mass`` instead of an operator.
+    """
+    mc = torch.einsum("skij,k->sij", mass, coef[: mass.shape[1]])
+    bias = theta @ coef - torch.einsum("sij,sj->si", mc, qdd)
+    return (torch.linalg.pinv(mc, hermitian=True) @ (-bias).unsqueeze(-1)).squeeze(-1)

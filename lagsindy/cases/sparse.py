@@ -113,12 +113,23 @@ class SparseSolve:
         )
 
     def stages(
-        self, datafit, features, weights, verbose, starts=None, constrain=True, **kwargs
+        self,
+        datafit,
+        features,
+        weights,
+        verbose,
+        starts=None,
+        constrain=True,
+        first=None,
+        **kwargs,
     ):
         """The staged sparse solve of ``datafit`` (features: their library indices).
 
         ``weights`` are the features' L1 weights; ``kwargs`` go to
-        :func:`~lagsindy.solvers.staged_fista` (``reference``, ``w0``).
+        :func:`~lagsindy.solvers.staged_fista` (``reference``, ``w0``). ``first``: the
+        result of the first start, already computed (by a call with ``starts=1`` on
+        the same problem and settings); only the later starts are then run, when
+        needed, so the outcome is the same as without it.
         """
         # ``starts`` (default LAM_STARTS) first-stage weights are tried.
         # The first stage's L1 weight can be too strong for a given problem: on
@@ -140,12 +151,17 @@ class SparseSolve:
         if constrain and isinstance(datafit, GramQuadratic):
             kwargs["nonneg"] = self.nonneg(features, weights.device)
         if not isinstance(datafit, GramQuadratic) or self.lam == 0 or starts <= 1:
+            if first is not None:
+                return first
             return self.staged(datafit, self.lam, features, weights, verbose, **kwargs)
         results = []
         bound = None
         for k in range(starts):
             lam = self.lam / self.lam_decay**k if self.lam_decay > 1 else self.lam
-            res = self.staged(datafit, lam, features, weights, verbose, **kwargs)
+            if k == 0 and first is not None:
+                res = first
+            else:
+                res = self.staged(datafit, lam, features, weights, verbose, **kwargs)
             results.append(res)
             if self.lam_decay <= 1:
                 break
@@ -175,12 +191,16 @@ class SparseSolve:
         starts=None,
         constrain=True,
         start=None,
+        first=None,
     ):
         """Sparse fit of ``sign * column[target]`` by the columns ``free``.
 
         Returns the coefficients over all features (zero outside ``free``) and the
         staged result, whose stage records are mapped to coefficient units over all
         features. ``start``: a warm start in coefficient units over all features.
+        ``first``: the result of an earlier ``solve`` of the same problem with
+        ``starts=1`` (and the same other arguments); it stands for the first start
+        (see :meth:`stages`), so only the later starts are run, when needed.
         """
         datafit, to_coef = balanced.problem(free, target, sign)
         weights = torch.as_tensor(
@@ -201,11 +221,13 @@ class SparseSolve:
             reference=reference,
             starts=starts,
             constrain=constrain,
+            first=first,
             **kwargs,
         )
         coef = np.zeros(balanced.n_features)
         coef[free] = to_numpy(to_coef(result.coef))
-        remap_stages(result.stages, free, to_numpy(scale), balanced.n_features)
+        if result is not first:  # ``first``'s records were mapped by its own solve
+            remap_stages(result.stages, free, to_numpy(scale), balanced.n_features)
         return coef, result
 
 
