@@ -32,7 +32,11 @@ def _imports_estimator(tree, module: Path) -> bool:
 @pytest.mark.parametrize("module", MODULES, ids=lambda m: str(m.relative_to(PACKAGE)))
 def test_only_the_facade_and_the_cli_import_the_estimator(module):
     rel = module.relative_to(PACKAGE)
-    allowed = rel.parts[0] == "cli" or rel == Path("__init__.py") or rel.name == "estimator.py"
+    allowed = (
+        rel.parts[0] == "cli"
+        or rel == Path("__init__.py")
+        or rel.name == "estimator.py"
+    )
     if not allowed:
         assert not _imports_estimator(ast.parse(module.read_text()), module)
 
@@ -40,7 +44,9 @@ def test_only_the_facade_and_the_cli_import_the_estimator(module):
 def test_the_import_check_sees_an_import():
     # the check above must be able to fail
     fake = PACKAGE / "io" / "model_file.py"
-    assert _imports_estimator(ast.parse("from ..estimator import LagrangianSINDy"), fake)
+    assert _imports_estimator(
+        ast.parse("from ..estimator import LagrangianSINDy"), fake
+    )
     assert _imports_estimator(ast.parse("import lagsindy.estimator"), fake)
     assert not _imports_estimator(ast.parse("from ..model import MassCheck"), fake)
 
@@ -53,6 +59,8 @@ def test_no_module_over_900_lines(module):
 def test_the_estimator_class_is_a_facade():
     tree = ast.parse((PACKAGE / "estimator.py").read_text())
     (cls,) = [
-        n for n in tree.body if isinstance(n, ast.ClassDef) and n.name == "LagrangianSINDy"
+        n
+        for n in tree.body
+        if isinstance(n, ast.ClassDef) and n.name == "LagrangianSINDy"
     ]
     assert cls.end_lineno - cls.lineno + 1 <= 450
