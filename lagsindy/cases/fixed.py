@@ -16,7 +16,7 @@ import torch
 from sklearn.metrics import r2_score
 
 from .._torch import to_numpy
-from ..formulation.operator import EulerLagrangeOperator
+from ..formulation.operator import EulerLagrangeOperator, accelerations_from
 from ..solvers import GramQuadratic
 from . import Problem, Solution
 
@@ -232,13 +232,8 @@ def _solve_pivot(p: Problem, free, pivot, t_scaled, verbose):
     return coef, result
 
 
-def acceleration_r2(p: Problem, coef, Xt) -> float:
-    """Variance-weighted R^2 of the accelerations the model ``coef`` predicts."""
-    return acceleration_r2s(p, [coef], Xt)[0]
-
-
 def acceleration_r2s(p: Problem, coefs, Xt) -> list:
-    """:func:`acceleration_r2` of several models, from one evaluation of the columns.
+    """Variance-weighted R^2 of the accelerations each model in ``coefs`` predicts.
 
     The Euler-Lagrange columns and per-term mass matrices of the union of the models'
     supports are evaluated once on ``Xt`` (one operator, not one per model); each
@@ -262,7 +257,7 @@ def acceleration_r2s(p: Problem, coefs, Xt) -> list:
             continue
         pos = np.searchsorted(union, support)
         pred = to_numpy(
-            _accelerations(
+            accelerations_from(
                 theta[:, :, pos],
                 mass[:, pos[pos < op.n_terms]],
                 torch.as_tensor(coef[support], dtype=Xt.dtype, device=Xt.device),
@@ -274,15 +269,3 @@ def acceleration_r2s(p: Problem, coefs, Xt) -> list:
             continue
         scores.append(float(r2_score(true, pred, multioutput="variance_weighted")))
     return scores
-
-
-def _accelerations(theta, mass, coef, qdd):
-    """Passive accelerations ``M(c)^+ (-h(c))`` from precomputed columns and masses.
-
-    :func:`~lagsindy.formulation.operator.forward_accelerations` with ``tau=None``,
-    given the model's columns ``theta`` (Lagrangian terms, then force terms) and
-    the per-term mass matrices ``mass`` instead of an operator.
-    """
-    mc = torch.einsum("skij,k->sij", mass, coef[: mass.shape[1]])
-    bias = theta @ coef - torch.einsum("sij,sj->si", mc, qdd)
-    return (torch.linalg.pinv(mc, hermitian=True) @ (-bias).unsqueeze(-1)).squeeze(-1)

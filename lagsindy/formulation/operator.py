@@ -492,7 +492,17 @@ def forward_accelerations(
     q, qd, qdd = X[:, :n], X[:, n : 2 * n], X[:, 2 * n : 3 * n]
     theta = operator.columns(X)
     mass = operator.mass_matrices(q, qd)
-    mc = torch.einsum("skij,k->sij", mass, coef[: operator.n_terms])
+    return accelerations_from(theta, mass, coef, qdd, tau)
+
+
+def accelerations_from(theta, mass, coef, qdd, tau=None) -> torch.Tensor:
+    """:func:`forward_accelerations` from precomputed columns and mass matrices.
+
+    ``theta`` (n_samples, n_dof, n_features) holds the model's columns (Lagrangian
+    terms, then force terms), ``mass`` (n_samples, n_terms, n_dof, n_dof) the
+    per-term mass matrices of its Lagrangian terms.
+    """
+    mc = torch.einsum("skij,k->sij", mass, coef[: mass.shape[1]])
     bias = theta @ coef - torch.einsum("sij,sj->si", mc, qdd)
     rhs = -bias if tau is None else tau - bias
     return (torch.linalg.pinv(mc, hermitian=True) @ rhs.unsqueeze(-1)).squeeze(-1)
