@@ -948,39 +948,22 @@ def main(argv=None):
         return
     quick = args.quick or tiny()
     name = "speed_quick.md" if quick else "speed.md"
-    if args.ratios:
-        section = ratios_section(
-            args.baseline, repeats=1 if quick else min(args.repeats, 3), quick=quick
-        )
+    if args.ratios or args.floor_only:
+        repeats = 1 if quick else min(args.repeats, 3)
+        if args.ratios:
+            section = ratios_section(args.baseline, repeats=repeats, quick=quick)
+            title, marker = "Passive search", RATIOS_MARKER
+        else:
+            section = floor_section(args.baseline, repeats=repeats, quick=quick)
+            title, marker = "Hardware floor", "\n## At the hardware floor"
         path = _common.RESULTS / name
         old = (
             path.read_text()
             if path.exists()
             else header("Fit time: cart-pendulum, case I", command("speed", argv))
         )
-        stamp = "\n".join(
-            header("Passive search", command("speed", argv)).splitlines()[2:]
-        )
-        write(
-            name,
-            _replace_section(old, "\n" + section + "\n" + stamp, RATIOS_MARKER),
-        )
-        print(section)
-        return
-    if args.floor_only:
-        section = floor_section(
-            args.baseline, repeats=1 if quick else min(args.repeats, 3), quick=quick
-        )
-        path = _common.RESULTS / name
-        old = (
-            path.read_text()
-            if path.exists()
-            else header("Fit time: cart-pendulum, case I", command("speed", argv))
-        )
-        stamp = "\n".join(
-            header("Hardware floor", command("speed", argv)).splitlines()[2:]
-        )
-        write(name, _replace_section(old, "\n" + section + "\n" + stamp))
+        stamp = "\n".join(header(title, command("speed", argv)).splitlines()[2:])
+        write(name, _replace_section(old, "\n" + section + "\n" + stamp, marker))
         print(section)
         return
     quick = args.quick or tiny()
