@@ -291,6 +291,7 @@ def _compile_plan(terms: tuple, coordinates: tuple):
         "cross": _Kernel(p * n * n),
         "force": _Kernel(p * n),  # (term, dof)
         "grad": _Kernel(p * 2 * n),  # (term, [q dofs, qd dofs])
+        "hess": _Kernel(p * 4 * n * n),  # (term, [q, qd], [q, qd])
     }
     for col, phi in enumerate(polys):
         grad_qd = [_poly_diff(phi, ("qd", i), feats) for i in range(n)]
@@ -310,6 +311,15 @@ def _compile_plan(terms: tuple, coordinates: tuple):
             kernels["force"].add(col * n + i, grad_q[i])
             kernels["grad"].add(col * 2 * n + i, grad_q[i])
             kernels["grad"].add(col * 2 * n + n + i, grad_qd[i])
+        # Full Hessian over x = [q, qd] (the weak form's noise correction): row a
+        # is d(d phi / d x_a) / d x_b.
+        grads = grad_q + grad_qd
+        for a, g_a in enumerate(grads):
+            for b in range(2 * n):
+                var = ("q", b) if b < n else ("qd", b - n)
+                kernels["hess"].add(
+                    (col * 2 * n + a) * 2 * n + b, _poly_diff(g_a, var, feats)
+                )
     plan = {k: v.finish() for k, v in kernels.items()}
     plan["trig"] = [
         (kind, [(i, a) for i, a in enumerate(arg) if a != 0])
@@ -458,6 +468,24 @@ class TermKernels:
         if self.general.size:
             idx = torch.as_tensor(self.general, device=q.device)
             out[:, idx] = general_gradients(self._general(), q, qd)
+        return out
+
+    def hessians(self, q, qd, general_hessians):
+        r"""Hessians of every term over ``x = [q, qd]``, shape (n, p, 2 d, 2 d).
+
+        ``out[s, k, a, b]`` is :math:`\partial^2 \phi_k / \partial x_a \partial x_b`
+        at sample ``s``.
+        """
+        n, p, s = self.n_dof, self.n_terms, q.shape[0]
+        out = q.new_empty((s, p, 2 * n, 2 * n))
+        if self.plan is not None:
+            ps = len(self.supported)
+            idx = torch.as_tensor(self.supported, device=q.device)
+            vals = self._batched("hess", q, qd)
+            out[:, idx] = vals.T.reshape(s, ps, 2 * n, 2 * n)
+        if self.general.size:
+            idx = torch.as_tensor(self.general, device=q.device)
+            out[:, idx] = general_hessians(self._general(), q, qd)
         return out
 
 

@@ -1,8 +1,23 @@
+import os
+
 import numpy as np
 import pytest
 import torch
 
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
+
+
+def pytest_configure(config):
+    """Under pytest-xdist the workers are the parallelism: one thread each.
+
+    With ``-n 2`` on two cores, two workers that each start two torch (and BLAS)
+    threads share the cores four ways; a measured diagnosis test ran 5x slower
+    in the suite than alone. Subprocesses started by tests inherit the setting.
+    """
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            os.environ.setdefault(name, "1")
+        torch.set_num_threads(1)
 
 
 @pytest.fixture(autouse=True)

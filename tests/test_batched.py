@@ -16,6 +16,7 @@ from lagsindy.euler_lagrange import (
     lagrangian_components,
     lagrangian_gradients,
 )
+from lagsindy.formulation.operator import lagrangian_hessians
 from lagsindy.library import _KINDS, euler_lagrange_expressions
 
 # Every generated kind of library (a kind added to library._KINDS is tested too),
@@ -82,6 +83,12 @@ def test_batched_components_and_gradients_match_torch_func(kind, names, angles, 
         lagrangian_gradients(plain, q, qd).numpy(),
         "gradients",
     )
+    # the weak form's noise correction: full Hessians over [q, qd]
+    _assert_close(
+        kernels.hessians(q, qd, lagrangian_hessians).numpy(),
+        lagrangian_hessians(plain, q, qd).numpy(),
+        "hessians",
+    )
     op = EulerLagrangeOperator(names, lib.terms_)
     _assert_close(
         op.mass_matrices(q, qd).numpy(),
@@ -109,6 +116,13 @@ def test_mixed_terms_split_between_batched_and_general_paths():
     q, qd, qdd = _states(2, 25, 2)
     got = lagrangian_columns(kernels, q, qd, qdd).numpy()
     _assert_close(got, _sympy_columns(terms, names, q, qd, qdd), "mixed vs sympy")
+    hess = kernels.hessians(q, qd, lagrangian_hessians).numpy()
+    q_s, qd_s, _ = symbols_for(names)
+    x_s = q_s + qd_s
+    for k in (0, 1, 5):  # batched, general, batched sum
+        h = sp.lambdify(x_s, sp.hessian(terms[k], x_s), modules="numpy")
+        want = np.stack([np.asarray(h(*row), float) for row in np.c_[q, qd]])
+        _assert_close(hess[:, k], want, f"hessian of term {k} vs sympy")
     # the Gram matrix accumulated in chunks from the (dof, column, sample) layout
     op = EulerLagrangeOperator(names, terms, forces=[[-w1, -w2]], chunk_size=7)
     X = torch.cat([q, qd, qdd], dim=1)
@@ -163,3 +177,31 @@ def test_fit_on_cuda_matches_cpu():
     )
     np.testing.assert_array_equal(gpu.support_, cpu.support_)
     np.testing.assert_allclose(gpu.coef_, cpu.coef_, rtol=1e-8, atol=1e-10)
+
+
+def test_force_values_and_jacobians_without_vmap_match_torch_func():
+    """Force terms are evaluated for all samples at once (the compiled function is
+    elementwise) and differentiated by one forward pass per state component."""
+    x, t = sp.symbols("x theta", real=True)
+    xd, td = sp.symbols("x_dot theta_dot", real=True)
+    forces = [
+        [-sp.tanh(40 * xd), 0],
+        [0, -td * sp.Abs(td)],
+        [sp.Integer(1), 0],  # a constant offset
+        [-(x**2) * td, sp.sin(t) * xd],
+    ]
+    op = EulerLagrangeOperator(["x", "theta"], [xd**2, sp.cos(t)], forces=forces)
+    q, qd, _ = _states(2, 30, 5)
+    f = op._force_fn
+    per_sample = torch.func.vmap(f)(q, qd).reshape(30, 4, 2).transpose(1, 2)
+    np.testing.assert_array_equal(op.force_values(q, qd).numpy(), per_sample.numpy())
+
+    def one(q1, qd1):
+        return f(q1, qd1).reshape(4, 2)
+
+    fq, fqd = torch.func.vmap(torch.func.jacfwd(one, argnums=(0, 1)))(q, qd)
+    want = torch.cat([fq, fqd], dim=3)
+    # measured: identical (both are the same forward-mode derivative)
+    np.testing.assert_allclose(
+        op.force_jacobians(q, qd).numpy(), want.numpy(), rtol=1e-14, atol=1e-14
+    )

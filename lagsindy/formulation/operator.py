@@ -142,6 +142,23 @@ def lagrangian_components(
     return torch.cat(ms), torch.cat(ns), torch.cat(os_)
 
 
+def lagrangian_hessians(fn: TermFunction, q: torch.Tensor, qd: torch.Tensor):
+    """Hessians of the terms over ``x = [q, qd]`` by ``torch.func``, (n, p, 2d, 2d).
+
+    ``out[s, k, a, b] = d^2 phi_k / dx_a dx_b``: the general path of
+    :meth:`lagsindy._batched.TermKernels.hessians`.
+    """
+
+    def grads(q1, qd1):
+        return torch.cat(
+            [jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1
+        )
+
+    with _quiet_forward_ad():
+        jq, jqd = vmap(jacfwd(grads, argnums=(0, 1)))(q, qd)
+    return torch.cat([jq, jqd], dim=3)
+
+
 def _general_columns(chunk_size):
     def general(f, q, qd, qdd):
         return lagrangian_columns(f, q, qd, qdd, chunk_size=chunk_size)
@@ -238,8 +255,35 @@ class EulerLagrangeOperator:
         """Generalized forces ``Q_j`` of the force terms, shape (n_samples, n_dof, n_forces)."""
         if self._force_fn is None:
             return q.new_zeros((q.shape[0], self.n_dof, 0))
-        values = vmap(self._force_fn)(q, qd)  # (n, n_forces * n_dof)
+        # The compiled function is elementwise: given (n_dof, n) rows it evaluates
+        # every sample at once, (n_forces * n_dof, n), without vmap.
+        values = self._force_fn(q.T, qd.T).T
         return values.reshape(q.shape[0], len(self.forces), self.n_dof).transpose(1, 2)
+
+    def force_jacobians(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
+        """``d Q_ji / d x_b`` over ``x = [q, qd]``, shape (n, n_forces, n_dof, 2 n_dof).
+
+        Each sample's forces depend on that sample only, so one reverse pass per
+        force component over the sum of all samples gives every sample's gradient.
+        (Reverse mode: forward-mode dual numbers would import ``torch._dynamo`` on
+        their first product with a constant, seconds per process.)
+        """
+        d, n = self.n_dof, q.shape[0]
+        if self._force_fn is None:
+            return q.new_zeros((n, 0, d, 2 * d))
+        x = torch.cat([q.T, qd.T]).detach().requires_grad_(True)  # (2d, n)
+        rows = []
+        with torch.enable_grad():
+            out = self._force_fn(x[:d], x[d:])  # (n_forces * d, n)
+            for r in range(out.shape[0]):
+                grad = None
+                if out.requires_grad:
+                    (grad,) = torch.autograd.grad(
+                        out[r].sum(), x, retain_graph=True, allow_unused=True
+                    )
+                rows.append(torch.zeros_like(x) if grad is None else grad)
+        jac = torch.stack(rows).detach()  # (n_forces * d, 2d, n)
+        return jac.reshape(len(self.forces), d, 2 * d, n).permute(3, 0, 1, 2)
 
     def mass_matrices(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
         """``M_k`` of every Lagrangian term, shape (n_samples, n_terms, n_dof, n_dof)."""
@@ -429,43 +473,39 @@ class EulerLagrangeOperator:
         # h1[s, k, i, x] = d(a-integrand_k,i)/dx_s, h2 likewise for the b-integrand.
         h1_parts, h2_parts = [], []
         if self._fn is not None:
-            fn = self._fn
-
-            def grads(q1, qd1):
-                return torch.cat(
-                    [jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1
-                )
-
-            with _quiet_forward_ad():
-                jq, jqd = vmap(jacfwd(grads, argnums=(0, 1)))(q, qd)
-            hess = torch.cat([jq, jqd], dim=3)  # (n, p, 2d, 2d)
+            if isinstance(self._fn, TermKernels):
+                hess = self._fn.hessians(q, qd, lagrangian_hessians)
+            else:
+                hess = lagrangian_hessians(self._fn, q, qd)  # (n, p, 2d, 2d)
             h1_parts.append(hess[:, :, d:, :])
             h2_parts.append(hess[:, :, :d, :])
         if self._force_fn is not None:
-            n_f = len(self.forces)
-
-            def forces_one(q1, qd1):
-                return self._force_fn(q1, qd1).reshape(n_f, d)
-
-            with _quiet_forward_ad():
-                fq, fqd = vmap(jacfwd(forces_one, argnums=(0, 1)))(q, qd)
-            jac = torch.cat([fq, fqd], dim=3)  # (n, f, d, 2d)
+            jac = self.force_jacobians(q, qd)  # (n, f, d, 2d)
             h1_parts.append(torch.zeros_like(jac))
             h2_parts.append(jac)
         h1 = torch.cat(h1_parts, dim=1)
         h2 = torch.cat(h2_parts, dim=1)
         p0 = h1.shape[1]
-        # sum_s [h1 h2]^T (W_s kron Lambda) [h1 h2], W_s = [[a2, ab], [ab, b2]]
+        # sum_s [h1 h2]^T (W_s kron Lambda) [h1 h2], W_s = [[a2, ab], [ab, b2]] (a
+        # Gram matrix of the test functions, so positive semi-definite). Its LDL^T
+        # factors, W_s = u u^T + v v^T with u = (sqrt(a2), ab / sqrt(a2)) and
+        # v = (0, sqrt(b2 - ab^2 / a2)), turn the four products into one:
+        # sum_s z1 Lambda z1^T + z2 Lambda z2^T, z1 = sqrt(a2) h1 + ab / sqrt(a2) h2,
+        # z2 = sqrt(b2 - ab^2 / a2) h2 (a2 = 0 implies ab = 0: Cauchy-Schwarz).
+        pos = a2 > 0
+        root = torch.sqrt(torch.where(pos, a2, torch.ones_like(a2)))
+        u1 = torch.where(pos, root, torch.zeros_like(a2))[:, None, None]
+        u2 = torch.where(pos, ab / root, torch.zeros_like(a2))[:, None, None]
+        rest = torch.where(pos, b2 - ab * ab / torch.where(pos, a2, 1.0), b2)
+        v2 = torch.sqrt(torch.clamp(rest, min=0.0))[:, None, None]
         out = q.new_zeros((d, width, width))
         for i in range(d):
             m1, m2 = h1[:, :, i, :], h2[:, :, i, :]  # (n, P0, 2d)
-            l1, l2 = m1 @ noise_cov, m2 @ noise_cov
-            block = (
-                torch.einsum("skx,slx->kl", l1 * a2[:, None, None], m1)
-                + torch.einsum("skx,slx->kl", l1 * ab[:, None, None], m2)
-                + torch.einsum("skx,slx->kl", l2 * ab[:, None, None], m1)
-                + torch.einsum("skx,slx->kl", l2 * b2[:, None, None], m2)
+            z = torch.cat([u1 * m1 + u2 * m2, v2 * m2], dim=2)  # (n, P0, 4d)
+            lz = torch.cat(
+                [z[..., : 2 * d] @ noise_cov, z[..., 2 * d :] @ noise_cov], 2
             )
+            block = torch.einsum("skx,slx->kl", lz, z)
             out[i, :p0, :p0] = factor * block
         return out
 
