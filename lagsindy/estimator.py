@@ -95,8 +95,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
       fixed to 1 and :math:`y = -\Theta_{fixed}`; without ``fixed_term`` every
       candidate is tried as the fixed term and the one whose model best predicts the
       measured accelerations is kept (``fixed_term_``);
-    * ``case="acceleration"``: case II (passive data, no prior), non-convex;
-      see :mod:`lagsindy.solvers`.
+    * ``case="acceleration"``: case II (passive data, no prior), non-convex,
+      started from case III's search (:mod:`lagsindy.cases.acceleration`).
 
     Parameters
     ----------

@@ -209,3 +209,29 @@ def test_balanced_gram_projects_an_indefinite_corrected_gram_to_the_nearest_psd(
     balanced = BalancedGram(two, 10, 3, project_psd=True)
     # measured smallest eigenvalue -4e-18
     assert float(torch.linalg.eigvalsh(balanced.gram)[0]) >= -1e-16
+
+
+@pytest.mark.parametrize("d", [1, 2])
+def test_acceleration_datafit_analytic_gradient_equals_autograd(d):
+    """Case II's gradient (the adjoint of the per-sample solve) against autograd of
+    the loss, for one and two coordinates with symmetric positive term matrices."""
+    from lagsindy.solvers import AccelerationDatafit
+
+    g = torch.Generator().manual_seed(d)
+    s, p = 50, 6
+    half = torch.randn(s, p, d, d, dtype=torch.float64, generator=g)
+    mass = half @ half.transpose(2, 3) + 0.5 * torch.eye(d, dtype=torch.float64)
+    bias = torch.randn(s, p, d, dtype=torch.float64, generator=g)
+    qdd = torch.randn(s, d, dtype=torch.float64, generator=g)
+    scale = torch.rand(p, dtype=torch.float64, generator=g) + 0.5
+    fit = AccelerationDatafit(mass, bias, qdd, scale)
+    w = torch.rand(p, dtype=torch.float64, generator=g)
+    wr = w.clone().requires_grad_(True)
+    (want,) = torch.autograd.grad(fit._loss(wr), wr)
+    # measured: equal to 1e-16 relative
+    torch.testing.assert_close(fit.gradient(w), want, rtol=1e-12, atol=0.0)
+    # the prediction: minus M(c)^-1 b(c), per sample
+    c = w / scale
+    mc = torch.einsum("skij,k->sij", mass, c)
+    bc = torch.einsum("ski,k->si", bias, c)
+    torch.testing.assert_close(fit.predict(w), -torch.linalg.solve(mc, bc))

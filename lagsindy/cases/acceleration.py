@@ -8,6 +8,7 @@ by a positive-definite mass matrix after the fit.
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -16,16 +17,13 @@ from .._torch import to_numpy
 from ..formulation.operator import lagrangian_components
 from ..solvers import AccelerationDatafit
 from . import Problem, Solution
-from .sparse import PATH_TIE
 
 # Rows used by case II (each iteration costs O(rows * terms * n_dof^2)).
 CASE_II_ROWS = 20_000
-# Eigenvectors tried as the start of case II.
+# Scaled coefficients within this relative distance of the largest tie for the unit.
+GAUGE_TIE = 1e-6
+# Eigenvectors tried as the start of case II when the case III start fails.
 CASE_II_STARTS = 10
-# Of those, the best few (by acceleration loss) are each run through the staged solve.
-# 1 for now: each case II run costs minutes on the 20-trajectory degree-4 test, so
-# more runs need a cheaper stage first (issue 12, item 5, left open).
-CASE_II_RUNS = 1
 
 
 def fit_acceleration(problem: Problem) -> Solution:
@@ -45,58 +43,34 @@ def fit_acceleration(problem: Problem) -> Solution:
     if n_forces:  # force features: no inertia, left-hand side -Q
         mass = torch.cat([mass, mass.new_zeros((mass.shape[0], n_forces, d, d))], dim=1)
         bias = torch.cat([bias, -sub.force_values(q, qd).transpose(1, 2)], dim=1)
-    # Spectral start (no prior knowledge): unit vectors that nearly satisfy the
-    # homogeneous Euler-Lagrange equations are the eigenvectors of the scaled Gram
-    # matrix with the smallest eigenvalues (dense estimates of the Lagrangian). In
-    # a large library the very smallest can be a combination without kinetic
-    # energy (its mass matrix singular, so it predicts no accelerations): start
-    # from the one of the first few that best predicts the accelerations.
     g, scale = balanced.block(free)
     datafit = AccelerationDatafit(mass, bias, qdd, scale)
-    # Which of the first eigenvectors predicts best can hinge on rounding (two of
-    # them nearly tie), and different starts can end in different local optima
-    # (a Taylor polynomial standing in for cos(theta)): the staged solve runs from
-    # the CASE_II_RUNS best starts and the result that best predicts the
-    # accelerations is kept, the sparsest (then the earliest start) of those
-    # within PATH_TIE of the best, so a rounding-level change cannot flip it.
-    vecs = torch.linalg.eigh(g)[1][:, :CASE_II_STARTS]
-    losses = [datafit.value(vecs[:, k]) for k in range(vecs.shape[1])]
-    ranked = np.argsort(np.asarray(losses), kind="stable")[:CASE_II_RUNS]
     weights = torch.as_tensor(p.penalty[free], dtype=Xt.dtype, device=Xt.device)
-    runs, failure = [], None
-    for k in ranked:
-        w0 = vecs[:, int(k)]
-        try:
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always")
-                res = p.solver.stages(datafit, free, weights, p.solver.verbose, w0=w0)
-        except FloatingPointError as exc:
-            failure = exc
-            continue
-        value = datafit.relative_residual(res.coef)
-        if np.isfinite(value):
-            runs.append((value, int((res.coef != 0).sum()), len(runs), res, caught))
-    if not runs:
-        exc = failure if failure is not None else "no start gave a finite fit"
+    w0 = _start(p, free, g, scale, datafit)
+    try:
+        result = p.solver.stages(datafit, free, weights, p.solver.verbose, w0=w0)
+        finite = np.isfinite(datafit.relative_residual(result.coef))
+        failure = None if finite else "the fit is not finite"
+    except FloatingPointError as exc:
+        failure = exc
+    if failure is not None:
         raise ValueError(
-            f"case='acceleration' failed: {exc}. The model lost every term that "
+            f"case='acceleration' failed: {failure}. The model lost every term that "
             "gives it a mass matrix, so it predicts no accelerations. This happens "
             "when the data are driven by forces that were not given (pass them: "
             "fit(X, tau)) or when no velocity term of the library fits the data; "
             "try a lower threshold, or case III (fit(X) with a fixed_term)."
         ) from None
-    best = min(r[0] for r in runs)
-    near = [r for r in runs if r[0] <= (1 + PATH_TIE) * best + 1e-12]
-    *_, result, caught = min(near, key=lambda r: (r[1], r[2]))
-    for w_ in caught:
-        warnings.warn_explicit(w_.message, w_.category, w_.filename, w_.lineno)
     w = result.coef / scale
     # Present the gauge-free answer with a positive-definite mass matrix and the
     # largest scaled term at unit size.
     mc = torch.einsum("skij,k->sij", mass, w)
     if float(torch.linalg.eigvalsh(mc).mean()) < 0:
         w = -w
-    big = int(torch.argmax(result.coef.abs()))
+    # The first (in library order) of the terms within GAUGE_TIE of the largest, so
+    # that two nearly equal scaled terms cannot swap the unit with the rounding.
+    size = result.coef.abs()
+    big = int(torch.nonzero(size >= (1 - GAUGE_TIE) * size.max())[0, 0])
     w = w / abs(float(w[big]))
     coef = np.zeros(balanced.n_features)
     coef[free] = to_numpy(w)
@@ -106,3 +80,40 @@ def fit_acceleration(problem: Problem) -> Solution:
         st.coef = full
         st.support = free[st.support]
     return Solution(coef, result)
+
+
+def _start(p: Problem, free, g, scale, datafit):
+    """Where case II's non-convex solve starts: the case III search's model.
+
+    The homogeneous Euler-Lagrange equations are nearly satisfied by every vector of
+    the Gram matrix's near-null space; in a large library (degree 4 in one angle:
+    Taylor polynomials of ``cos``) that space has several dimensions, and its
+    eigenvectors are an arbitrary, rounding-dependent basis of it (measured: four of
+    the first seven predict the accelerations with a loss below 1e-15, and the best
+    of them rotates within that space when the data are scaled by 1 + 1e-12, so that
+    it starts another local optimum: a wrong four-term model or the right one). A
+    start chosen among them made the answer depend on the machine. Case III's search
+    (every term and the mass matrix as the scale, ranked and tie-broken on
+    well-conditioned quantities) gives one sparse, reproducible model of that space;
+    its unit-norm scaled coefficients start the solve. Only when it fails (or
+    predicts nothing) do the eigenvectors serve, the one of the first few that best
+    predicts the accelerations.
+    """
+    from .fixed import fit_fixed
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter(
+                "ignore"
+            )  # the start's own warnings are not the fit's
+            quiet = replace(p, solver=replace(p.solver, verbose=0), fixed_term=None)
+            coef = fit_fixed(quiet).coef
+        w0 = torch.as_tensor(coef[free], dtype=scale.dtype, device=scale.device) * scale
+        w0 = w0 / torch.linalg.vector_norm(w0)
+        if np.isfinite(datafit.value(w0)):
+            return w0
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+        pass
+    vecs = torch.linalg.eigh(g)[1][:, :CASE_II_STARTS]
+    losses = [datafit.value(vecs[:, k]) for k in range(vecs.shape[1])]
+    return vecs[:, int(np.argmin(losses))]

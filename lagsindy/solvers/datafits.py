@@ -110,6 +110,10 @@ class AccelerationDatafit:
         rms = torch.sqrt((qdd**2).mean(dim=0))
         self.acc_scale = torch.where(rms > 0, rms, torch.ones_like(rms))
         self.const = float(((qdd / self.acc_scale) ** 2).sum(dim=1).mean())
+        # M(c) and b(c) as matrix-vector products: (samples * d * d, p), (samples * d, p)
+        s, p, d = mass.shape[0], mass.shape[1], mass.shape[2]
+        self._m2 = mass.permute(0, 2, 3, 1).reshape(s * d * d, p)
+        self._b2 = bias.permute(0, 2, 1).reshape(s * d, p)
 
     @property
     def n_features(self) -> int:
@@ -125,16 +129,28 @@ class AccelerationDatafit:
         norm = torch.linalg.vector_norm(w)
         return w / norm if float(norm) > 0 else w
 
-    def predict(self, w):
+    def _solve(self, w):
+        """``a = M(c)^{-1} b(c)`` per sample and ``M(c)``; ``a`` is None if singular."""
+        s, d = self.qdd.shape
         c = w / self.scale
-        mc = torch.einsum("skij,k->sij", self.mass, c)
-        bc = torch.einsum("ski,k->si", self.bias, c)
+        mc = (self._m2 @ c).view(s, d, d)
+        bc = (self._b2 @ c).view(s, d)
         # A direct solve: a singular M(c) gives non-finite values, which the line
         # search rejects (cheaper than a pseudo-inverse and its SVD gradient).
+        if d == 1:
+            if bool((mc == 0).any()):
+                return None, mc
+            return bc / mc[:, :, 0], mc
         out, info = torch.linalg.solve_ex(mc, bc)
         if bool((info != 0).any()):
-            return torch.full_like(out, math.inf)
-        return -out
+            return None, mc
+        return out, mc
+
+    def predict(self, w):
+        a, _ = self._solve(w)
+        if a is None:
+            return torch.full_like(self.qdd, math.inf)
+        return -a
 
     def _loss(self, w):
         r = (self.qdd - self.predict(w)) / self.acc_scale
@@ -145,11 +161,27 @@ class AccelerationDatafit:
         return v if math.isfinite(v) else math.inf
 
     def gradient(self, w):
-        w = w.detach().requires_grad_(True)
-        with torch.enable_grad():
-            loss = self._loss(w)
-            (grad,) = torch.autograd.grad(loss, w)
-        return torch.nan_to_num(grad.detach(), nan=0.0, posinf=0.0, neginf=0.0)
+        r"""Analytic gradient (adjoint of the solve).
+
+        With :math:`a_s = M_s(c)^{-1} b_s(c)` (the prediction is :math:`-a_s`),
+        :math:`\partial a_s / \partial c_k = M_s^{-1} (b_{k,s} - M_{k,s} a_s)`, so
+        :math:`\partial f / \partial c_k = \sum_s \lambda_s^\top (b_{k,s} - M_{k,s}
+        a_s)` with :math:`\lambda_s = M_s^{-\top} D^{-2} (\ddot q_s + a_s) / n`: two
+        matrix-vector products with the stacked term matrices.
+        """
+        a, mc = self._solve(w)
+        if a is None:
+            return torch.zeros_like(w)
+        s, d = self.qdd.shape
+        g_a = (self.qdd + a) / (self.acc_scale**2 * s)
+        if d == 1:
+            lam = g_a / mc[:, :, 0]
+        else:
+            lam = torch.linalg.solve_ex(mc.transpose(1, 2), g_a)[0]
+        outer = (lam[:, :, None] * a[:, None, :]).reshape(-1)
+        grad_c = self._b2.T @ lam.reshape(-1) - self._m2.T @ outer
+        grad = grad_c / self.scale
+        return torch.nan_to_num(grad, nan=0.0, posinf=0.0, neginf=0.0)
 
     def relative_residual(self, w) -> float:
         if self.const <= 0:
