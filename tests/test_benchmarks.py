@@ -314,15 +314,29 @@ def test_robustness_tiny(tiny_results):
     text = (tiny_results / "robustness_quick.md").read_text()
     _check_header(text)
     assert "## Largest sigma with exactly the true terms in every seed" in text
-    # Noise-free single pendulum: both formulations find the structure.
+    # Noise-free single pendulum: both formulations and the defaults find the
+    # structure.
     row = next(
         line
         for line in text.splitlines()
         if line.startswith("| single_pendulum | active | shared |")
     )
-    assert row.split("|")[5].strip() != "none" and row.split("|")[6].strip() != "none"
+    assert "| strong | weak | defaults |" in text
+    assert all(row.split("|")[k].strip() != "none" for k in (5, 6, 7))
     assert (tiny_results / "robustness_quick.png").stat().st_size > 1000
     assert (tiny_results / "robustness_quick.csv").exists()
+
+
+def test_defaults_tiny(tiny_results):
+    from benchmarks import defaults
+
+    defaults.main([])
+    text = (tiny_results / "defaults_quick.md").read_text()
+    _check_header(text)
+    rows = [line for line in text.splitlines() if line.startswith("| cart_pendulum")]
+    assert "| defaults (weak) |" in rows[0] and "| strong (strong) |" in rows[1]
+    # the verdict line states the target and whether it was met
+    assert "(target 1 %): **" in text and "(target 3 %): **" in text
 
 
 def test_quick_runner_skips_what_needs_optional_things(monkeypatch, capsys):
