@@ -59,11 +59,11 @@ def compare_structure(system, est, *, up_to_scale: bool) -> dict:
     }
 
 
-def _fit_worker(est, X, tau, queue):
-    queue.put(timed_fit(est, X, tau))
+def _fit_worker(est, X, tau, groups, queue):
+    queue.put(timed_fit(est, X, tau, groups=groups))
 
 
-def timed_fit(est, X, tau=None, *, time_limit=None):
+def timed_fit(est, X, tau=None, *, groups=None, time_limit=None):
     """Fit ``est``; return ``(est or None, seconds, warning names, error or None)``.
 
     With ``time_limit`` (seconds) the fit runs in a fresh (spawned) process that is
@@ -76,7 +76,7 @@ def timed_fit(est, X, tau=None, *, time_limit=None):
 
         ctx = mp.get_context("spawn")
         q = ctx.Queue()
-        proc = ctx.Process(target=_fit_worker, args=(est, X, tau, q))
+        proc = ctx.Process(target=_fit_worker, args=(est, X, tau, groups, q))
         proc.start()
         try:
             # Generous margin for the child's start (imports) beyond the fit itself.
@@ -99,10 +99,11 @@ def timed_fit(est, X, tau=None, *, time_limit=None):
         warnings.simplefilter("always")
         start = time.perf_counter()
         try:
+            kw = {} if groups is None else {"groups": groups}
             if tau is None:
-                est.fit(X)
+                est.fit(X, **kw)
             else:
-                est.fit(X, tau)
+                est.fit(X, tau, **kw)
             error = None
         except (ValueError, FloatingPointError, RuntimeError) as exc:
             error = f"{type(exc).__name__}: {exc}"

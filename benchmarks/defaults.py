@@ -98,14 +98,51 @@ def _table(rows):
 
 def _verdict(rows, target):
     d = [r for r in rows if r["formulation"] == "defaults"]
-    ok = all(r["correct"] and r["max_term_error"] <= target for r in d)
-    worst = max(r["max_term_error"] for r in d)
     exact = sum(r["correct"] for r in d)
+    norm = max(r["coef_error"] for r in d)
+    worst = max(r["max_term_error"] for r in d)
+    ok_norm = exact == len(d) and norm <= target
+    ok_term = exact == len(d) and worst <= target
     return (
-        f"Defaults: exact terms in {exact} of {len(d)} fits; largest term error "
-        f"{100 * worst:.2f} % (target {100 * target:g} %): "
-        f"**{'met' if ok else 'NOT met'}**.\n"
+        f"Defaults: exact terms in {exact} of {len(d)} fits; "
+        f"target {100 * target:g} %: "
+        f"largest coefficient error (norm) {100 * norm:.2f} %, "
+        f"**{'met' if ok_norm else 'NOT met'}**; largest single-term error "
+        f"{100 * worst:.2f} %, **{'met' if ok_term else 'NOT met'}**.\n"
     )
+
+
+def _window_rows(name, protocol, sigma, n_traj, duration, windows):
+    """Coefficient error of the defaults against the test-function window."""
+    from lagsindy import LagrangianSINDy
+    from lagsindy.systems import SYSTEMS as REGISTRY
+    from lagsindy.systems import make_dataset
+
+    system = REGISTRY[name]()
+    excitation = (
+        "sincos" if name in ("cart_pendulum", "spherical_pendulum") else "paper"
+    )
+    data = make_dataset(
+        system,
+        n_trajectories=n_traj,
+        duration=duration,
+        excitation=excitation,
+        noise=sigma,
+        protocol=protocol,
+        random_state=0,
+    )
+    cells = []
+    for w in windows:
+        est = LagrangianSINDy(system.paper_library(), window=w)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            est.fit(data.X, data.tau, groups=data.groups)
+        true = system.true_coefficients(est.library_)
+        coef = np.asarray(est.coef_, dtype=float)
+        err = np.linalg.norm(coef - true) / np.linalg.norm(true)
+        mark = "" if np.array_equal(coef != 0, true != 0) else " (wrong terms)"
+        cells.append(f"{100 * err:.2f} %{mark}")
+    return f"| {name} | {protocol} | {sigma:g} | " + " | ".join(cells) + " |\n"
 
 
 def main(argv=None):
@@ -127,6 +164,15 @@ def main(argv=None):
         for seed in range(seeds):
             part2 += _cell(name, "sensor", 1e-2, seed, n_traj, duration)
             print(f"[defaults] {name} seed {seed}", flush=True)
+    windows = (41, 81, 121, 161, 241)
+    part3 = ""
+    for name, protocol, sigma in (
+        ("cart_pendulum", "sensor", 1e-2),
+        ("double_pendulum", "sensor", 1e-2),
+        ("cart_pendulum", "sensor", 1e-3),
+        ("cart_pendulum", "paper", 0.02),
+    )[: 1 if tiny() else 4]:
+        part3 += _window_rows(name, protocol, sigma, n_traj, duration, windows)
     elapsed = time.perf_counter() - start
     text = header("Defaults on noisy data (issue 12 acceptance)")
     text += (
@@ -146,6 +192,21 @@ def main(argv=None):
         "P-spline, forced\n\n"
     )
     text += _table(part2) + "\n" + _verdict(part2, 0.03) + "\n"
+    text += (
+        "## 3. The test-function window (seed 0; the default is 81 samples)\n\n"
+        "Coefficient error (norm) of `LagrangianSINDy(library, window=w)`, otherwise "
+        "defaults. With noise on the positions only, the derivatives come from the "
+        "P-spline and their errors are smooth (correlated over many samples): the "
+        "white-noise correction does not see them (its estimate is 0) and short "
+        "windows do not average them out.\n\n"
+        "| system | protocol | sigma | "
+        + " | ".join(f"window {w}" for w in windows)
+        + " |\n|---|---|---|"
+        + "---|" * len(windows)
+        + "\n"
+        + part3
+        + "\n"
+    )
     notes = sorted({w for r in part1 + part2 for w in r["warnings"]})
     if notes:
         text += "Warnings raised by these fits (first 70 characters):\n\n"

@@ -336,7 +336,9 @@ def test_defaults_tiny(tiny_results):
     rows = [line for line in text.splitlines() if line.startswith("| cart_pendulum")]
     assert "| defaults (weak) |" in rows[0] and "| strong (strong) |" in rows[1]
     # the verdict line states the target and whether it was met
-    assert "(target 1 %): **" in text and "(target 3 %): **" in text
+    assert "target 1 %: largest coefficient error (norm)" in text
+    assert "target 3 %: largest coefficient error (norm)" in text
+    assert "## 3. The test-function window" in text
 
 
 def test_quick_runner_skips_what_needs_optional_things(monkeypatch, capsys):
