@@ -35,6 +35,8 @@ import numpy as np
 from lagsindy.differentiation import derivatives
 from lagsindy.systems import cart_pendulum, make_dataset
 
+from . import _common
+
 METHODS = {
     "pspline": dict(method="pspline"),
     "spline (cubic)": dict(method="spline"),
@@ -128,8 +130,17 @@ def main(argv=None):
     parser.add_argument(
         "--long", action="store_true", help="long-record timing only (1e4 to 1e6)"
     )
-    parser.add_argument("--out", default="benchmarks/results/differentiation.md")
+    parser.add_argument(
+        "--out",
+        default=None,
+        help="output file (default: results/differentiation.md, or "
+        "differentiation_quick.md with --quick, so a smoke check never overwrites "
+        "the committed full result)",
+    )
     args = parser.parse_args(argv)
+    if args.out is None:
+        name = "differentiation_quick.md" if args.quick else "differentiation.md"
+        args.out = str(_common.RESULTS / name)
     lines = [
         "# Derivative estimation: accuracy and cost\n",
         f"Command: `python -m benchmarks.differentiation {' '.join(argv or sys.argv[1:])}`"

@@ -327,6 +327,14 @@ def test_robustness_tiny(tiny_results):
     assert (tiny_results / "robustness_quick.csv").exists()
 
 
+def test_differentiation_quick_never_overwrites_the_full_result(tiny_results):
+    from benchmarks import differentiation
+
+    differentiation.main(["--quick"])
+    assert (tiny_results / "differentiation_quick.md").exists()
+    assert not (tiny_results / "differentiation.md").exists()
+
+
 def test_defaults_tiny(tiny_results):
     from benchmarks import defaults
 
