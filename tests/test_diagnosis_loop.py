@@ -110,9 +110,11 @@ def test_small_joint_damping_found_by_the_trajectory_criterion(b1, b2, noise, se
         protocol="sensor",
         random_state=seed,
     )
-    est = LagrangianSINDy(
-        system.paper_library(), formulation="weak", fixed_term="theta1_dot**2", dt=0.01
-    ).fit(data.X, groups=data.groups)
+    # the default formulation (issue 14's acceptance): "auto", the weak form here
+    est = LagrangianSINDy(system.paper_library(), fixed_term="theta1_dot**2").fit(
+        data.X, groups=data.groups
+    )
+    assert est.formulation_ == "weak"
     report = diagnose(est, data.X, groups=data.groups)
     coef = _coefficients(report)
     # theta1_dot**2 has coefficient 1 in the true Lagrangian: same scale
