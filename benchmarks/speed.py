@@ -501,7 +501,7 @@ SEARCH_STEPS = [
 
 # The same for one ``diagnose`` of the case I model.
 DIAGNOSE_STEPS = [
-    ("whole diagnose", "lagsindy/diagnostics.py", ("diagnose",)),
+    ("whole diagnose", "diagnostics/search.py", ("diagnose",)),
     ("weak Gram statistics, every call", "formulation/operator.py", ("weak_gram",)),
     (
         "- of which the noise correction",
@@ -509,13 +509,13 @@ DIAGNOSE_STEPS = [
         ("_weak_noise_gram",),
     ),
     (
-        "fold statistics (`_Statistics` and other `__init__`s)",
-        "lagsindy/diagnostics.py",
+        "fold statistics (`diagnostics.scoring` constructors)",
+        "diagnostics/scoring.py",
         ("__init__",),
     ),
     ("refits from rows (`LagrangianSINDy.fit`)", "lagsindy/estimator.py", ("fit",)),
     ("input delay search (`estimate_delay`)", "lagsindy/delay.py", ("estimate_delay",)),
-    ("candidate catalogue (`_catalogue`)", "lagsindy/diagnostics.py", ("_catalogue",)),
+    ("candidate catalogue (`_catalogue`)", "diagnostics/catalogue.py", ("_catalogue",)),
 ]
 
 
@@ -817,7 +817,7 @@ def ratios_section(baseline=None, repeats=3, quick=False, processes=2):
             for step, calls, seconds in res["profile"]:
                 lines.append(
                     f"| {step} | {label} | {calls} | {seconds:.2f} s | "
-                    f"{100 * seconds / total:.0f} % |"
+                    f"{100 * seconds / max(total, 1e-12):.0f} % |"
                 )
         if best.get("diagnose_profile"):
             total = best["diagnose_profile"][0][2]
@@ -833,7 +833,7 @@ def ratios_section(baseline=None, repeats=3, quick=False, processes=2):
             for step, calls, seconds in best["diagnose_profile"]:
                 lines.append(
                     f"| {step} | {calls} | {seconds:.2f} s | "
-                    f"{100 * seconds / total:.0f} % |"
+                    f"{100 * seconds / max(total, 1e-12):.0f} % |"
                 )
     loads = [x for r in after + before if "load" in r for x in r["load"]]
     lines += [

@@ -395,3 +395,21 @@ def test_every_benchmark_accepts_quick():
     found = runner.discover()
     assert len(found) >= 7
     assert [n for n, m in found.items() if not runner.accepts_quick(m)] == []
+
+
+def test_speed_profile_steps_name_existing_functions():
+    """The profiled steps of speed.py point at files and functions that exist (a
+    module moved by the architecture sweep made the diagnose profile empty)."""
+    import re
+    from pathlib import Path
+
+    from benchmarks import speed
+
+    root = Path(__file__).resolve().parents[1]
+    for label, suffix, names in speed.SEARCH_STEPS + speed.DIAGNOSE_STEPS:
+        matches = [
+            p for p in root.glob("lagsindy/**/*.py") if p.as_posix().endswith(suffix)
+        ]
+        assert len(matches) == 1, (label, suffix)
+        text = matches[0].read_text()
+        assert any(re.search(rf"def {n}\(", text) for n in names), (label, names)
