@@ -55,7 +55,8 @@ def _fit(system, data, formulation):
     }
 
 
-def _cell(name, protocol, sigma, seed, n_traj, duration):
+def _data(name, protocol, sigma, seed, n_traj, duration):
+    """The system and one forced data set (cart and spherical: a sin + b cos)."""
     from lagsindy.systems import SYSTEMS as REGISTRY
     from lagsindy.systems import make_dataset
 
@@ -72,6 +73,11 @@ def _cell(name, protocol, sigma, seed, n_traj, duration):
         protocol=protocol,
         random_state=seed,
     )
+    return system, data
+
+
+def _cell(name, protocol, sigma, seed, n_traj, duration):
+    system, data = _data(name, protocol, sigma, seed, n_traj, duration)
     rows = []
     for form in ("defaults", "strong"):
         row = _fit(system, data, form)
@@ -115,22 +121,8 @@ def _verdict(rows, target):
 def _window_rows(name, protocol, sigma, n_traj, duration, windows):
     """Coefficient error of the defaults against the test-function window."""
     from lagsindy import LagrangianSINDy
-    from lagsindy.systems import SYSTEMS as REGISTRY
-    from lagsindy.systems import make_dataset
 
-    system = REGISTRY[name]()
-    excitation = (
-        "sincos" if name in ("cart_pendulum", "spherical_pendulum") else "paper"
-    )
-    data = make_dataset(
-        system,
-        n_trajectories=n_traj,
-        duration=duration,
-        excitation=excitation,
-        noise=sigma,
-        protocol=protocol,
-        random_state=0,
-    )
+    system, data = _data(name, protocol, sigma, 0, n_traj, duration)
     cells = []
     for w in windows:
         est = LagrangianSINDy(system.paper_library(), window=w)
