@@ -171,6 +171,15 @@ def _add_fit_options(p, *, required):
         "(needs time-ordered trajectories; see LagrangianSINDy)",
     )
     p.add_argument(
+        "--window",
+        type=int,
+        default=81,
+        help="samples per test function of the weak form, >= 5 (default 81). With "
+        "derivatives estimated from positions, fit refits at twice the window and "
+        "warns when the coefficients move: the smoothed derivatives' errors bias "
+        "short windows",
+    )
+    p.add_argument(
         "--delay",
         metavar="SECONDS|auto",
         default=None,
