@@ -442,33 +442,32 @@ class TermKernels:
             m_out[:, idx], n_out[:, idx], o_out[:, idx] = m_g, n_g, o_g
         return m_out, n_out, o_out
 
-    def mass_matrices(self, q, qd, general_components):
-        """``M`` of every term, shape (n, p, d, d)."""
-        n, p, s = self.n_dof, self.n_terms, q.shape[0]
-        out = q.new_empty((s, p, n, n))
+    def _per_term(self, kind, tail, q, qd, general):
+        """Output ``kind`` of every term, shape (n, p, *tail): batched terms through
+        their kernel, the others through ``general(function, q, qd)``."""
+        s = q.shape[0]
+        out = q.new_empty((s, self.n_terms, *tail))
         if self.plan is not None:
-            ps = len(self.supported)
             idx = torch.as_tensor(self.supported, device=q.device)
-            vals = self._batched("mass", q, qd)
-            out[:, idx] = vals.T.reshape(s, ps, n, n)
+            vals = self._batched(kind, q, qd)
+            out[:, idx] = vals.T.reshape(s, len(self.supported), *tail)
         if self.general.size:
             idx = torch.as_tensor(self.general, device=q.device)
-            out[:, idx] = general_components(self._general(), q, qd)[0]
+            out[:, idx] = general(self._general(), q, qd)
         return out
+
+    def mass_matrices(self, q, qd, general_components):
+        """``M`` of every term, shape (n, p, d, d)."""
+        n = self.n_dof
+
+        def general(f, q_, qd_):
+            return general_components(f, q_, qd_)[0]
+
+        return self._per_term("mass", (n, n), q, qd, general)
 
     def gradients(self, q, qd, general_gradients):
         """``[d phi / dq, d phi / dqd]`` per sample, shape (n, p, 2 d)."""
-        n, p, s = self.n_dof, self.n_terms, q.shape[0]
-        out = q.new_empty((s, p, 2 * n))
-        if self.plan is not None:
-            ps = len(self.supported)
-            idx = torch.as_tensor(self.supported, device=q.device)
-            vals = self._batched("grad", q, qd)
-            out[:, idx] = vals.T.reshape(s, ps, 2 * n)
-        if self.general.size:
-            idx = torch.as_tensor(self.general, device=q.device)
-            out[:, idx] = general_gradients(self._general(), q, qd)
-        return out
+        return self._per_term("grad", (2 * self.n_dof,), q, qd, general_gradients)
 
     def hessians(self, q, qd, general_hessians):
         r"""Hessians of every term over ``x = [q, qd]``, shape (n, p, 2 d, 2 d).
@@ -476,17 +475,8 @@ class TermKernels:
         ``out[s, k, a, b]`` is :math:`\partial^2 \phi_k / \partial x_a \partial x_b`
         at sample ``s``.
         """
-        n, p, s = self.n_dof, self.n_terms, q.shape[0]
-        out = q.new_empty((s, p, 2 * n, 2 * n))
-        if self.plan is not None:
-            ps = len(self.supported)
-            idx = torch.as_tensor(self.supported, device=q.device)
-            vals = self._batched("hess", q, qd)
-            out[:, idx] = vals.T.reshape(s, ps, 2 * n, 2 * n)
-        if self.general.size:
-            idx = torch.as_tensor(self.general, device=q.device)
-            out[:, idx] = general_hessians(self._general(), q, qd)
-        return out
+        n2 = 2 * self.n_dof
+        return self._per_term("hess", (n2, n2), q, qd, general_hessians)
 
 
 def compile_terms(terms: Sequence[sp.Expr], coordinates: Sequence[str]) -> TermKernels:

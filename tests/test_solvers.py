@@ -228,7 +228,10 @@ def test_acceleration_datafit_analytic_gradient_equals_autograd(d):
     w = torch.rand(p, dtype=torch.float64, generator=g)
     wr = w.clone().requires_grad_(True)
     (want,) = torch.autograd.grad(fit._loss(wr), wr)
+    # the solve is cached per point: another point's loss first, then w (twice)
+    fit.value(w + 0.1)
     # measured: equal to 1e-16 relative
+    torch.testing.assert_close(fit.gradient(w), want, rtol=1e-12, atol=0.0)
     torch.testing.assert_close(fit.gradient(w), want, rtol=1e-12, atol=0.0)
     # the prediction: minus M(c)^-1 b(c), per sample
     c = w / scale

@@ -285,3 +285,22 @@ def test_planar_chain_true_model_in_its_chain_library():
     assert len(lib) == 4 + 6 + 8
     coef = four.true_coefficients(lib)
     assert np.count_nonzero(coef) == 4 + 6 + 4
+
+
+def test_case_II_says_when_it_falls_back_to_an_eigenvector_start(monkeypatch):
+    """Without case III's start, the rounding-dependent eigenvector start is used and
+    the fit says so (the answer here is still right: a small library)."""
+    from lagsindy.cases import fixed
+
+    def fail(problem):
+        raise ValueError("no candidate fixed term")
+
+    monkeypatch.setattr(fixed, "fit_fixed", fail)
+    data = make_dataset(
+        single_pendulum(), n_trajectories=10, excitation=None, random_state=0
+    )
+    lib = single_pendulum().paper_library()
+    with pytest.warns(UserWarning, match="could not start from case III's search"):
+        est = LagrangianSINDy(lib, case="acceleration", random_state=0).fit(data.X)
+    c = dict(zip(est.term_names_, est.coef_))
+    assert {n for n, v in c.items() if v != 0} == {"theta_dot**2", "cos(theta)"}

@@ -97,23 +97,30 @@ def _start(p: Problem, free, g, scale, datafit):
     well-conditioned quantities) gives one sparse, reproducible model of that space;
     its unit-norm scaled coefficients start the solve. Only when it fails (or
     predicts nothing) do the eigenvectors serve, the one of the first few that best
-    predicts the accelerations.
+    predicts the accelerations, with a warning that says so.
     """
     from .fixed import fit_fixed
 
+    quiet = replace(p, solver=replace(p.solver, verbose=0), fixed_term=None)
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter(
-                "ignore"
-            )  # the start's own warnings are not the fit's
-            quiet = replace(p, solver=replace(p.solver, verbose=0), fixed_term=None)
+            warnings.simplefilter("ignore")  # the start's warnings are not the fit's
             coef = fit_fixed(quiet).coef
         w0 = torch.as_tensor(coef[free], dtype=scale.dtype, device=scale.device) * scale
         w0 = w0 / torch.linalg.vector_norm(w0)
         if np.isfinite(datafit.value(w0)):
             return w0
-    except (ValueError, FloatingPointError, np.linalg.LinAlgError):
-        pass
+        reason = "its model predicts no accelerations"
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        reason = " ".join(str(exc).split())[:200]
+    warnings.warn(
+        f"case='acceleration' could not start from case III's search ({reason}); it "
+        "starts from the eigenvector of the Gram matrix that best predicts the "
+        "accelerations, which can depend on rounding when several nearly tie: "
+        "compare with case III (fit(X) without case=)",
+        UserWarning,
+        stacklevel=5,
+    )
     vecs = torch.linalg.eigh(g)[1][:, :CASE_II_STARTS]
     losses = [datafit.value(vecs[:, k]) for k in range(vecs.shape[1])]
     return vecs[:, int(np.argmin(losses))]

@@ -318,7 +318,7 @@ def _check_numbers(args):
         np.isfinite(args.dt) and args.dt > 0
     ):
         raise CLIError(f"--dt must be a positive number of seconds, got {args.dt}")
-    if getattr(args, "window", 81) < 5:
+    if getattr(args, "window", None) is not None and args.window < 5:
         raise CLIError(
             f"--window must be at least 5 samples (a test function), got {args.window}"
         )
@@ -443,13 +443,9 @@ def _held_out_score(est, X, tau, groups, share):
     is one fit, not a search; its warnings are not shown again. Returns the score, a
     description of the held-out rows and the refit's seconds.
     """
-    from sklearn.base import clone
-
     mask, where = _held_out_rows(groups, len(X), share)
     train, test = np.flatnonzero(~mask), np.flatnonzero(mask)
-    sub = clone(est).set_params(verbose=0, formulation=est.formulation_, case=est.case_)
-    if est.case_ == "fixed":
-        sub.set_params(fixed_term=est.fixed_term_ or "mass")
+    sub = _refit_like(est)
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -463,6 +459,19 @@ def _held_out_score(est, X, tau, groups, share):
         else:
             score = sub.score(X.iloc[test], tau[test])
     return score, where, time.perf_counter() - start
+
+
+def _refit_like(est, **params):
+    """An unfitted, quiet copy of ``est`` that repeats its fitted choices
+    (formulation, case, fixed term) instead of searching again, with ``params``."""
+    from sklearn.base import clone
+
+    sub = clone(est).set_params(
+        verbose=0, formulation=est.formulation_, case=est.case_, **params
+    )
+    if est.case_ == "fixed":
+        sub.set_params(fixed_term=est.fixed_term_ or "mass")
+    return sub
 
 
 def _warn_strong_form(est, args):
@@ -503,15 +512,9 @@ def _warn_window(est, X, tau, groups):
     """
     if est.formulation_ != "weak":
         return
-    from sklearn.base import clone
-
     window = int(est.window)
     longer = 2 * window - 1
-    sub = clone(est).set_params(
-        verbose=0, formulation="weak", case=est.case_, window=longer
-    )
-    if est.case_ == "fixed":
-        sub.set_params(fixed_term=est.fixed_term_ or "mass")
+    sub = _refit_like(est, window=longer)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -571,10 +574,11 @@ def _fit_csv(args):
         unpenalized=_split(args.unpenalized) or None,
         case=args.case,
         formulation=getattr(args, "formulation", "auto"),
-        window=getattr(args, "window", 81),
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
     )
+    if getattr(args, "window", None) is not None:
+        est.set_params(window=args.window)
     tau = _apply_delay(args, df, X, tau, groups, est)
     _say(
         args,

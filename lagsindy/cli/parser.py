@@ -173,8 +173,9 @@ def _add_fit_options(p, *, required):
     p.add_argument(
         "--window",
         type=int,
-        default=81,
-        help="samples per test function of the weak form, >= 5 (default 81). With "
+        default=None,
+        help="samples per test function of the weak form, >= 5 (default: the "
+        "estimator's, 81). With "
         "derivatives estimated from positions, fit refits at twice the window and "
         "warns when the coefficients move: the smoothed derivatives' errors bias "
         "short windows",

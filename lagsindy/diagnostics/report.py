@@ -184,23 +184,17 @@ class DiagnosisReport:
             if self.passive
             else "the force scale (measured force, or the model's forces if larger)"
         )
-        lines.append(
-            "before: residual RMS "
-            + ", ".join(
-                f"{c}: {r:.3g} ({r / max(f, 1e-300):.1%} of {of})"
-                for c, r, f in zip(
-                    self.coordinates, self.residual_rms_before, self.force_rms
-                )
-            )
-        )
-        if self.residual_rms_after is not None:
+        for label, rms in (
+            ("before: ", self.residual_rms_before),
+            ("after:  ", self.residual_rms_after),
+        ):
+            if rms is None:
+                continue
             lines.append(
-                "after:  residual RMS "
+                f"{label}residual RMS "
                 + ", ".join(
                     f"{c}: {r:.3g} ({r / max(f, 1e-300):.1%} of {of})"
-                    for c, r, f in zip(
-                        self.coordinates, self.residual_rms_after, self.force_rms
-                    )
+                    for c, r, f in zip(self.coordinates, rms, self.force_rms)
                 )
             )
         if not self.settings.get("start_valid", True):

@@ -275,13 +275,13 @@ class EulerLagrangeOperator:
         rows = []
         with torch.enable_grad():
             out = self._force_fn(x[:d], x[d:])  # (n_forces * d, n)
-            for r in range(out.shape[0]):
-                grad = None
-                if out.requires_grad:
-                    (grad,) = torch.autograd.grad(
-                        out[r].sum(), x, retain_graph=True, allow_unused=True
-                    )
+            for r in range(out.shape[0] if out.requires_grad else 0):
+                (grad,) = torch.autograd.grad(
+                    out[r].sum(), x, retain_graph=True, allow_unused=True
+                )
                 rows.append(torch.zeros_like(x) if grad is None else grad)
+        if not rows:  # constant forces
+            rows = [torch.zeros_like(x)] * out.shape[0]
         jac = torch.stack(rows).detach()  # (n_forces * d, 2d, n)
         return jac.reshape(len(self.forces), d, 2 * d, n).permute(3, 0, 1, 2)
 
@@ -494,18 +494,17 @@ class EulerLagrangeOperator:
         # z2 = sqrt(b2 - ab^2 / a2) h2 (a2 = 0 implies ab = 0: Cauchy-Schwarz).
         pos = a2 > 0
         root = torch.sqrt(torch.where(pos, a2, torch.ones_like(a2)))
-        u1 = torch.where(pos, root, torch.zeros_like(a2))[:, None, None]
+        u1 = torch.sqrt(a2)[:, None, None]
         u2 = torch.where(pos, ab / root, torch.zeros_like(a2))[:, None, None]
-        rest = torch.where(pos, b2 - ab * ab / torch.where(pos, a2, 1.0), b2)
-        v2 = torch.sqrt(torch.clamp(rest, min=0.0))[:, None, None]
+        v2 = torch.sqrt(torch.clamp(b2[:, None, None] - u2 * u2, min=0.0))
         out = q.new_zeros((d, width, width))
+        rows = h1.shape[0]
         for i in range(d):
             m1, m2 = h1[:, :, i, :], h2[:, :, i, :]  # (n, P0, 2d)
-            z = torch.cat([u1 * m1 + u2 * m2, v2 * m2], dim=2)  # (n, P0, 4d)
-            lz = torch.cat(
-                [z[..., : 2 * d] @ noise_cov, z[..., 2 * d :] @ noise_cov], 2
-            )
-            block = torch.einsum("skx,slx->kl", lz, z)
+            z = torch.stack([u1 * m1 + u2 * m2, v2 * m2], dim=2)  # (n, P0, 2, 2d)
+            z_flat = z.reshape(rows, p0, -1)
+            lz = (z @ noise_cov).reshape(rows, p0, -1)
+            block = torch.einsum("skx,slx->kl", lz, z_flat)
             out[i, :p0, :p0] = factor * block
         return out
 

@@ -212,19 +212,19 @@ def check_time_order(X: torch.Tensor, n_dof: int, segments) -> float:
     the integrated motion grows with the lag, the noise of a position difference
     does not. (Lag 1 alone rejected time-ordered data at noise 0.08 and above.)
     """
+    # Per segment: positions and the running trapezoid integral of the velocities.
+    tracks = []
+    for seg in segments:
+        q, qd = X[seg, :n_dof], X[seg, n_dof : 2 * n_dof]
+        trap = torch.cumsum((qd[1:] + qd[:-1]) / 2, dim=0)
+        tracks.append((q, torch.cat([trap.new_zeros((1, n_dof)), trap])))
     best = 0.0
     for k in TIME_ORDER_LAGS:
-        steps, integrals = [], []
-        for seg in segments:
-            q, qd = X[seg, :n_dof], X[seg, n_dof : 2 * n_dof]
-            if q.shape[0] <= k:
-                continue
-            trap = torch.cumsum((qd[1:] + qd[:-1]) / 2, dim=0)
-            cum = torch.cat([trap.new_zeros((1, n_dof)), trap])
-            steps.append((q[k:] - q[:-k]).flatten())
-            integrals.append((cum[k:] - cum[:-k]).flatten())
-        if not steps:
+        long_enough = [(q, cum) for q, cum in tracks if q.shape[0] > k]
+        if not long_enough:
             break
+        steps = [(q[k:] - q[:-k]).flatten() for q, _ in long_enough]
+        integrals = [(cum[k:] - cum[:-k]).flatten() for _, cum in long_enough]
         a, b = torch.cat(steps), torch.cat(integrals)
         den = float(torch.sqrt((a * a).sum() * (b * b).sum()))
         if den > 0:

@@ -110,10 +110,13 @@ class AccelerationDatafit:
         rms = torch.sqrt((qdd**2).mean(dim=0))
         self.acc_scale = torch.where(rms > 0, rms, torch.ones_like(rms))
         self.const = float(((qdd / self.acc_scale) ** 2).sum(dim=1).mean())
-        # M(c) and b(c) as matrix-vector products: (samples * d * d, p), (samples * d, p)
+        # M(c), b(c) as matrix-vector products: (samples * d * d, p), (samples * d, p)
         s, p, d = mass.shape[0], mass.shape[1], mass.shape[2]
         self._m2 = mass.permute(0, 2, 3, 1).reshape(s * d * d, p)
         self._b2 = bias.permute(0, 2, 1).reshape(s * d, p)
+        # The last solve: the proximal gradient evaluates the loss at a point, then
+        # (once accepted) its gradient, which needs the same solve.
+        self._last = None
 
     @property
     def n_features(self) -> int:
@@ -131,6 +134,15 @@ class AccelerationDatafit:
 
     def _solve(self, w):
         """``a = M(c)^{-1} b(c)`` per sample and ``M(c)``; ``a`` is None if singular."""
+        if w.requires_grad:  # differentiated by autograd: no cached values
+            return self._solve_at(w)
+        if self._last is not None and torch.equal(self._last[0], w):
+            return self._last[1]
+        out = self._solve_at(w)
+        self._last = (w.detach().clone(), out)
+        return out
+
+    def _solve_at(self, w):
         s, d = self.qdd.shape
         c = w / self.scale
         mc = (self._m2 @ c).view(s, d, d)
