@@ -45,7 +45,8 @@ def _fit(system, data, formulation):
     kept = true != 0
     return {
         "formulation": formulation,
-        "used": est.formulation_,
+        "used": est.formulation_
+        + (f", window {est.window_}" if getattr(est, "window_", None) else ""),
         "correct": bool(np.array_equal(coef != 0, kept)),
         "n_terms": int((coef != 0).sum()),
         "coef_error": float(np.linalg.norm(coef - true) / np.linalg.norm(true)),
@@ -88,7 +89,7 @@ def _cell(name, protocol, sigma, seed, n_traj, duration):
 
 def _table(rows):
     text = (
-        "| system | protocol | sigma | seed | estimator (form used) | exact terms | "
+        "| system | protocol | sigma | seed | estimator (form, window used) | exact terms | "
         "terms | coef. error (norm) | largest term error | fit time |\n"
         "|---|---|---|---|---|---|---|---|---|---|\n"
     )
@@ -185,12 +186,15 @@ def main(argv=None):
     )
     text += _table(part2) + "\n" + _verdict(part2, 0.03) + "\n"
     text += (
-        "## 3. The test-function window (seed 0; the default is 81 samples)\n\n"
+        "## 3. The test-function window (seed 0)\n\n"
         "Coefficient error (norm) of `LagrangianSINDy(library, window=w)`, otherwise "
         "defaults. With noise on the positions only, the derivatives come from the "
         "P-spline and their errors are smooth (correlated over many samples): the "
         "white-noise correction does not see them (its estimate is 0) and short "
-        "windows do not average them out.\n\n"
+        "windows do not average them out. The default, `window=\"auto\"`, fits 81 "
+        "and 161 samples (then 321) when the velocities carry no white noise, and "
+        "keeps the first window the next one confirms within 3 % (the window used "
+        "is in the tables above).\n\n"
         "| system | protocol | sigma | "
         + " | ".join(f"window {w}" for w in windows)
         + " |\n|---|---|---|"

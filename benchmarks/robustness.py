@@ -301,7 +301,7 @@ def main(argv=None):
     if args.quick:
         sigmas, seeds, n_traj, duration = (0.0, 2e-2, 1e-1), 1, 10, 3.0
     if tiny:
-        sigmas, seeds, n_traj, duration, systems = (0.0, 1e-1), 1, 3, 2.0, SYSTEMS[:2]
+        sigmas, seeds, n_traj, duration, systems = (0.0, 1e-1), 1, 3, 2.0, SYSTEMS[:1]
     tasks = [
         (name, mode, protocol, s, seed, n_traj, duration)
         for name in systems

@@ -484,7 +484,7 @@ SEARCH_STEPS = [
     (
         "- of which the noise correction",
         "formulation/operator.py",
-        ("_weak_noise_gram",),
+        ("_noise_sensitivities", "_noise_block"),
     ),
     ("case III search (`fit_fixed`)", "cases/fixed.py", ("fit_fixed",)),
     ("- sparse solves: ranking + shortlist", "cases/sparse.py", ("solve",)),
@@ -502,11 +502,11 @@ SEARCH_STEPS = [
 # The same for one ``diagnose`` of the case I model.
 DIAGNOSE_STEPS = [
     ("whole diagnose", "diagnostics/search.py", ("diagnose",)),
-    ("weak Gram statistics, every call", "formulation/operator.py", ("weak_gram",)),
+    ("weak Gram statistics, every call", "formulation/operator.py", ("weak_grams",)),
     (
         "- of which the noise correction",
         "formulation/operator.py",
-        ("_weak_noise_gram",),
+        ("_noise_sensitivities", "_noise_block"),
     ),
     (
         "fold statistics (`diagnostics.scoring` constructors)",

@@ -24,12 +24,13 @@ from sklearn.utils.validation import check_is_fitted
 from . import _validation as val
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .cases import Problem, SparseSolve, solve_case
-from .formulation import feature_operator, gram_statistics
+from .formulation import WindowWarning, feature_operator, gram_statistics
 from .formulation.scaling import (
     BalancedGram,
     IdentifiabilityWarning,  # noqa: F401 - its 0.1 import path
     warn_if_not_identifiable,
 )
+from .formulation.weak import WINDOW_CHANGE
 from .library import CandidateLibrary
 from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 path
     MASS_BAD_FRACTION,
@@ -59,7 +60,7 @@ _PARAMETER_CONSTRAINTS = {
     "unpenalized": ["array-like", None],
     "case": [StrOptions(_CASES)],
     "formulation": [StrOptions({"auto", "strong", "weak"})],
-    "window": [Interval(Integral, 5, None, closed="left")],
+    "window": [Interval(Integral, 5, None, closed="left"), StrOptions({"auto"})],
     "dt": [Interval(Real, 0, None, closed="neither"), None],
     "noise_cov": [StrOptions({"auto"}), "array-like", None],
     "normalize": ["boolean"],
@@ -157,17 +158,17 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
     formulation : {"auto", "strong", "weak"}, default="auto"
         ``"strong"``: the paper's pointwise Euler-Lagrange residual (needs
         accelerations). ``"weak"``: the equations integrated against smooth test
-        functions over windows of ``window`` samples (integration by parts removes the
-        accelerations and averages noise, so noisy regressors do not bias the fit);
-        rows must then be time-ordered trajectories sampled every ``dt`` (pass
-        ``groups`` to ``fit``; without it the rows are one record, split where the
-        positions jump). Cases I and III. ``"auto"``: the weak form whenever the
-        rows are time-ordered trajectories at least ``window`` samples long, else the
-        strong form with a warning saying why (``formulation_``); case II always uses
-        the strong form.
-    window : int, default=81
-        Samples per test function in the weak formulation (windows start every
-        ``window // 4`` samples).
+        functions over windows of ``window`` samples (no accelerations; noise is
+        averaged and its bias corrected); rows must be time-ordered trajectories
+        (pass ``groups`` to ``fit``; without it, one record split where the positions
+        jump). Cases I and III. ``"auto"``: the weak form whenever the rows are
+        time-ordered trajectories long enough, else the strong form with a warning
+        saying why (``formulation_``); case II always uses the strong form.
+    window : int or "auto", default="auto"
+        Samples per test function of the weak form (windows start every
+        ``window // 4``). ``"auto"``: 81, or 161, 321, 641 when the longer window
+        changes the coefficients by over 3 % and the next one confirms it (smoothed
+        derivatives bias short windows); else 81 with a :class:`WindowWarning`.
     dt : float, default=None
         Sampling interval for the weak formulation; ``None`` estimates it from
         ``q[s+1] - q[s] = dt (qd[s] + qd[s+1]) / 2`` (``dt_``).
@@ -229,6 +230,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Relative residual of the final fit.
     formulation_ : {"strong", "weak"}
         The formulation used (the choice of ``formulation="auto"``).
+    window_ : int
+        The weak form's window (the choice of ``window="auto"``).
     mass_check_ : MassCheck
         The learned mass matrix checked on (up to 500 of) the fitted samples:
         ``mass_check_.fraction`` of them have it singular or indefinite, along
@@ -237,7 +240,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
     dt_ : float or None
         Sampling interval used by the weak formulation.
     noise_cov_ : ndarray or None
-        Noise covariance used by the weak formulation's correction.
+        Noise covariance subtracted by the weak form (``None``: none or negligible).
     fitted_ : lagsindy.model.FittedLagrangian
         The fitted state these attributes come from (what a model file stores).
     n_features_in_ : int
@@ -287,7 +290,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         unpenalized=None,
         case="auto",
         formulation="auto",
-        window=81,
+        window="auto",
         dt=None,
         noise_cov="auto",
         normalize=True,
@@ -362,9 +365,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         device, dtype = resolve_device(self.device), resolve_dtype(self.dtype)
         Xa, tau, library, diss, case = _prepare(self, X, y)
         Xt, tau_t = _tensors(Xa, tau, device, dtype)
-        stats = _statistics(self, Xt, tau_t, library, diss, groups, case)
-        problem = _problem(self, stats, library, diss, Xa, Xt, tau)
-        solution = _solve(case, problem)
+        stats, solution = _fit_windows(
+            self, Xa, Xt, tau, tau_t, library, diss, groups, case
+        )
         fitted = _fitted_state(self, library, diss, case, stats, solution, y, tau)
         fitted.mass_check = _checked_mass(fitted, Xt)
         self._publish(fitted)
@@ -668,6 +671,78 @@ def _solve(case, problem):
     return solution
 
 
+def _fit_windows(est, Xa, Xt, tau, tau_t, library, diss, groups, case):
+    """Statistics and solution, the window chosen by `_solve_choosing_window`."""
+    ladder = _statistics(est, Xt, tau_t, library, diss, groups, case)
+    return _solve_choosing_window(
+        ladder,
+        lambda st: _solve(case, _problem(est, st, library, diss, Xa, Xt, tau)),
+        verbose=est.verbose,
+    )
+
+
+def window_change(a, b) -> float:
+    """Relative change between two coefficient vectors (``inf``: other terms)."""
+    if not np.array_equal(a != 0, b != 0):
+        return float("inf")
+    scale = max(np.linalg.norm(a), np.linalg.norm(b))
+    return float(np.linalg.norm(a - b) / scale) if scale > 0 else 0.0
+
+
+def _solve_choosing_window(ladder, solve, verbose=0):
+    """Solve on each window of ``ladder`` until the next window confirms the result.
+
+    ``ladder`` holds functions returning the Gram statistics of each window. The
+    first window whose solution the next one reproduces (:func:`window_change` at
+    most ``WINDOW_CHANGE``) is kept, with the warnings of its own solve. When no pair
+    agrees, the first window is kept and a :class:`WindowWarning` says how the
+    coefficients moved: a misspecified model (a missing term or effect) depends on
+    the weighting of the residual, so a longer window is no better there.
+
+    Returns
+    -------
+    stats : GramStatistics
+    solution : Solution
+    """
+    if len(ladder) == 1:
+        stats = ladder[0]()
+        return stats, solve(stats)
+    results, changes = [], []
+    for build in ladder:
+        stats = build()
+        if verbose:
+            print(f"[lagsindy] weak form, test window {stats.window} samples")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            solution = solve(stats)
+        results.append((stats, solution, caught))
+        if len(results) >= 2:
+            changes.append(window_change(results[-2][1].coef, solution.coef))
+            if changes[-1] <= WINDOW_CHANGE:
+                break
+    settled = changes[-1] <= WINDOW_CHANGE
+    stats, solution, caught = results[-2] if settled else results[0]
+    if verbose:
+        print(f"[lagsindy] kept the test window of {stats.window} samples")
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    if not settled:
+        sizes = ", ".join(str(r[0].window) for r in results)
+        moves = ", ".join("other terms" if np.isinf(c) else f"{c:.1%}" for c in changes)
+        warnings.warn(
+            "the weak form's coefficients depend on the test window: fits with "
+            f"windows of {sizes} samples differ step by step ({moves}); the "
+            f"{stats.window}-sample fit is kept. Either the model misses an effect "
+            "(a term, friction, an input delay: run lagsindy.diagnose), or the "
+            "derivatives carry smooth errors (estimated by smoothing) that bias "
+            "short windows: then record longer trajectories or pass a longer "
+            "window= and check that the coefficients settle.",
+            WindowWarning,
+            stacklevel=4,
+        )
+    return stats, solution
+
+
 def _problem(est, stats, library, diss, Xa, Xt, tau) -> Problem:
     """Balance the statistics and collect what the case needs."""
     terms, n_terms = diss[0], len(library.terms_)
@@ -746,6 +821,7 @@ def _fitted_state(
         formulation=stats.formulation,
         dt=stats.dt,
         noise_cov=stats.noise_cov,
+        window=stats.window,
         stages=result.stages,
         n_iter=result.n_iter,
         residual=result.cost,

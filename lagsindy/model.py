@@ -101,7 +101,7 @@ class FittedLagrangian:
     normalization : {"term", "mass"} or None
     formulation : {"strong", "weak"} or None
         ``None`` for a model read from a file (the file does not say).
-    dt, noise_cov : float, ndarray or None
+    dt, noise_cov, window : float, ndarray, int or None
         What the weak formulation used.
     stages : list of Stage
     n_iter : int
@@ -123,6 +123,7 @@ class FittedLagrangian:
     formulation: str | None = None
     dt: float | None = None
     noise_cov: np.ndarray | None = None
+    window: int | None = None
     stages: list = field(default_factory=list)
     n_iter: int = 0
     residual: float | None = None
@@ -207,6 +208,7 @@ class FittedLagrangian:
         optional = {
             "dissipation_library_": self.dissipation_library,
             "formulation_": self.formulation,
+            "window_": self.window,
             "mass_check_": self.mass_check,
         }
         out.update({k: v for k, v in optional.items() if v is not None})
@@ -236,6 +238,51 @@ class FittedLagrangian:
         if coef.numel() == 0:
             return np.zeros((Xt.shape[0], self.n_dof))
         return to_numpy(op.columns(Xt) @ coef)
+
+    def weak_r2(self, Xt, tau, groups=None) -> float:
+        """R^2 of the forces integrated against the weak form's test functions.
+
+        What a weak-form fit minimises: per window and coordinate, ``int psi tau dt``
+        against the model's ``int psi (d/dt dL/dqd - dL/dq - Q) dt`` (by parts: no
+        accelerations, so the pointwise noise of estimated accelerations does not
+        count against a right model). The total is relative to the best constant
+        force (centred), summed over coordinates; no noise correction.
+
+        Parameters
+        ----------
+        Xt : Tensor of shape (n_samples, >= 2 * n_dof)
+        tau : array-like of shape (n_samples, n_dof)
+        groups : array-like of shape (n_samples,), optional
+            Trajectory labels (time-ordered rows, as for the fit).
+
+        Returns
+        -------
+        float
+        """
+        from .formulation.weak import weak_gram
+
+        op, coef = self.support_operator(Xt.device, Xt.dtype)
+        tau_t = to_tensor(
+            np.asarray(tau).reshape(Xt.shape[0], -1), dtype=Xt.dtype, device=Xt.device
+        )
+        ones = Xt.new_ones((Xt.shape[0], self.n_dof, 1))
+        window = self.window if self.window is not None else "auto"
+        [(_, build)], _, _ = weak_gram(
+            op,
+            Xt,
+            tau_t,
+            groups,
+            window=window if window != "auto" else 81,
+            dt=self.dt,
+            noise_cov=None,
+            extra=ones,
+        )
+        gram, _ = build()  # columns: support, constant, tau
+        v = torch.cat([coef, coef.new_zeros(1), coef.new_full((1,), -1.0)])
+        res = torch.einsum("p,ipq,q->i", v, gram, v)
+        const = gram[:, -2, -2].clamp_min(torch.finfo(gram.dtype).tiny)
+        tot = gram[:, -1, -1] - gram[:, -2, -1] ** 2 / const
+        return float(1.0 - res.sum() / tot.sum())
 
     def accelerations(self, Xt, tau=None) -> np.ndarray:
         """Forward dynamics ``M(c)^+ (tau - h(c))`` at the rows of ``Xt``."""

@@ -268,7 +268,7 @@ def _group_gram(fitted, Xa, tau, labels):
         idx = torch.as_tensor(g, device=device)
         Xg = Xt[idx]
         tg = None if tau_t is None else tau_t[idx]
-        window = int(fitted.window)
+        window = int(fitted.window_)
         segs = [
             s for s in trajectory_segments(Xg, d, np.zeros(len(g))) if len(s) >= window
         ]
@@ -467,7 +467,7 @@ def bootstrap(
     weak = getattr(full, "formulation_", full.formulation) == "weak"
     params = {"library": clone(full.library_)}
     if weak:
-        params.update(dt=full.dt_, noise_cov=full.noise_cov_)
+        params.update(dt=full.dt_, noise_cov=full.noise_cov_, window=full.window_)
     base = clone(est).set_params(**params)
 
     traj = np.zeros(n, dtype=np.int64) if groups is None else np.asarray(groups)
@@ -480,7 +480,7 @@ def bootstrap(
         resampling = "blocks"
         shortest = 1
         if weak:
-            shortest = int(full.window) + 4 * max(1, int(full.window) // 4)
+            shortest = int(full.window_) + 4 * max(1, int(full.window_) // 4)
         room = sum(len(r) // shortest for r in trajectories)
         if n_blocks is None:
             n_blocks = min(_MAX_BLOCKS, room)

@@ -342,7 +342,7 @@ def test_defaults_tiny(tiny_results):
     text = (tiny_results / "defaults_quick.md").read_text()
     _check_header(text)
     rows = [line for line in text.splitlines() if line.startswith("| cart_pendulum")]
-    assert "| defaults (weak) |" in rows[0] and "| strong (strong) |" in rows[1]
+    assert "| defaults (weak, window 81) |" in rows[0] and "| strong (strong) |" in rows[1]
     # the verdict line states the target and whether it was met
     assert "target 1 %: largest coefficient error (norm)" in text
     assert "target 3 %: largest coefficient error (norm)" in text

@@ -387,19 +387,23 @@ def _fit(args) -> int:
     if args.quiet:  # nothing more is printed, so the held-out refit is skipped
         return 0
     kept = int(est.support_.sum())
+    form = f"{est.formulation_} form"
+    if getattr(est, "window_", None) is not None:
+        form += f", test window {est.window_} samples"
     _say(
         args,
-        f"{kept} of {len(est.coef_)} terms kept; fit took {elapsed:.1f} s; saved the "
-        f"model to {args.out}",
+        f"{kept} of {len(est.coef_)} terms kept ({form}); fit took {elapsed:.1f} s; "
+        f"saved the model to {args.out}",
     )
-    target = "forces" if tau is not None else "accelerations"
-    fitted = est.score(X, tau) if tau is not None else est.score(X)
+    fitted, target = _score(est, X, tau, args._groups)
     if held_out == 0:
         _say(args, f"R^2 of {target} on the fitted data {fitted:.4f} (--held-out 0)")
         return 0
     _say(args, "scoring on held-out data (a second fit on the rest) ...")
     try:
-        score, where, seconds = _held_out_score(est, X, tau, args._groups, held_out)
+        score, held_target, where, seconds = _held_out_score(
+            est, X, tau, args._groups, held_out
+        )
     except (ValueError, RuntimeError, FloatingPointError, np.linalg.LinAlgError) as e:
         _say(
             args,
@@ -409,8 +413,13 @@ def _fit(args) -> int:
         return 0
     _say(
         args,
-        f"R^2 of {target} on held-out data {score:.4f} ({where}, scored by a refit "
-        f"on the rest, {seconds:.1f} s); on the fitted data {fitted:.4f}",
+        f"R^2 of {held_target} on held-out data {score:.4f} ({where}, scored by a "
+        f"refit on the rest, {seconds:.1f} s); "
+        + (
+            f"on the fitted data {fitted:.4f}"
+            if held_target == target
+            else f"of {target} on the fitted data {fitted:.4f}"
+        ),
     )
     return 0
 
@@ -440,8 +449,9 @@ def _held_out_score(est, X, tau, groups, share):
     """R^2 on held-out rows of a refit of ``est`` on the other rows.
 
     The refit keeps the fitted model's choices (formulation, case, fixed term), so it
-    is one fit, not a search; its warnings are not shown again. Returns the score, a
-    description of the held-out rows and the refit's seconds.
+    is one fit, not a search; its warnings are not shown again. Returns the score,
+    what it is of (see :func:`_score`), a description of the held-out rows and the
+    refit's seconds.
     """
     mask, where = _held_out_rows(groups, len(X), share)
     train, test = np.flatnonzero(~mask), np.flatnonzero(mask)
@@ -454,11 +464,37 @@ def _held_out_score(est, X, tau, groups, share):
             None if tau is None else tau[train],
             groups=None if groups is None else np.asarray(groups)[train],
         )
-        if tau is None:
-            score = sub.score(X.iloc[test])
-        else:
-            score = sub.score(X.iloc[test], tau[test])
-    return score, where, time.perf_counter() - start
+        test_groups = None if groups is None else np.asarray(groups)[test]
+        score, target = _score(
+            sub, X.iloc[test], None if tau is None else tau[test], test_groups
+        )
+    return score, target, where, time.perf_counter() - start
+
+
+def _score(est, X, tau, groups):
+    """R^2 of what the fit minimised, and what it is of.
+
+    With forces and the weak form: of the forces integrated over the test windows
+    (pointwise forces would count the noise of estimated accelerations against a
+    right model); pointwise when the rows are too short for a window. Else
+    ``est.score``.
+    """
+    if tau is None:
+        return est.score(X), "accelerations"
+    if est.formulation_ == "weak":
+        import torch
+
+        Xt = torch.tensor(np.asarray(X, dtype=float))
+        try:
+            return est.fitted_.weak_r2(Xt, tau, groups), WEAK_TARGET
+        except ValueError:
+            pass  # shorter than a window: pointwise
+    return est.score(
+        X, tau
+    ), "forces (pointwise)" if est.formulation_ == "weak" else "forces"
+
+
+WEAK_TARGET = "forces over the test windows (what the weak form fits)"
 
 
 def _refit_like(est, **params):
@@ -466,9 +502,10 @@ def _refit_like(est, **params):
     (formulation, case, fixed term) instead of searching again, with ``params``."""
     from sklearn.base import clone
 
-    sub = clone(est).set_params(
-        verbose=0, formulation=est.formulation_, case=est.case_, **params
-    )
+    sub = clone(est).set_params(verbose=0, formulation=est.formulation_, case=est.case_)
+    if getattr(est, "window_", None) is not None:
+        sub.set_params(window=est.window_)
+    sub.set_params(**params)
     if est.case_ == "fixed":
         sub.set_params(fixed_term=est.fixed_term_ or "mass")
     return sub
@@ -493,49 +530,6 @@ def _warn_strong_form(est, args):
         UserWarning,
         stacklevel=2,
     )
-
-
-# Relative change of the coefficients between the window and twice the window above
-# which fit warns (white noise: below 0.5 % on the paper's systems; the cart-pendulum
-# with noise 1e-2 on positions: 6.9 % at 81 -> 0.8 % at 161, benchmarks/defaults.md).
-WINDOW_CHANGE = 0.03
-
-
-def _warn_window(est, X, tau, groups):
-    """Warn when a weak-form fit on estimated derivatives moves as the window doubles.
-
-    Derivatives estimated from positions (a smoothing spline) have errors that are
-    smooth in time; the noise correction assumes white noise and does not see them,
-    and short test functions do not average them out, so the coefficients shrink
-    (benchmarks/results/defaults.md, section 3). A refit at twice the window with the
-    fit's choices shows whether the window is long enough.
-    """
-    if est.formulation_ != "weak":
-        return
-    window = int(est.window)
-    longer = 2 * window - 1
-    sub = _refit_like(est, window=longer)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            sub.fit(X, tau, groups=groups)
-    except (ValueError, RuntimeError, FloatingPointError, np.linalg.LinAlgError):
-        return  # e.g. trajectories shorter than the longer window
-    if sub.formulation_ != "weak":
-        return
-    a, b = np.asarray(est.coef_, float), np.asarray(sub.coef_, float)
-    scale = np.linalg.norm(a)
-    change = np.linalg.norm(b - a) / scale if scale > 0 else 0.0
-    if change > WINDOW_CHANGE:
-        warnings.warn(
-            f"the coefficients change by {100 * change:.1f} % when the weak form's "
-            f"test window doubles ({window} -> {longer} samples): the errors of "
-            "derivatives estimated from positions are smooth in time and bias short "
-            "windows (typically toward zero); refit with --window "
-            f"{longer} or longer and check that the coefficients settle",
-            UserWarning,
-            stacklevel=2,
-        )
 
 
 def _fit_csv(args):
@@ -591,8 +585,6 @@ def _fit_csv(args):
     elapsed = time.perf_counter() - start
     if _derivatives_estimated(df, coords, args):
         _warn_strong_form(est, args)
-        if not args.quiet:  # one more fit: skipped when only results are wanted
-            _warn_window(est, X, tau, groups)
     args._groups = groups  # the segments, for the held-out score and diagnose
     return est, X, tau, inputs, elapsed
 

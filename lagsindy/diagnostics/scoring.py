@@ -9,6 +9,7 @@ reruns the estimator's sparse search with effects as known terms.
 from __future__ import annotations
 
 import warnings
+from numbers import Integral
 
 import numpy as np
 import torch
@@ -19,6 +20,7 @@ from .._torch import to_numpy
 from ..dissipation import DEFAULT_EPS, DissipationLibrary
 from ..formulation.operator import EulerLagrangeOperator
 from ..formulation.weak import (
+    WINDOW_FIRST,
     estimate_noise_covariance,
     estimate_sampling_interval,
     trajectory_segments,
@@ -136,7 +138,9 @@ def _time_folds(est, Xt, groups, n_splits, window):
     segments = _segments(Xt, d, groups, dt if dt and dt > 0 else 0.0)
     folds, fold_kind = _make_folds(segments, n_splits)
     shortest_block = min(max(len(b) for b in blocks) for blocks in folds)
-    win = int(window or getattr(est, "window", 81) or 81)
+    chosen = getattr(est, "window_", None)  # the fit's (window="auto" chose it)
+    own = est.window if isinstance(est.window, Integral) else None
+    win = int(window or chosen or own or WINDOW_FIRST)
     win = min(win, shortest_block // 2)
     if win % 2 == 0:
         win -= 1
@@ -413,6 +417,8 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=T
     new.set_params(library=library, unpenalized=unpenalized or None)
     if est.case_ == "fixed":
         new.set_params(fixed_term=_normalization(est))
+    if getattr(est, "window_", None) is not None:
+        new.set_params(window=est.window_)  # the window est's fit chose
     new.set_params(verbose=0)  # refits are quiet; the result keeps est's verbose
     if not fit:
         return new

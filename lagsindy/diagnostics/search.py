@@ -849,6 +849,8 @@ def _input_delay(est, X, tau, segments, dt, verbose):
         labels[seg] = k
     groups = labels if len(segments) >= 2 else None
     base = clone(est).set_params(verbose=0)
+    if getattr(est, "window_", None) is not None:
+        base.set_params(window=est.window_)  # the window est's fit chose
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass
 
@@ -19,16 +20,18 @@ import torch
 
 from .operator import EulerLagrangeOperator
 from .scaling import BalancedGram, IdentifiabilityWarning
-from .weak import weak_gram, window_stride
+from .weak import WindowWarning, weak_gram, window_ladder, window_stride
 
 __all__ = [
     "BalancedGram",
     "EulerLagrangeOperator",
     "GramStatistics",
     "IdentifiabilityWarning",
+    "WindowWarning",
     "feature_operator",
     "gram_statistics",
     "weak_gram",
+    "window_ladder",
     "window_stride",
 ]
 
@@ -49,6 +52,8 @@ class GramStatistics:
     noise_cov : ndarray or None
         Noise covariance subtracted by the weak form (its Gram is then a corrected
         one and is projected onto the positive semi-definite cone when balanced).
+    window : int or None
+        Samples per test function of the weak form.
     """
 
     gram: torch.Tensor
@@ -56,6 +61,7 @@ class GramStatistics:
     formulation: str
     dt: float | None = None
     noise_cov: np.ndarray | None = None
+    window: int | None = None
 
     @property
     def corrected(self) -> bool:
@@ -64,18 +70,28 @@ class GramStatistics:
 
 def gram_statistics(
     operator, Xt, tau_t, groups, *, formulation, window, dt=None, noise_cov="auto"
-) -> GramStatistics:
+) -> list:
     """Gram statistics in the requested formulation (``"auto"``: weak when it can run).
 
     ``"auto"`` falls back to the strong form, with a warning that says why, when the
     rows are not time-ordered trajectories at least ``window`` samples long.
+
+    Returns
+    -------
+    list of callables returning GramStatistics
+        One entry, or with the weak form and ``window="auto"`` one per window of
+        :func:`~lagsindy.formulation.weak.window_ladder` (smallest first); each sums
+        its statistics when called, so windows never tried cost nothing.
     """
     if formulation in ("weak", "auto"):
         try:
-            gram, n_rows, dt_, cov = weak_gram(
+            grams, dt_, cov = weak_gram(
                 operator, Xt, tau_t, groups, window=window, dt=dt, noise_cov=noise_cov
             )
-            return GramStatistics(gram, n_rows, "weak", dt_, cov)
+            return [
+                functools.partial(_weak_statistics, build, dt_, cov, w)
+                for w, build in grams
+            ]
         except ValueError as exc:
             if formulation == "weak":
                 raise
@@ -87,7 +103,13 @@ def gram_statistics(
                 UserWarning,
                 stacklevel=3,
             )
-    return GramStatistics(operator.gram(Xt, tau_t), Xt.shape[0], "strong")
+    stats = GramStatistics(operator.gram(Xt, tau_t), Xt.shape[0], "strong")
+    return [lambda: stats]
+
+
+def _weak_statistics(build, dt, cov, window) -> GramStatistics:
+    gram, n_rows = build()
+    return GramStatistics(gram, n_rows, "weak", dt, cov, window)
 
 
 def feature_operator(coordinates, terms, force_terms, indices, device, dtype):

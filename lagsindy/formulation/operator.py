@@ -23,6 +23,7 @@ the same tensor as ``-Q_j(q, qdot)`` so that ``Theta @ c = tau`` still holds.
 from __future__ import annotations
 
 import contextlib
+import functools
 import warnings
 from collections.abc import Callable, Sequence
 
@@ -406,9 +407,62 @@ class EulerLagrangeOperator:
             Only with ``return_noise=True`` (then ``gram`` is uncorrected).
         n_windows : int
         """
+        out = self.weak_grams(
+            X,
+            y,
+            {int(window): segments},
+            strides={int(window): stride},
+            dt=dt,
+            noise_cov=noise_cov,
+            noise_rows=noise_rows,
+            extra=extra,
+            return_noise=return_noise,
+        )
+        return out[int(window)]
+
+    def weak_grams(
+        self,
+        X: torch.Tensor,
+        y: torch.Tensor | None,
+        segments_by_window: dict,
+        *,
+        strides: dict,
+        dt: float,
+        noise_cov: torch.Tensor | None = None,
+        noise_rows: int = NOISE_ROWS,
+        extra: torch.Tensor | None = None,
+        return_noise: bool = False,
+        lazy: bool = False,
+    ) -> dict:
+        """:meth:`weak_gram` for several windows from one evaluation of the integrands.
+
+        The per-sample integrands and (with ``noise_cov``) their sensitivities to the
+        noise do not depend on the window, only their sums over windows do; so trying
+        several windows costs little more than one.
+
+        Parameters
+        ----------
+        segments_by_window : dict of int to list of LongTensor
+            For each window (samples), the trajectories it is applied to (each at
+            least that long); every window's segments must be among the first
+            window's (the integrands are evaluated on those).
+        strides : dict of int to int
+            Samples between window starts, per window.
+        lazy : bool, default=False
+            Return, per window, a function of no arguments that sums the statistics
+            when called (the shared integrands are evaluated now), so that windows
+            never asked for cost nothing more.
+
+        Returns
+        -------
+        dict of int to tuple (or to a function returning it, with ``lazy=True``)
+            Per window, ``(gram, n_windows)``, or ``(gram, noise, n_windows)`` with
+            ``return_noise=True`` (see :meth:`weak_gram`).
+        """
         d = self.n_dof
-        psi, dpsi = (k.to(X) for k in bump_function(window, dt))
-        order = torch.cat(list(segments))
+        windows = list(segments_by_window)
+        base = list(segments_by_window[windows[0]])
+        order = torch.cat(base)
         q, qd = X[order, :d], X[order, d : 2 * d]
         # Integrands per sample: a-weighted (with dpsi) and b-weighted (with psi) parts.
         a_parts, b_parts = [], []
@@ -431,46 +485,64 @@ class EulerLagrangeOperator:
         a_int = torch.cat(a_parts, dim=2)
         b_int = torch.cat(b_parts, dim=2)
         width = a_int.shape[2]
-        gram = X.new_zeros((d, width, width))
-        n_windows = 0
-        start = 0
-        weights = []
-        for seg in segments:
-            n = len(seg)
-            sl = slice(start, start + n)
-            start += n
-            cols = -dt * (
-                _correlate(a_int[sl], dpsi, stride) + _correlate(b_int[sl], psi, stride)
-            )
-            n_windows += cols.shape[0]
-            gram += torch.einsum("wip,wiq->ipq", cols, cols)
-            if noise_cov is not None:
-                weights.append(_window_weights(n, -dt * dpsi, -dt * psi, stride))
-        noise = torch.zeros_like(gram)
+        # Where each base segment's rows sit in the integrands (by its first row).
+        offsets, start = {}, 0
+        for seg in base:
+            offsets[int(seg[0])] = (start, len(seg))
+            start += len(seg)
+        sens = None
         if noise_cov is not None:
-            a2, ab, b2 = (torch.cat(w) for w in zip(*weights))
-            noise = self._weak_noise_gram(
-                q, qd, (a2, ab, b2), noise_cov, width, noise_rows
-            )
-        if return_noise:
-            return gram, noise, n_windows
-        return gram - noise, n_windows
+            sens = self._noise_sensitivities(q, qd, noise_rows)
 
-    def _weak_noise_gram(self, q, qd, weights, noise_cov, width, noise_rows):
-        """First-order noise contribution to the weak Gram (see :meth:`weak_gram`)."""
+        def build(window):
+            stride = int(strides[window])
+            psi, dpsi = (k.to(X) for k in bump_function(window, dt))
+            gram = X.new_zeros((d, width, width))
+            n_windows = 0
+            weights = [X.new_zeros(order.shape[0]) for _ in range(3)]
+            for seg in segments_by_window[window]:
+                first, n = offsets[int(seg[0])]
+                sl = slice(first, first + n)
+                cols = -dt * (
+                    _correlate(a_int[sl], dpsi, stride)
+                    + _correlate(b_int[sl], psi, stride)
+                )
+                n_windows += cols.shape[0]
+                gram += torch.einsum("wip,wiq->ipq", cols, cols)
+                if sens is not None:
+                    for acc, w in zip(
+                        weights, _window_weights(n, -dt * dpsi, -dt * psi, stride)
+                    ):
+                        acc[sl] = w
+            noise = torch.zeros_like(gram)
+            if sens is not None:
+                noise = self._noise_block(sens, weights, noise_cov, width)
+            return (
+                (gram, noise, n_windows) if return_noise else (gram - noise, n_windows)
+            )
+
+        if lazy:
+            return {w: functools.partial(build, w) for w in windows}
+        return {w: build(w) for w in windows}
+
+    def _noise_sensitivities(self, q, qd, noise_rows):
+        """Rows used by the noise correction and the integrands' sensitivities there.
+
+        Returns ``(rows, factor, h1, h2)``: ``rows`` the sample indices (``None``: all),
+        ``factor`` the scale-up of the subsample, and ``h1[s, k, i, x]``,
+        ``h2[s, k, i, x]`` the derivatives of the a- and b-integrands of feature ``k``
+        and coordinate ``i`` with respect to ``x = [q, qd]`` at sample ``s``.
+        """
         d = self.n_dof
         n = q.shape[0]
-        a2, ab, b2 = weights
+        rows, factor = None, 1.0
         if n > noise_rows:
             pick = np.sort(
                 np.random.default_rng(0).choice(n, noise_rows, replace=False)
             )
-            idx = torch.as_tensor(pick, device=q.device)
-            q, qd, a2, ab, b2 = q[idx], qd[idx], a2[idx], ab[idx], b2[idx]
+            rows = torch.as_tensor(pick, device=q.device)
+            q, qd = q[rows], qd[rows]
             factor = n / noise_rows
-        else:
-            factor = 1.0
-        # h1[s, k, i, x] = d(a-integrand_k,i)/dx_s, h2 likewise for the b-integrand.
         h1_parts, h2_parts = [], []
         if self._fn is not None:
             if isinstance(self._fn, TermKernels):
@@ -483,8 +555,15 @@ class EulerLagrangeOperator:
             jac = self.force_jacobians(q, qd)  # (n, f, d, 2d)
             h1_parts.append(torch.zeros_like(jac))
             h2_parts.append(jac)
-        h1 = torch.cat(h1_parts, dim=1)
-        h2 = torch.cat(h2_parts, dim=1)
+        return rows, factor, torch.cat(h1_parts, dim=1), torch.cat(h2_parts, dim=1)
+
+    def _noise_block(self, sens, weights, noise_cov, width):
+        """First-order noise contribution to the weak Gram (see :meth:`weak_gram`)."""
+        d = self.n_dof
+        rows, factor, h1, h2 = sens
+        a2, ab, b2 = weights
+        if rows is not None:
+            a2, ab, b2 = a2[rows], ab[rows], b2[rows]
         p0 = h1.shape[1]
         # sum_s [h1 h2]^T (W_s kron Lambda) [h1 h2], W_s = [[a2, ab], [ab, b2]] (a
         # Gram matrix of the test functions, so positive semi-definite). Its LDL^T
@@ -497,13 +576,13 @@ class EulerLagrangeOperator:
         u1 = torch.sqrt(a2)[:, None, None]
         u2 = torch.where(pos, ab / root, torch.zeros_like(a2))[:, None, None]
         v2 = torch.sqrt(torch.clamp(b2[:, None, None] - u2 * u2, min=0.0))
-        out = q.new_zeros((d, width, width))
-        rows = h1.shape[0]
+        out = h1.new_zeros((d, width, width))
+        n = h1.shape[0]
         for i in range(d):
             m1, m2 = h1[:, :, i, :], h2[:, :, i, :]  # (n, P0, 2d)
             z = torch.stack([u1 * m1 + u2 * m2, v2 * m2], dim=2)  # (n, P0, 2, 2d)
-            z_flat = z.reshape(rows, p0, -1)
-            lz = (z @ noise_cov).reshape(rows, p0, -1)
+            z_flat = z.reshape(n, p0, -1)
+            lz = (z @ noise_cov).reshape(n, p0, -1)
             block = torch.einsum("skx,slx->kl", lz, z_flat)
             out[i, :p0, :p0] = factor * block
         return out

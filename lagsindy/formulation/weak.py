@@ -23,12 +23,78 @@ TIME_ORDER_MIN = 0.2
 TIME_ORDER_LAGS = (1, 2, 4, 8, 16, 32)
 
 
+# window="auto": the first window tried (samples), at most this many windows (each
+# 2 w - 1 after the previous), each applying to at least this fraction of the
+# samples the first one uses.
+WINDOW_FIRST = 81
+WINDOW_RUNGS = 4
+WINDOW_COVERAGE = 0.9
+# window="auto" keeps a window when the next one changes the coefficients by at most
+# this (white noise: below 0.5 % on the paper's systems; the cart-pendulum with noise
+# 1e-2 on positions and P-spline derivatives: 8 % from 81 to 161, 0.3 % from 161 to
+# 321; benchmarks/results/defaults.md).
+WINDOW_CHANGE = 0.03
+# Velocities whose white-noise level (relative to their spread) is above this carry
+# noise the correction handles, and window="auto" keeps the first window (measured
+# on the cart-pendulum: 6e-4 to 2e-3 at noise 1e-3 on q, qd; 2e-6 for P-spline
+# derivatives
+# and for noise-free data; 6e-3 to 0.16 for Savitzky-Golay derivatives, on which 81
+# samples are as good as longer windows).
+WHITE_VELOCITY = 1e-4
+# noise_cov="auto" skips the correction when every channel's estimated white-noise
+# level is at most this fraction of its spread (noise-free and spline-smoothed data:
+# 0 to 2e-5, the signal's own fourth differences; the correction would change the
+# Gram by about the square, 1e-8, less after the window's averaging).
+NEGLIGIBLE_NOISE = 1e-4
+
+
+class WindowWarning(UserWarning):
+    """The weak form's coefficients depend on the test-function window."""
+
+
 def window_stride(window: int) -> int:
     """Samples between the starts of consecutive test-function windows."""
     return max(1, int(window) // 4)
 
 
-def weak_gram(operator, Xt, tau_t, groups, *, window, dt=None, noise_cov="auto"):
+def window_ladder(lengths, n_dof, n_terms, first=WINDOW_FIRST):
+    """Windows ``window="auto"`` tries, smallest first.
+
+    ``first``, then ``2 w - 1`` while the longer window still applies to at least
+    ``WINDOW_COVERAGE`` of the samples the first one uses and leaves at least twice
+    as many windows times coordinates as candidate terms; at most ``WINDOW_RUNGS``.
+
+    Parameters
+    ----------
+    lengths : sequence of int
+        Samples per trajectory.
+    n_dof, n_terms : int
+    first : int
+
+    Returns
+    -------
+    list of int
+        Empty when no trajectory is ``first`` samples long.
+    """
+    lengths = np.asarray(lengths, dtype=np.int64)
+    base = lengths[lengths >= first].sum()
+    if base == 0:
+        return []
+    ladder, window = [first], first
+    while len(ladder) < WINDOW_RUNGS:
+        window = 2 * window - 1
+        usable = lengths[lengths >= window]
+        stride = window_stride(window)
+        n_windows = int(((usable - window) // stride + 1).sum()) if usable.size else 0
+        if usable.sum() < WINDOW_COVERAGE * base or n_windows * n_dof < 2 * n_terms:
+            break
+        ladder.append(window)
+    return ladder
+
+
+def weak_gram(
+    operator, Xt, tau_t, groups, *, window, dt=None, noise_cov="auto", extra=None
+):
     """Weak-form Gram statistics of ``operator`` on time-ordered trajectories.
 
     Parameters
@@ -38,21 +104,26 @@ def weak_gram(operator, Xt, tau_t, groups, *, window, dt=None, noise_cov="auto")
     tau_t : Tensor of shape (n_samples, n_dof) or None
     groups : array-like of shape (n_samples,) or None
         Trajectory labels; ``None``: one record, split where the positions jump.
-    window : int
-        Samples per test function.
+    window : int or "auto"
+        Samples per test function; ``"auto"``: the statistics of every window of
+        :func:`window_ladder`, for the caller to choose among.
     dt : float or None
         Sampling interval; ``None`` estimates it.
     noise_cov : "auto", array-like of shape (2 * n_dof, 2 * n_dof) or None
         Noise covariance of ``[q, q_dot]`` to correct for.
+    extra : Tensor of shape (n_samples, n_dof, n_extra), optional
+        Further per-sample integrands (see ``EulerLagrangeOperator.weak_grams``).
 
     Returns
     -------
-    gram : Tensor of shape (n_dof, P, P)
-    n_windows : int
+    grams : list of (window, build)
+        ``build()`` returns ``(gram, n_windows)``, ``gram`` a Tensor of shape
+        (n_dof, P, P) (summed when asked for); one entry unless ``window="auto"``.
     dt : float
         The sampling interval used.
     cov : ndarray or None
-        The noise covariance used.
+        The noise covariance whose effect is subtracted (``None``: no correction,
+        also when the estimated noise is negligible).
 
     Raises
     ------
@@ -81,12 +152,13 @@ def weak_gram(operator, Xt, tau_t, groups, *, window, dt=None, noise_cov="auto")
     if groups is not None:  # never integrate across a gap inside a trajectory
         parts = [to_numpy(s) for s in segments]
         check_weak_form_segments(to_numpy(Xt), d, parts, dt)
-    window = int(window)
-    usable = [s for s in segments if len(s) >= window]
+    auto = isinstance(window, str)
+    first = WINDOW_FIRST if auto else int(window)
+    usable = [s for s in segments if len(s) >= first]
     if not usable:
         longest = max(len(s) for s in segments)
         raise ValueError(
-            f"no trajectory is as long as window={window} samples (the longest has "
+            f"no trajectory is as long as window={first} samples (the longest has "
             f"{longest}); lower window or record longer trajectories"
         )
     order = check_time_order(Xt, d, usable)
@@ -109,22 +181,63 @@ def weak_gram(operator, Xt, tau_t, groups, *, window, dt=None, noise_cov="auto")
                 f"noise_cov must have shape ({2 * d}, {2 * d}) for [q, q_dot], got "
                 f"{tuple(cov.shape)}"
             )
-    gram, n_windows = operator.weak_gram(
-        Xt,
-        tau_t,
-        usable,
-        window=window,
-        stride=window_stride(window),
-        dt=float(dt),
-        noise_cov=cov,
-    )
-    if n_windows * d < operator.n_terms:
+    windows = [first]
+    if auto and not white_velocities(Xt, usable, d):
+        windows = window_ladder([len(s) for s in usable], d, operator.n_terms, first)
+    by_window = {w: [s for s in usable if len(s) >= w] for w in windows}
+    # Windows per rung, known before any sum: (len - w) // stride + 1 per segment.
+    counts = {
+        w: sum((len(s) - w) // window_stride(w) + 1 for s in by_window[w])
+        for w in windows
+    }
+    if counts[first] * d < operator.n_terms:
         raise ValueError(
-            f"too few windows: {n_windows} window(s) x {d} coordinate(s) for "
+            f"too few windows: {counts[first]} window(s) x {d} coordinate(s) for "
             f"{operator.n_terms} candidate terms; lower window or record "
             "more data"
         )
-    return gram, n_windows, float(dt), None if cov is None else to_numpy(cov)
+    windows = [w for w in windows if counts[w] * d >= operator.n_terms]
+    # An estimated noise level far below the signal (noise-free or spline-smoothed
+    # data) changes the Gram by about its square, 1e-8 relative: not worth its cost.
+    applied = cov
+    if isinstance(noise_cov, str) and cov is not None:
+        rows = torch.cat(usable)
+        spread = Xt[rows, : 2 * d].std(dim=0)
+        if bool((torch.sqrt(torch.diagonal(cov)) <= NEGLIGIBLE_NOISE * spread).all()):
+            applied = None
+    builders = operator.weak_grams(
+        Xt,
+        tau_t,
+        {w: by_window[w] for w in windows},
+        strides={w: window_stride(w) for w in windows},
+        dt=float(dt),
+        noise_cov=applied,
+        extra=extra,
+        lazy=True,
+    )
+    grams = [(w, builders[w]) for w in windows]
+    return grams, float(dt), None if applied is None else to_numpy(applied)
+
+
+def white_velocities(X: torch.Tensor, segments, n_dof: int) -> bool:
+    """Whether every velocity carries white noise the noise correction sees.
+
+    True when the white-noise level of each velocity channel (fourth differences,
+    :func:`estimate_noise_covariance`) is above ``WHITE_VELOCITY`` of the channel's
+    spread: measured velocities, or a short filter's. Velocities differentiated
+    from a smoothing spline (or noise-free ones) have almost none (1e-6 of their
+    spread, against 6e-4 or more at noise 1e-3 on measured velocities): their errors, if
+    any, are smooth in time, which ``window="auto"`` checks for.
+    """
+    parts = [X[seg, n_dof : 2 * n_dof] for seg in segments if len(seg) > 4]
+    if not parts:
+        return False
+    qd = torch.cat(parts)
+    level = torch.sqrt(
+        torch.cat([torch.diff(p, n=4, dim=0) for p in parts]).pow(2).mean(0) / 70.0
+    )
+    spread = qd.std(dim=0)
+    return bool((level > WHITE_VELOCITY * spread).all())
 
 
 def estimate_noise_covariance(X: torch.Tensor, segments, n_dof: int) -> torch.Tensor:
