@@ -23,6 +23,7 @@ from ..formulation.weak import (
     WINDOW_FIRST,
     estimate_noise_covariance,
     estimate_sampling_interval,
+    negligible_noise,
     trajectory_segments,
     window_stride,
 )
@@ -165,6 +166,8 @@ class _Statistics:
                 if not segs:
                     raise _NoWindows()
                 cov = estimate_noise_covariance(Xt, segs, d)
+                if negligible_noise(Xt, segs, cov):
+                    cov = None  # as the fit does (see weak.NEGLIGIBLE_NOISE)
                 g, noise, n_w = op.weak_gram(
                     Xt,
                     tau_t,

@@ -200,11 +200,8 @@ def weak_gram(
     # An estimated noise level far below the signal (noise-free or spline-smoothed
     # data) changes the Gram by about its square, 1e-8 relative: not worth its cost.
     applied = cov
-    if isinstance(noise_cov, str) and cov is not None:
-        rows = torch.cat(usable)
-        spread = Xt[rows, : 2 * d].std(dim=0)
-        if bool((torch.sqrt(torch.diagonal(cov)) <= NEGLIGIBLE_NOISE * spread).all()):
-            applied = None
+    if isinstance(noise_cov, str) and negligible_noise(Xt, usable, cov):
+        applied = None
     builders = operator.weak_grams(
         Xt,
         tau_t,
@@ -217,6 +214,16 @@ def weak_gram(
     )
     grams = [(w, builders[w]) for w in windows]
     return grams, float(dt), None if applied is None else to_numpy(applied)
+
+
+def negligible_noise(X: torch.Tensor, segments, cov: torch.Tensor) -> bool:
+    """Whether every channel's noise level in ``cov`` is at most ``NEGLIGIBLE_NOISE``
+    of the channel's spread over ``segments`` (then the correction is skipped)."""
+    if cov is None:
+        return True
+    rows = torch.cat(list(segments))
+    spread = X[rows, : cov.shape[0]].std(dim=0)
+    return bool((torch.sqrt(torch.diagonal(cov)) <= NEGLIGIBLE_NOISE * spread).all())
 
 
 def white_velocities(X: torch.Tensor, segments, n_dof: int) -> bool:
