@@ -359,7 +359,13 @@ def study(which: str, step: int, args):
     lines.append("### Conservative fits (case III, `fixed_term=None`)\n")
     for form, est in fits.items():
         lines.append(
-            f"- {form}: normalization `{est.normalization_}`; fit time "
+            f"- {form}: normalization `{est.normalization_}`"
+            + (
+                f"; test window {est.window_} samples (`window=\"auto\"`)"
+                if getattr(est, "window_", None)
+                else ""
+            )
+            + "; fit time "
             f"{times[form][0]:.1f} s wall / {times[form][1]:.1f} s CPU; "
             f"`{est.equation()}`"
         )
@@ -697,7 +703,8 @@ def main(argv=None):
         if which == "double" and sweep:
             bodies += (
                 "### Weak form at other test-function windows (conservative fit)\n\n"
-                "The default window is 81 samples (0.81 s); the table above is at 81.\n\n"
+                "The default, `window=\"auto\"`, chose the window named in the fit "
+                "lines above; here each row fixes the window.\n\n"
                 + window_sweep(step, sweep)
                 + "\n"
             )

@@ -10,6 +10,7 @@ Prediction, scoring and simulation delegate to that state.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from numbers import Integral, Real
 
@@ -24,13 +25,13 @@ from sklearn.utils.validation import check_is_fitted
 from . import _validation as val
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .cases import Problem, SparseSolve, solve_case
-from .formulation import WindowWarning, feature_operator, gram_statistics
+from .formulation import feature_operator, gram_statistics
 from .formulation.scaling import (
     BalancedGram,
     IdentifiabilityWarning,  # noqa: F401 - its 0.1 import path
     warn_if_not_identifiable,
 )
-from .formulation.weak import WINDOW_CHANGE
+from .formulation.weak import choose_window
 from .library import CandidateLibrary
 from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 path
     MASS_BAD_FRACTION,
@@ -672,75 +673,20 @@ def _solve(case, problem):
 
 
 def _fit_windows(est, Xa, Xt, tau, tau_t, library, diss, groups, case):
-    """Statistics and solution, the window chosen by `_solve_choosing_window`."""
+    """Statistics and solution, the window chosen by :func:`choose_window`."""
     ladder = _statistics(est, Xt, tau_t, library, diss, groups, case)
-    return _solve_choosing_window(
-        ladder,
-        lambda st: _solve(case, _problem(est, st, library, diss, Xa, Xt, tau)),
-        verbose=est.verbose,
-    )
+    search = case == "fixed" and est.fixed_term is None
 
+    def solve(stats, like=None):
+        problem = _problem(est, stats, library, diss, Xa, Xt, tau)
+        if like is not None and search:  # confirm with the scale already chosen
+            scale = (
+                "mass" if like.normalization == "mass" else library.terms_[like.fixed]
+            )
+            problem = dataclasses.replace(problem, fixed_term=scale)
+        return _solve(case, problem)
 
-def window_change(a, b) -> float:
-    """Relative change between two coefficient vectors (``inf``: other terms)."""
-    if not np.array_equal(a != 0, b != 0):
-        return float("inf")
-    scale = max(np.linalg.norm(a), np.linalg.norm(b))
-    return float(np.linalg.norm(a - b) / scale) if scale > 0 else 0.0
-
-
-def _solve_choosing_window(ladder, solve, verbose=0):
-    """Solve on each window of ``ladder`` until the next window confirms the result.
-
-    ``ladder`` holds functions returning the Gram statistics of each window. The
-    first window whose solution the next one reproduces (:func:`window_change` at
-    most ``WINDOW_CHANGE``) is kept, with the warnings of its own solve. When no pair
-    agrees, the first window is kept and a :class:`WindowWarning` says how the
-    coefficients moved: a misspecified model (a missing term or effect) depends on
-    the weighting of the residual, so a longer window is no better there.
-
-    Returns
-    -------
-    stats : GramStatistics
-    solution : Solution
-    """
-    if len(ladder) == 1:
-        stats = ladder[0]()
-        return stats, solve(stats)
-    results, changes = [], []
-    for build in ladder:
-        stats = build()
-        if verbose:
-            print(f"[lagsindy] weak form, test window {stats.window} samples")
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            solution = solve(stats)
-        results.append((stats, solution, caught))
-        if len(results) >= 2:
-            changes.append(window_change(results[-2][1].coef, solution.coef))
-            if changes[-1] <= WINDOW_CHANGE:
-                break
-    settled = changes[-1] <= WINDOW_CHANGE
-    stats, solution, caught = results[-2] if settled else results[0]
-    if verbose:
-        print(f"[lagsindy] kept the test window of {stats.window} samples")
-    for w in caught:
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    if not settled:
-        sizes = ", ".join(str(r[0].window) for r in results)
-        moves = ", ".join("other terms" if np.isinf(c) else f"{c:.1%}" for c in changes)
-        warnings.warn(
-            "the weak form's coefficients depend on the test window: fits with "
-            f"windows of {sizes} samples differ step by step ({moves}); the "
-            f"{stats.window}-sample fit is kept. Either the model misses an effect "
-            "(a term, friction, an input delay: run lagsindy.diagnose), or the "
-            "derivatives carry smooth errors (estimated by smoothing) that bias "
-            "short windows: then record longer trajectories or pass a longer "
-            "window= and check that the coefficients settle.",
-            WindowWarning,
-            stacklevel=4,
-        )
-    return stats, solution
+    return choose_window(ladder, solve, search=search, verbose=est.verbose)
 
 
 def _problem(est, stats, library, diss, Xa, Xt, tau) -> Problem:

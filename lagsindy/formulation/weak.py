@@ -9,6 +9,8 @@ sampling interval and the noise covariance, and builds the weak Gram statistics.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import torch
 
@@ -375,3 +377,74 @@ def estimate_sampling_interval(X: torch.Tensor, n_dof: int, segments) -> float:
     cum = torch.cumsum(w[order], 0)
     k = int(torch.searchsorted(cum, cum[-1] / 2))
     return float(r[order][min(k, r.numel() - 1)])
+
+
+def window_change(a, b) -> float:
+    """Relative change between two coefficient vectors (``inf``: other terms)."""
+    if not np.array_equal(a != 0, b != 0):
+        return float("inf")
+    scale = max(np.linalg.norm(a), np.linalg.norm(b))
+    return float(np.linalg.norm(a - b) / scale) if scale > 0 else 0.0
+
+
+def choose_window(ladder, solve, *, search=False, verbose=0):
+    """Solve on each window of ``ladder`` until the next window confirms the result.
+
+    ``ladder`` holds functions returning the Gram statistics of each window;
+    ``solve(stats, like=None)`` solves on them (with ``like``, a previous solution,
+    in its scale: case III's search is not repeated to check a window, and runs
+    again only when the check moves on; ``search`` says so). The first window whose
+    solution the next one reproduces (:func:`window_change` at most
+    ``WINDOW_CHANGE``) is kept, with the warnings of its own solve. When no pair
+    agrees, the first window is kept and a :class:`WindowWarning` says how the
+    coefficients moved: a misspecified model (a missing term or effect) depends on
+    the weighting of the residual, so a longer window is no better there.
+
+    Returns
+    -------
+    stats : GramStatistics
+    solution : Solution
+    """
+
+    def recorded(stats, like=None):
+        if verbose:
+            print(f"[lagsindy] weak form, test window {stats.window} samples")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            solution = solve(stats, like)
+        return stats, solution, caught
+
+    if len(ladder) == 1:
+        stats = ladder[0]()
+        return stats, solve(stats)
+    current = recorded(ladder[0]())
+    results, changes = [current], []
+    for k, build in enumerate(ladder[1:], start=2):
+        check = recorded(build(), current[1])
+        changes.append(window_change(current[1].coef, check[1].coef))
+        if changes[-1] <= WINDOW_CHANGE:
+            break
+        results.append(check)
+        if k < len(ladder):  # the next window's own fit, to check against
+            current = recorded(check[0]) if search else check
+    settled = changes[-1] <= WINDOW_CHANGE
+    stats, solution, caught = current if settled else results[0]
+    if verbose:
+        print(f"[lagsindy] kept the test window of {stats.window} samples")
+    for w in caught:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    if not settled:
+        sizes = ", ".join(str(r[0].window) for r in results)
+        moves = ", ".join("other terms" if np.isinf(c) else f"{c:.1%}" for c in changes)
+        warnings.warn(
+            "the weak form's coefficients depend on the test window: fits with "
+            f"windows of {sizes} samples differ step by step ({moves}); the "
+            f"{stats.window}-sample fit is kept. Either the model misses an effect "
+            "(a term, friction, an input delay: run lagsindy.diagnose), or the "
+            "derivatives carry smooth errors (estimated by smoothing) that bias "
+            "short windows: then record longer trajectories or pass a longer "
+            "window= and check that the coefficients settle.",
+            WindowWarning,
+            stacklevel=4,
+        )
+    return stats, solution
