@@ -263,34 +263,35 @@ def _group_gram(fitted, Xa, tau, labels):
             grams.append(torch.einsum("sip,siq->ipq", tg, tg))
             rows.append(len(g))
         return torch.stack(grams), np.asarray(rows, dtype=np.int64)
-    grams, rows = [], []
-    for g in _group_rows(labels):
+    # Weak form: the integrands once for every trajectory (one evaluation), then
+    # each segment's statistics apart, summed per group.
+    window = int(fitted.window_)
+    groups = _group_rows(labels)
+    segments, owner = [], []
+    for k, g in enumerate(groups):
         idx = torch.as_tensor(g, device=device)
-        Xg = Xt[idx]
-        tg = None if tau_t is None else tau_t[idx]
-        window = int(fitted.window_)
-        segs = [
-            s for s in trajectory_segments(Xg, d, np.zeros(len(g))) if len(s) >= window
-        ]
-        if not segs:
-            grams.append(None)
-            rows.append(0)
-            continue
-        gram, n_win = operator.weak_gram(
-            Xg,
-            tg,
-            segs,
-            window=window,
-            stride=window_stride(window),
-            dt=float(fitted.dt_),
-            noise_cov=cov,
-            noise_rows=max(NOISE_ROWS, len(g)),
+        for s in trajectory_segments(Xt[idx], d, np.zeros(len(g))):
+            if len(s) >= window:
+                segments.append(idx[s])
+                owner.append(k)
+    if not segments:
+        raise ValueError(
+            f"no trajectory is as long as the fit's window ({window} samples)"
         )
-        grams.append(gram)
-        rows.append(n_win)
-    like = next(x for x in grams if x is not None)
-    grams = [torch.zeros_like(like) if x is None else x for x in grams]
-    return torch.stack(grams), np.asarray(rows, dtype=np.int64)
+    gram, n_win = operator.weak_grams(
+        Xt,
+        tau_t,
+        {window: segments},
+        strides={window: window_stride(window)},
+        dt=float(fitted.dt_),
+        noise_cov=cov,
+        per_segment=True,
+    )[window]
+    owner = torch.as_tensor(owner, device=device)
+    out = gram.new_zeros((len(groups), *gram.shape[1:]))
+    out.index_add_(0, owner, gram)
+    rows = np.bincount(owner.cpu().numpy(), weights=n_win, minlength=len(groups))
+    return out, rows.astype(np.int64)
 
 
 def _group_rows(labels):

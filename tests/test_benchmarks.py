@@ -342,11 +342,25 @@ def test_defaults_tiny(tiny_results):
     text = (tiny_results / "defaults_quick.md").read_text()
     _check_header(text)
     rows = [line for line in text.splitlines() if line.startswith("| cart_pendulum")]
-    assert "| defaults (weak, window 81) |" in rows[0] and "| strong (strong) |" in rows[1]
+    assert (
+        "| defaults (weak, window 81) |" in rows[0] and "| strong (strong) |" in rows[1]
+    )
     # the verdict line states the target and whether it was met
     assert "target 1 %: largest coefficient error (norm)" in text
     assert "target 3 %: largest coefficient error (norm)" in text
     assert "## 3. The test-function window" in text
+
+
+def test_bootstrap_cost_tiny(tiny_results):
+    from benchmarks import bootstrap_cost
+
+    bootstrap_cost.main([])
+    text = (tiny_results / "bootstrap_cost_quick.md").read_text()
+    _check_header(text)
+    rows = [line for line in text.splitlines() if line.startswith("| default")]
+    rows += [line for line in text.splitlines() if line.startswith("| strong")]
+    assert rows[0].startswith("| default (weak) |") and len(rows) == 2
+    assert all(float(r.split("**")[1].rstrip("x")) > 0 for r in rows)
 
 
 def test_quick_runner_skips_what_needs_optional_things(monkeypatch, capsys):

@@ -433,6 +433,7 @@ class EulerLagrangeOperator:
         extra: torch.Tensor | None = None,
         return_noise: bool = False,
         lazy: bool = False,
+        per_segment: bool = False,
     ) -> dict:
         """:meth:`weak_gram` for several windows from one evaluation of the integrands.
 
@@ -452,6 +453,11 @@ class EulerLagrangeOperator:
             Return, per window, a function of no arguments that sums the statistics
             when called (the shared integrands are evaluated now), so that windows
             never asked for cost nothing more.
+        per_segment : bool, default=False
+            Keep each segment's statistics apart: ``gram`` (and ``noise``) get a
+            leading axis over the window's segments and ``n_windows`` is an array
+            (what a bootstrap over trajectories resamples). The noise part is then
+            summed over every sample (``noise_rows`` is not used).
 
         Returns
         -------
@@ -492,31 +498,44 @@ class EulerLagrangeOperator:
             start += len(seg)
         sens = None
         if noise_cov is not None:
-            sens = self._noise_sensitivities(q, qd, noise_rows)
+            rows = order.shape[0] if per_segment else noise_rows
+            sens = self._noise_sensitivities(q, qd, rows)
 
         def build(window):
             stride = int(strides[window])
             psi, dpsi = (k.to(X) for k in bump_function(window, dt))
-            gram = X.new_zeros((d, width, width))
-            n_windows = 0
+            grams, counts, slices = [], [], []
             weights = [X.new_zeros(order.shape[0]) for _ in range(3)]
             for seg in segments_by_window[window]:
                 first, n = offsets[int(seg[0])]
                 sl = slice(first, first + n)
+                slices.append(sl)
                 cols = -dt * (
                     _correlate(a_int[sl], dpsi, stride)
                     + _correlate(b_int[sl], psi, stride)
                 )
-                n_windows += cols.shape[0]
-                gram += torch.einsum("wip,wiq->ipq", cols, cols)
+                counts.append(cols.shape[0])
+                grams.append(torch.einsum("wip,wiq->ipq", cols, cols))
                 if sens is not None:
                     for acc, w in zip(
                         weights, _window_weights(n, -dt * dpsi, -dt * psi, stride)
                     ):
                         acc[sl] = w
+            if per_segment:
+                gram = (
+                    torch.stack(grams) if grams else X.new_zeros((0, d, width, width))
+                )
+                n_windows = np.asarray(counts, dtype=np.int64)
+            else:
+                gram = X.new_zeros((d, width, width))
+                for g in grams:
+                    gram += g
+                n_windows = sum(counts)
             noise = torch.zeros_like(gram)
             if sens is not None:
-                noise = self._noise_block(sens, weights, noise_cov, width)
+                noise = self._noise_block(
+                    sens, weights, noise_cov, width, slices if per_segment else None
+                )
             return (
                 (gram, noise, n_windows) if return_noise else (gram - noise, n_windows)
             )
@@ -557,8 +576,12 @@ class EulerLagrangeOperator:
             h2_parts.append(jac)
         return rows, factor, torch.cat(h1_parts, dim=1), torch.cat(h2_parts, dim=1)
 
-    def _noise_block(self, sens, weights, noise_cov, width):
-        """First-order noise contribution to the weak Gram (see :meth:`weak_gram`)."""
+    def _noise_block(self, sens, weights, noise_cov, width, slices=None):
+        """First-order noise contribution to the weak Gram (see :meth:`weak_gram`).
+
+        With ``slices`` (row ranges, every row sampled): one contribution per range,
+        stacked on a leading axis.
+        """
         d = self.n_dof
         rows, factor, h1, h2 = sens
         a2, ab, b2 = weights
@@ -576,16 +599,18 @@ class EulerLagrangeOperator:
         u1 = torch.sqrt(a2)[:, None, None]
         u2 = torch.where(pos, ab / root, torch.zeros_like(a2))[:, None, None]
         v2 = torch.sqrt(torch.clamp(b2[:, None, None] - u2 * u2, min=0.0))
-        out = h1.new_zeros((d, width, width))
         n = h1.shape[0]
+        parts = [slice(0, n)] if slices is None else slices
+        out = h1.new_zeros((len(parts), d, width, width))
         for i in range(d):
             m1, m2 = h1[:, :, i, :], h2[:, :, i, :]  # (n, P0, 2d)
             z = torch.stack([u1 * m1 + u2 * m2, v2 * m2], dim=2)  # (n, P0, 2, 2d)
             z_flat = z.reshape(n, p0, -1)
             lz = (z @ noise_cov).reshape(n, p0, -1)
-            block = torch.einsum("skx,slx->kl", lz, z_flat)
-            out[i, :p0, :p0] = factor * block
-        return out
+            for j, sl in enumerate(parts):
+                block = torch.einsum("skx,slx->kl", lz[sl], z_flat[sl])
+                out[j, i, :p0, :p0] = factor * block
+        return out[0] if slices is None else out
 
 
 def forward_accelerations(
