@@ -117,6 +117,7 @@ def test_paper_entries_parse_and_mark_their_extra_terms():
     assert "phi_dot**2*sin(theta)*cos(theta)" in res["extra"]
 
 
+@pytest.mark.slow  # 9 s; `python -m benchmarks --quick` runs the script too
 def test_paper_tables_tiny(tiny_results):
     paper_tables.main(["--quick", "--systems", "cart_pendulum"])
     text = (tiny_results / "paper_tables_quick.md").read_text()
@@ -307,6 +308,7 @@ def test_case2_tiny(tiny_results):
     assert "| yes |" in row  # noise-free single pendulum: case II finds the structure
 
 
+@pytest.mark.slow  # 12 s; `python -m benchmarks --quick` runs the script too
 def test_robustness_tiny(tiny_results):
     from benchmarks import robustness
 
