@@ -25,12 +25,14 @@ _EXPORTS = {
     "LibraryBaggingLagrangianSINDy": "uncertainty",
     "MechanicalModel": "dynamics",
     "SingularMassMatrixError": "dynamics",
+    "Refinement": "refine",
     "WindowWarning": "formulation",
     "bootstrap": "uncertainty",
     "derivatives": "differentiation",
     "diagnose": "diagnostics",
     "estimate_delay": "delay",
     "load_model": "io",
+    "refine": "refine",
     "rollout_error": "dynamics",
     "save_model": "io",
     "shift_input": "delay",
@@ -61,6 +63,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .estimator import LagrangianSINDy
     from .io import load_model, save_model
     from .library import CandidateLibrary
+    from .refine import Refinement, refine
     from .uncertainty import (
         BootstrapReport,
         LibraryBaggingLagrangianSINDy,

@@ -1,0 +1,560 @@
+"""Refine a fitted model's coefficients by the error of its rollouts.
+
+A sparse fit minimises the residual of the Euler-Lagrange equations at the samples
+(equation error). Its coefficients carry the errors of the estimated derivatives and
+of every effect the model leaves out, and small coefficient errors grow along a
+simulated trajectory. :func:`refine` keeps the structure the fit chose and adjusts its
+nonzero coefficients so that the model, integrated from the measured state at the
+start of many short windows, follows the measured positions (output error, or
+multiple shooting with the initial states held at their estimates).
+
+The integration is a fixed-step classical Runge-Kutta scheme on the sample grid
+(``substeps`` steps per sample), evaluated for all windows and all finite-difference
+perturbations of the coefficients at once, so one Gauss-Newton iteration costs one
+batched integration. Passive data fix a Lagrangian only up to a factor: one
+coefficient (the fit's fixed term, else the largest) is held, the others move.
+Dissipation coefficients stay non-negative.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import warnings
+from numbers import Integral
+
+import numpy as np
+import sympy as sp
+import torch
+from scipy.optimize import least_squares
+from sklearn.exceptions import ConvergenceWarning
+from sklearn.utils.validation import check_is_fitted
+
+from . import _validation as val
+from ._expr import symbols_for
+from ._torch import resolve_dtype
+from .formulation.weak import _jumps, estimate_sampling_interval, trajectory_segments
+
+# A coefficient that moves by more than this (relative) is reported: the equation
+# error and the rollouts then disagree about the model, which a missing effect or
+# biased derivatives explain more often than the refinement's own error.
+LARGE_CHANGE = 0.2
+# The rollout error must exceed the integrator's own error (estimated by halving the
+# step) by this factor, else the refinement would fit the discretisation.
+INTEGRATOR_MARGIN = 10.0
+# ...unless it is below this fraction of the positions' spread (an exact model on
+# noise-free data, where the integrator's error is all that is left and harmless).
+NEGLIGIBLE_ERROR = 1e-5
+# Residual of a window whose integration failed (singular mass matrix, overflow),
+# in units of each coordinate's spread: large and finite, so the solver backs off.
+FAILED_RESIDUAL = 10.0
+
+
+@dataclasses.dataclass
+class Refinement:
+    """What :func:`refine` did (``est.refinement_``).
+
+    Attributes
+    ----------
+    horizon, stride, substeps : int
+        Window length and spacing in samples; integration steps per sample.
+    n_windows : int
+    rmse_before, rmse_after : float
+        Weighted root mean square of the position errors over the windows' samples
+        (in the data's units with the default equal weights).
+    n_iter : int
+        Batched integrations (each gives the residuals and their Jacobian).
+    converged : bool
+    held : str or None
+        The term held fixed (passive models), else ``None``.
+    changes : dict
+        Relative change of every refined coefficient, by feature name.
+    integrator_error : float
+        Estimated error of the fixed-step integration of the refined model, in the
+        units of ``rmse_after``.
+    """
+
+    horizon: int
+    stride: int
+    substeps: int
+    n_windows: int
+    rmse_before: float
+    rmse_after: float
+    n_iter: int
+    converged: bool
+    held: str | None
+    changes: dict
+    integrator_error: float
+
+    def __str__(self) -> str:
+        worst = max(self.changes.items(), key=lambda kv: abs(kv[1]), default=None)
+        move = (
+            f"; largest change {worst[0]} {100 * worst[1]:+.1f} %" if worst else ""
+        )
+        return (
+            f"rollout refinement over {self.n_windows} windows of {self.horizon} "
+            f"samples: RMSE {self.rmse_before:.4g} -> {self.rmse_after:.4g} "
+            f"({self.n_iter} integrations){move}"
+        )
+
+
+class _Dynamics:
+    """Per-term Euler-Lagrange parts as one numpy function of the state.
+
+    For Lagrangian terms, ``M_k = d2 phi_k / dqd2`` and
+    ``h_k = (d2 phi_k / dqd dq) qd - d phi_k / dq``; for force terms ``M_k = 0`` and
+    ``h_k = -Q_k``. The model ``sum_k c_k phi_k`` then has
+    ``M(c) qdd + h(c) = tau``. One sympy derivation and one vectorised function (with
+    common subexpressions shared) serve every coefficient vector.
+    """
+
+    def __init__(self, coordinates, terms, forces):
+        q, qd, _ = symbols_for(coordinates)
+        d = len(q)
+        mass, rest = [], []
+        for phi in terms:
+            grad_v = [sp.diff(phi, v) for v in qd]
+            mass.append([sp.diff(g, v) for g in grad_v for v in qd])
+            rest.append(
+                [
+                    sum(sp.diff(grad_v[i], q[j]) * qd[j] for j in range(d))
+                    - sp.diff(phi, q[i])
+                    for i in range(d)
+                ]
+            )
+        for force in forces:
+            rest.append([-f for f in force])
+        self.n_dof, self.n_lagrangian, self.n_terms = d, len(terms), len(rest)
+        flat = [e for row in mass for e in row] + [e for row in rest for e in row]
+        self._n_out = len(flat)
+        # Constant entries (most of them zero) are set once; only the others are
+        # evaluated, by one function that shares their common subexpressions.
+        self._varying = [i for i, e in enumerate(flat) if e.free_symbols]
+        self._constants = np.array(
+            [0.0 if e.free_symbols else float(e) for e in flat], dtype=float
+        )
+        self._fn = sp.lambdify(
+            [*q, *qd], [flat[i] for i in self._varying], modules="numpy", cse=True
+        )
+
+    def parts(self, q, qd):
+        """``M`` (S, n_lagrangian, d, d) and ``h`` (S, n_terms, d)."""
+        s, d = q.shape[0], self.n_dof
+        values = np.tile(self._constants, (s, 1))
+        if self._varying:
+            values[:, self._varying] = np.column_stack(self._fn(*q.T, *qd.T))
+        k = self.n_lagrangian * d * d
+        return (
+            values[:, :k].reshape(s, self.n_lagrangian, d, d),
+            values[:, k:].reshape(s, self.n_terms, d),
+        )
+
+
+class _Rollouts:
+    """Fixed-step Runge-Kutta integration of many windows and coefficient vectors."""
+
+    def __init__(self, dynamics, x0, tau_nodes, horizon, dt, substeps):
+        self.dyn, self.d = dynamics, dynamics.n_dof
+        self.x0 = x0  # (B, 2d)
+        self.tau_nodes = tau_nodes  # (B, horizon + 1, d) or None
+        self.horizon, self.substeps = horizon, substeps
+        self.h = dt / substeps
+
+    def _acc(self, q, qd, coef_rows, tau):
+        mass, rest = self.dyn.parts(q, qd)
+        n_lag = self.dyn.n_lagrangian
+        mc = np.einsum("skij,sk->sij", mass, coef_rows[:, :n_lag])
+        h = np.einsum("ski,sk->si", rest, coef_rows)
+        rhs = -h if tau is None else tau - h
+        with np.errstate(all="ignore"):
+            try:
+                return np.linalg.solve(mc, rhs[..., None])[..., 0]
+            except np.linalg.LinAlgError:  # a singular matrix: solve row by row
+                out = np.full_like(rhs, np.nan)
+                for i in range(rhs.shape[0]):
+                    try:
+                        out[i] = np.linalg.solve(mc[i], rhs[i])
+                    except np.linalg.LinAlgError:
+                        pass
+                return out
+
+    def _tau(self, k, frac, repeats):
+        if self.tau_nodes is None:
+            return None
+        a, b = self.tau_nodes[:, k], self.tau_nodes[:, min(k + 1, self.horizon)]
+        return np.tile((1 - frac) * a + frac * b, (repeats, 1))
+
+    def positions(self, coefs):
+        """Positions ``(P, B, horizon + 1, d)`` for coefficient vectors ``(P, K)``."""
+        P, B, d = coefs.shape[0], self.x0.shape[0], self.d
+        rows = np.repeat(coefs, B, axis=0)  # (P * B, K)
+        q = np.tile(self.x0[:, :d], (P, 1))
+        qd = np.tile(self.x0[:, d:], (P, 1))
+        out = np.empty((self.horizon + 1, P * B, d))
+        out[0] = q
+        h, n = self.h, self.substeps
+        for k in range(self.horizon):
+            for j in range(n):
+                t0, t1, t2 = (
+                    self._tau(k, j / n, P),
+                    self._tau(k, (j + 0.5) / n, P),
+                    self._tau(k, (j + 1) / n, P),
+                )
+                a1 = self._acc(q, qd, rows, t0)
+                v2 = qd + 0.5 * h * a1
+                a2 = self._acc(q + 0.5 * h * qd, v2, rows, t1)
+                v3 = qd + 0.5 * h * a2
+                a3 = self._acc(q + 0.5 * h * v2, v3, rows, t1)
+                v4 = qd + h * a3
+                a4 = self._acc(q + h * v3, v4, rows, t2)
+                q = q + h / 6 * (qd + 2 * v2 + 2 * v3 + v4)
+                qd = qd + h / 6 * (a1 + 2 * a2 + 2 * a3 + a4)
+            out[k + 1] = q
+        return out.transpose(1, 0, 2).reshape(P, B, self.horizon + 1, d)
+
+
+def _scale(weights, q):
+    """Divisor of each coordinate's position error."""
+    d = q.shape[1]
+    if weights is None:
+        return np.ones(d)
+    if isinstance(weights, str):
+        if weights != "std":
+            raise ValueError(f'weights must be None, "std" or {d} numbers, got {weights!r}')
+        spread = q.std(axis=0)
+        return np.where(spread > 0, spread, 1.0)
+    w = np.asarray(weights, dtype=float)
+    if w.shape != (d,) or not np.all(np.isfinite(w)) or np.any(w <= 0):
+        raise ValueError(f"weights must be {d} positive numbers, got {weights!r}")
+    return 1.0 / w
+
+
+def _windows(segments, horizon, stride):
+    starts = []
+    for seg in segments:
+        seg = np.asarray(seg)
+        if seg.size < horizon + 1:
+            continue
+        for s in range(0, seg.size - horizon, stride):
+            starts.append(seg[s : s + horizon + 1])
+    return starts
+
+
+def _split_at_gaps(segments, t, dt):
+    out = []
+    for seg in segments:
+        seg = np.asarray(seg)
+        steps = np.diff(t[seg])
+        if np.any(steps <= 0):
+            raise ValueError("t must increase within each trajectory (group)")
+        cuts = np.flatnonzero(np.abs(steps - dt) > 0.01 * dt) + 1
+        out.extend(p for p in np.split(seg, cuts) if p.size)
+    return out
+
+
+def refine(
+    est,
+    X,
+    tau=None,
+    *,
+    groups=None,
+    t=None,
+    horizon=100,
+    stride=None,
+    weights=None,
+    substeps=1,
+    max_iter=30,
+    tol=1e-6,
+    verbose=0,
+):
+    r"""Adjust a fitted model's coefficients to the error of its rollouts.
+
+    The learned structure is kept; its nonzero coefficients are moved so that the
+    model, integrated from the measured state at the start of each window of
+    ``horizon`` samples, follows the measured positions (least squares over every
+    window and sample, each coordinate in units of its standard deviation over the
+    data; Gauss-Newton with a trust region, :func:`scipy.optimize.least_squares`).
+    This is the output-error (simulation-error) refinement of system identification:
+    the sparse fit gives the structure and a start near the optimum, the refinement
+    removes the bias that derivative errors and smoothing leave in equation-error
+    coefficients, as seen from what users do with a model (simulate it).
+
+    Parameters
+    ----------
+    est : LagrangianSINDy
+        A fitted estimator (not changed: a refined copy is returned).
+    X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+        The states ``[q, q_dot, q_ddot]`` (the accelerations are not used), sampled
+        uniformly within each trajectory; usually the data of the fit.
+    tau : array-like of shape (n_samples, n_dof), default=None
+        Generalized forces at the rows of ``X``; required when the model was fitted
+        with forces (case I), linearly interpolated between samples.
+    groups : array-like of shape (n_samples,), default=None
+        Trajectory label of each row. Without it, trajectories are split where the
+        positions jump (as in the fit).
+    t : array-like of shape (n_samples,), default=None
+        Sample times. With it, windows never span a gap (a step that differs from the
+        sampling interval by more than 1 %). Without it, the sampling interval is the
+        fit's ``dt_`` (or estimated from ``q`` and ``q_dot``).
+    horizon : int, default=100
+        Window length in samples. Long windows weigh slow drifts (energy, phase)
+        but make the problem less convex for fast or chaotic motion.
+    stride : int, default=None
+        Samples between window starts; ``None``: ``horizon // 2``.
+    weights : None, "std" or array-like of shape (n_dof,), default=None
+        Weight of each coordinate's position error. ``None``: equal, in the data's
+        units (the RMS rollout error of :func:`lagsindy.rollout_error`); ``"std"``:
+        each coordinate in units of its standard deviation over the data (for
+        coordinates of different units and very different spreads).
+    substeps : int, default=1
+        Runge-Kutta steps per sample. A warning says when the integration error
+        (estimated with twice the steps) is not small against the rollout error.
+    max_iter : int, default=30
+        Most batched integrations.
+    tol : float, default=1e-6
+        Relative tolerance on the cost and the coefficients.
+    verbose : int, default=0
+
+    Returns
+    -------
+    LagrangianSINDy
+        A copy of ``est`` with the refined coefficients (``coef_``,
+        ``dissipation_coef_``, ``model_``...) and ``refinement_``
+        (:class:`Refinement`: windows, RMSE before and after, changes).
+
+    Warns
+    -----
+    ConvergenceWarning
+        When ``max_iter`` integrations end before the tolerance is met.
+    UserWarning
+        When a coefficient moves by more than 20 % (the rollouts and the equation
+        error disagree: often a missing effect, see :func:`lagsindy.diagnose`), or
+        when the fixed-step integration is too coarse for the sampling.
+
+    Notes
+    -----
+    The initial state of each window is the estimated ``[q, q_dot]`` at its first
+    sample, held fixed: noisy velocity estimates there add to the rollout error the
+    refinement sees. Rollouts of chaotic motion diverge from the data whatever the
+    model; keep ``horizon`` within the time over which a good model tracks.
+
+    Examples
+    --------
+    >>> refined = lagsindy.refine(est, X, groups=groups)      # doctest: +SKIP
+    >>> print(refined.refinement_)                            # doctest: +SKIP
+    """
+    check_is_fitted(est)
+    for name, value, low in (("horizon", horizon, 2), ("substeps", substeps, 1),
+                             ("max_iter", max_iter, 1)):
+        if not (isinstance(value, Integral) and value >= low):
+            raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
+    stride = horizon // 2 if stride is None else stride
+    if not (isinstance(stride, Integral) and stride >= 1):
+        raise ValueError(f"stride must be a positive integer, got {stride!r}")
+    fitted = est.fitted_
+    if not np.any(fitted.all_coef()):
+        raise ValueError("the learned model is zero: nothing to refine")
+    forced = fitted.case == "forces"
+    if forced and tau is None:
+        raise ValueError(
+            "the model was fitted with forces (case I): pass the forces tau of X"
+        )
+    if not forced and tau is not None:
+        raise ValueError(
+            "the model was fitted without forces (passive): refine it without tau"
+        )
+    Xa, tau_a, _ = val.validate_state(
+        est, X, reset=False, y=tau, coordinates=est.coordinates_
+    )
+    dtype = resolve_dtype(est.dtype)
+    d = fitted.n_dof
+    Xt = torch.as_tensor(np.array(Xa), dtype=dtype)
+    segments = [s.numpy() for s in trajectory_segments(Xt, d, groups, fitted.dt)]
+    if t is not None:
+        t = np.asarray(t, dtype=float).ravel()
+        if t.shape != (Xa.shape[0],):
+            raise ValueError(f"t must have one time per row of X ({Xa.shape[0]})")
+        steps = np.concatenate([np.diff(t[s]) for s in segments if s.size > 1])
+        dt = float(np.median(steps))
+        segments = _split_at_gaps(segments, t, dt)
+    else:
+        dt = (
+            float(fitted.dt)
+            if fitted.dt is not None
+            else estimate_sampling_interval(Xt, d, [torch.as_tensor(s) for s in segments])
+        )
+        # no times: split where the positions jump against the velocities (gaps)
+        segments = [
+            part
+            for seg in segments
+            if seg.size > 2
+            for part in np.split(
+                seg,
+                np.flatnonzero(
+                    _jumps(Xt[seg, :d], Xt[seg, d : 2 * d], dt).numpy()
+                ) + 1,
+            )
+            if part.size
+        ]
+    wins = _windows(segments, horizon, stride)
+    if not wins:
+        raise ValueError(
+            f"no trajectory has {horizon + 1} samples without a gap: lower horizon"
+        )
+    idx = np.stack(wins)  # (B, horizon + 1)
+    all_coef = fitted.all_coef()
+    support = np.flatnonzero(all_coef)
+    names = [str(n) for n in fitted.feature_names[support]]
+    n_lag = int(np.count_nonzero(fitted.coef))
+    p_lag = fitted.coef.size
+    dynamics = _Dynamics(
+        fitted.coordinates,
+        [fitted.terms[k] for k in support[:n_lag]],
+        [fitted.dissipation_terms[k - p_lag].forces for k in support[n_lag:]],
+    )
+    c0 = all_coef[support].astype(float)
+
+    held = None
+    free = np.arange(support.size)
+    if not forced:
+        lag_names = names[:n_lag]
+        k = (
+            lag_names.index(fitted.fixed_term)
+            if fitted.fixed_term in lag_names
+            else int(np.argmax(np.abs(c0[:n_lag])))
+        )
+        held = names[k]
+        free = np.delete(free, k)
+    if free.size == 0:
+        raise ValueError("the model has a single term: nothing to refine")
+
+    x0 = Xa[idx[:, 0], : 2 * d]
+    measured = Xa[idx, :d]  # (B, horizon + 1, d)
+    scale = _scale(weights, Xa[:, :d])
+    spread = float(np.sqrt(np.mean((Xa[:, :d] - Xa[:, :d].mean(axis=0)) ** 2 / scale**2)))
+    tau_nodes = None
+    if forced:
+        tau_nodes = np.asarray(tau_a, dtype=float)[idx]
+
+    def rollouts(steps):
+        return _Rollouts(dynamics, x0, tau_nodes, horizon, dt, steps)
+
+    sim = rollouts(substeps)
+    n_res = measured[:, 1:].size
+
+    def residuals(positions):
+        diff = (positions[..., 1:, :] - measured[None, :, 1:]) / scale
+        diff = np.where(np.isfinite(diff), diff, FAILED_RESIDUAL)
+        return diff.reshape(positions.shape[0], -1) / np.sqrt(n_res)
+
+    bounds_low = np.where(free >= n_lag, 0.0, -np.inf)
+    x_start = c0[free]
+    steps_fd = 1e-6 * np.maximum(np.abs(x_start), 1e-3 * np.abs(c0).max())
+    cache = {}
+
+    def evaluate(x):
+        key = x.tobytes()
+        if key not in cache:
+            cache.clear()
+            coefs = np.repeat(c0[None], free.size + 1, axis=0)
+            coefs[:, free] = x
+            coefs[np.arange(1, free.size + 1), free] += steps_fd
+            pos = sim.positions(coefs)
+            r = residuals(pos)
+            failed.append(not np.all(np.isfinite(pos[0])))
+            jac = (r[1:] - r[0]) / steps_fd[:, None]
+            cache[key] = (r[0], jac.T)
+            if verbose:
+                print(f"[refine] integration {len(calls) + 1}: RMSE "
+                      f"{np.sqrt(np.sum(r[0] ** 2)):.6g}", flush=True)
+            calls.append(key)
+        return cache[key]
+
+    calls, failed = [], []
+    r_start = evaluate(x_start)[0]
+    if failed[0]:
+        raise ValueError(
+            "the fitted model cannot be integrated over every window (singular mass "
+            "matrix or divergence): refine needs a model whose rollouts exist"
+        )
+    with np.errstate(all="ignore"):
+        result = least_squares(
+            lambda x: evaluate(x)[0],
+            x_start,
+            jac=lambda x: evaluate(x)[1],
+            bounds=(bounds_low, np.full(free.size, np.inf)),
+            x_scale=np.maximum(np.abs(x_start), 1e-3 * np.abs(c0).max()),
+            method="trf",
+            ftol=tol,
+            xtol=tol,
+            gtol=tol,
+            max_nfev=max_iter,
+        )
+    coef = c0.copy()
+    coef[free] = result.x
+    rmse_before = float(np.sqrt(np.sum(r_start**2)))
+    rmse_after = float(np.sqrt(np.sum(evaluate(result.x)[0] ** 2)))
+    if rmse_after > rmse_before:  # the trust region never accepts a worse point
+        coef, rmse_after = c0.copy(), rmse_before
+    finer = rollouts(2 * substeps).positions(coef[None])
+    coarse = sim.positions(coef[None])
+    integrator_error = float(
+        np.sqrt(np.mean(((finer - coarse)[..., 1:, :] / scale) ** 2))
+    )
+    changes = {
+        names[k]: float(coef[k] / c0[k] - 1) for k in free
+    }
+    converged = bool(result.status > 0)
+    if not converged:
+        warnings.warn(
+            f"refine stopped after {result.nfev} integrations before converging "
+            f"(rollout RMSE {rmse_before:.4g} -> {rmse_after:.4g}); raise max_iter",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    large = {k: v for k, v in changes.items() if abs(v) > LARGE_CHANGE}
+    if large:
+        listed = ", ".join(f"{k} {100 * v:+.0f} %" for k, v in large.items())
+        warnings.warn(
+            f"refine moved coefficients by more than {LARGE_CHANGE:.0%} ({listed}): "
+            "the rollouts and the equation-error fit disagree. A missing effect "
+            "(friction, damping: see lagsindy.diagnose) or biased derivative "
+            "estimates are the usual cause; do not read these terms as physical "
+            "parameters before checking.",
+            UserWarning,
+            stacklevel=2,
+        )
+    if (
+        integrator_error * INTEGRATOR_MARGIN > rmse_after
+        and integrator_error > NEGLIGIBLE_ERROR * spread
+    ):
+        warnings.warn(
+            f"the fixed-step integration error ({integrator_error:.3g}) is not small "
+            f"against the rollout error ({rmse_after:.3g}): raise substeps",
+            UserWarning,
+            stacklevel=2,
+        )
+
+    all_new = all_coef.astype(float).copy()
+    all_new[support] = coef
+    p = fitted.coef.size
+    new_fitted = dataclasses.replace(
+        fitted, coef=all_new[:p], dissipation_coef=all_new[p:]
+    )
+    new_fitted.mass_check = new_fitted.check_mass(Xt)
+    out = copy.deepcopy(est)
+    out._publish(new_fitted)
+    out.refinement_ = Refinement(
+        horizon=int(horizon),
+        stride=int(stride),
+        substeps=int(substeps),
+        n_windows=len(wins),
+        rmse_before=rmse_before,
+        rmse_after=rmse_after,
+        n_iter=len(calls),
+        converged=converged,
+        held=held,
+        changes=changes,
+        integrator_error=integrator_error,
+    )
+    return out
