@@ -275,6 +275,9 @@ def test_measured_tiny(tiny_results):
     row = next(line for line in lines if line.startswith("| `cos(phi)` |"))
     for cell in row.split("|")[3:5]:
         assert float(cell.split()[0]) == pytest.approx(truth["cos(phi)"], rel=0.005)
+    # The refined weak fit keeps the two terms (a row of the summary table).
+    row = next(line for line in lines if line.startswith("| single | refined |"))
+    assert row.split("|")[3].strip() == "2"
     # Diagnosis finds the joint's viscous damping and it improves the validation:
     # R^2 0.99986 -> 0.99995, median 5 s rollout 0.038 -> 0.013 rad (measured).
     row = next(
