@@ -382,6 +382,15 @@ def _fit(args) -> int:
             f"got {held_out}"
         )
     est, X, tau, inputs, elapsed = _fit_csv(args)
+    if args.refine is not None:
+        from ..refine import refine
+
+        if args.refine < 2:
+            raise CLIError(f"--refine needs a horizon of >= 2 samples, got {args.refine}")
+        _say(args, f"refining by rollouts of {args.refine} samples ...")
+        sparse = est
+        est = refine(est, X, tau, groups=args._groups, horizon=args.refine)
+        _say(args, str(est.refinement_))
     est.save(args.out)
     print(est.equation(args.precision))
     if args.quiet:  # nothing more is printed, so the held-out refit is skipped
@@ -402,7 +411,7 @@ def _fit(args) -> int:
     _say(args, "scoring on held-out data (a second fit on the rest) ...")
     try:
         score, held_target, where, seconds = _held_out_score(
-            est, X, tau, args._groups, held_out
+            sparse if args.refine is not None else est, X, tau, args._groups, held_out
         )
     except (ValueError, RuntimeError, FloatingPointError, np.linalg.LinAlgError) as e:
         _say(

@@ -374,6 +374,15 @@ def build_parser() -> argparse.ArgumentParser:
         "the rest (the saved model is the fit on all data); 0: no held-out score "
         "and no second fit (default: 0.2; skipped with --quiet)",
     )
+    fit.add_argument(
+        "--refine",
+        type=int,
+        default=None,
+        metavar="SAMPLES",
+        help="then refine the kept coefficients by the error of rollouts of SAMPLES "
+        "samples from the measured states (lagsindy.refine; the saved model is the "
+        "refined one, the held-out score is the sparse fit's)",
+    )
     _add_derivative_options(fit)
     fit.add_argument(
         "--quiet",
