@@ -47,9 +47,9 @@ def _compare_paths(est, X, tau, groups, n_check=3):
     Xa, tau_a, _ = validate_state(
         full, X, reset=False, y=tau, coordinates=full.coordinates_
     )
-    grams, rows = U._group_gram(full, Xa, tau_a, groups)
+    stats = U._group_gram(full, Xa, tau_a, groups)
     weak = full.formulation == "weak"
-    extra = {"dt": full.dt_, "noise_cov": full.noise_cov_} if weak else {}
+    extra = {"noise_cov": full.noise_cov_, "window": full.window_} if weak else {}
     base = U.clone(est).set_params(library=U.clone(full.library_), **extra)
     rows_of = U._group_rows(groups)
     rng = np.random.default_rng(1)
@@ -57,7 +57,7 @@ def _compare_paths(est, X, tau, groups, n_check=3):
     n_groups = len(rows_of)
     for _ in range(n_check):
         m = rng.multinomial(n_groups, np.full(n_groups, 1.0 / n_groups))
-        a = U._fast_resample(full, grams, rows, m, full.stages_[0].coef)
+        a = U._fast_resample(full, stats, m, full.stages_[0].coef)
         b = U._refit_resample(base, Xa, tau_a, rows_of, m, weak)
         assert np.array_equal(a != 0, b != 0)
         worst = max(worst, np.abs(a - b).max() / np.abs(b).max())
