@@ -362,6 +362,9 @@ def test_calibration_of_intervals_large(noise):
     coverage, inclusion = _calibration(
         n_draws=40, n_traj=12, n_resamples=100, noise=noise
     )
+    # measured: forces 0.850 (68 of 80 intervals, exactly at the target; the same
+    # with the code before the resamples estimated their own dt), states 0.925
+    # (74 of 80)
     assert coverage >= 0.85
     assert inclusion[:, :2].min() >= 0.9
     assert inclusion[:, 2:].mean(axis=0).max() <= 0.5
