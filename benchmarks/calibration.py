@@ -1,4 +1,4 @@
-"""Calibration of the bootstrap's intervals (issue 19): coverage of the true coefficients.
+"""Calibration of the bootstrap intervals (issue 19): coverage of the true values.
 
 Over repeated noise draws (each a fresh data set: initial states, inputs and noise
 from ``random_state=seed``), the forced cart-pendulum, 20 trajectories x 5 s
@@ -184,10 +184,10 @@ def main(argv=None):
     load = os.getloadavg()[0]
     text = header("Calibration of the bootstrap intervals (issue 19)")
     text += (
-        "Forced cart-pendulum (`excitation=\"sincos\"`), "
+        'Forced cart-pendulum (`excitation="sincos"`), '
         f"{n_traj} trajectories x {duration:g} s at 100 Hz, a fresh data set per "
         "draw (`random_state=seed`), paper library (39 terms), "
-        "`LagrangianSINDy(system.paper_library())` (weak form, `window=\"auto\"`), "
+        '`LagrangianSINDy(system.paper_library())` (weak form, `window="auto"`), '
         f"`bootstrap(..., n_resamples={n_resamples}, random_state=seed)`, 95 % "
         "intervals of the true terms. Coverage is the fraction of intervals that "
         "hold the true value (target: at least 0.85). Bias, spreads and widths are "

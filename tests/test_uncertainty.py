@@ -154,8 +154,16 @@ def test_batched_fista_follows_fista():
     nonneg[4] = True
     steps = lipschitz_steps(gram, mask)
     res = batched_fista(
-        gram, rhs, const, mask, lam, weights, steps, np.zeros((R, p)),
-        nonneg=nonneg, tol=1e-10,
+        gram,
+        rhs,
+        const,
+        mask,
+        lam,
+        weights,
+        steps,
+        np.zeros((R, p)),
+        nonneg=nonneg,
+        tol=1e-10,
     )
     assert res.converged.all() and not res.flagged.any()
     for r in range(R):

@@ -128,7 +128,9 @@ def batched_fista(
             with np.errstate(over="ignore", invalid="ignore"):
                 obj = _value(gram, rhs, const, w) + (lw * np.abs(w)).sum(axis=1)
             finite = np.isfinite(obj)
-            rise = ~finite | (obj > best_obj + 1e-10 * np.maximum(1.0, np.abs(best_obj)))
+            rise = ~finite | (
+                obj > best_obj + 1e-10 * np.maximum(1.0, np.abs(best_obj))
+            )
             rises = np.where(live & rise, rises + 1, np.where(live, 0, rises))
             bad = live & rise & (~finite | (rises >= 2))
             # fista's divergence guard: halve the step, restart from the best iterate
