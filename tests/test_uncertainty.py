@@ -47,9 +47,9 @@ def _compare_paths(est, X, tau, groups, n_check=3):
     Xa, tau_a, _ = validate_state(
         full, X, reset=False, y=tau, coordinates=full.coordinates_
     )
-    grams, rows = U._group_gram(full, Xa, tau_a, groups)
+    stats = U._group_gram(full, Xa, tau_a, groups)
     weak = full.formulation == "weak"
-    extra = {"dt": full.dt_, "noise_cov": full.noise_cov_} if weak else {}
+    extra = {"noise_cov": full.noise_cov_, "window": full.window_} if weak else {}
     base = U.clone(est).set_params(library=U.clone(full.library_), **extra)
     rows_of = U._group_rows(groups)
     rng = np.random.default_rng(1)
@@ -57,7 +57,7 @@ def _compare_paths(est, X, tau, groups, n_check=3):
     n_groups = len(rows_of)
     for _ in range(n_check):
         m = rng.multinomial(n_groups, np.full(n_groups, 1.0 / n_groups))
-        a = U._fast_resample(full, grams, rows, m, full.stages_[0].coef)
+        a = U._fast_resample(full, stats, m, full.stages_[0].coef)
         b = U._refit_resample(base, Xa, tau_a, rows_of, m, weak)
         assert np.array_equal(a != 0, b != 0)
         worst = max(worst, np.abs(a - b).max() / np.abs(b).max())
@@ -70,6 +70,112 @@ def test_fast_path_matches_full_refits_case_i(noisy_pendulum, formulation):
     est = LagrangianSINDy(single_pendulum().paper_library(), formulation=formulation)
     # measured: 5e-12 (strong), 6e-12 (weak), relative to the largest coefficient
     assert _compare_paths(est, d.X, d.tau, d.groups) < 1e-8
+
+
+def test_resamples_estimate_their_own_sampling_interval():
+    d = make_dataset(
+        single_pendulum(),
+        n_trajectories=10,
+        duration=2.0,
+        excitation="paper",
+        noise=0.02,
+        protocol="paper",
+        random_state=5,
+    )
+    est = LagrangianSINDy(_small_library(), formulation="weak")
+    full = U.clone(est).fit(d.X, d.tau, groups=d.groups)
+    Xa, tau_a, _ = validate_state(
+        full, d.X, reset=False, y=d.tau, coordinates=full.coordinates_
+    )
+    stats = U._group_gram(full, Xa, tau_a, d.groups)
+    assert stats.sampling_interval(np.ones(10)) == full.dt_
+    m = np.array([0, 1, 0, 0, 2, 2, 1, 1, 3, 0])
+    take = np.repeat(np.arange(10), m)
+    rows = np.concatenate([np.flatnonzero(d.groups == g) for g in take])
+    labels = np.repeat(np.arange(m.sum()), 200)
+    # the resamples hold the noise covariance and the window fixed, not dt
+    fixed = {"noise_cov": full.noise_cov_, "window": full.window_}
+    refit = U.clone(est).set_params(**fixed).fit(d.X[rows], d.tau[rows], groups=labels)
+    # measured: 1.2 % below the full data's estimate on this resample
+    assert stats.sampling_interval(m) == pytest.approx(refit.dt_, rel=1e-12)
+    assert abs(refit.dt_ / full.dt_ - 1) > 5e-3
+    # the Gram matrix interpolated at that dt is the one built there: same fit
+    # (measured: 1e-16 relative)
+    coef = U._fast_resample(full, stats, m)
+    np.testing.assert_allclose(coef, refit.fitted_.all_coef(), rtol=1e-10)
+
+
+@pytest.mark.parametrize("formulation", ["strong", "weak"])
+def test_batched_resamples_equal_one_at_a_time(noisy_pendulum, formulation):
+    d = noisy_pendulum
+    est = LagrangianSINDy(single_pendulum().paper_library(), formulation=formulation)
+    full = U.clone(est).fit(d.X, d.tau, groups=d.groups)
+    Xa, tau_a, _ = validate_state(
+        full, d.X, reset=False, y=d.tau, coordinates=full.coordinates_
+    )
+    stats = U._group_gram(full, Xa, tau_a, d.groups)
+    rng = np.random.default_rng(7)
+    mults = rng.multinomial(8, np.full(8, 1 / 8), size=25)
+    start = full.stages_[0].coef
+    assert U._batch_supported(full)
+    batched = U._batched_resamples(full, stats, mults, start)
+    assert all(b is not None for b in batched)
+    for m, b in zip(mults, batched):
+        a = U._fast_resample(full, stats, m, start)
+        assert np.array_equal(a != 0, b != 0)
+        # measured: 1e-15 (strong), 5e-15 (weak) relative to the largest coefficient
+        assert np.abs(a - b).max() <= 1e-9 * np.abs(a).max()
+
+
+def test_batched_fista_follows_fista():
+    """Each problem of the batch takes fista's iterates: the same stopping
+    iteration and solution, with supports (masks), weights and a non-negative
+    coefficient."""
+    import torch
+
+    from lagsindy.solvers import GramQuadratic
+    from lagsindy.solvers.batched_fista import batched_fista, lipschitz_steps
+    from lagsindy.solvers.fista import fista
+    from lagsindy.solvers.penalties import L1
+
+    rng = np.random.default_rng(0)
+    R, p, lam = 6, 7, 0.05
+    A = rng.standard_normal((R, 40, p))
+    A[:, :, 1] = A[:, :, 0] + 0.1 * A[:, :, 1]  # correlated columns: slow, restarts
+    y = A[:, :, :3].sum(axis=2) + 0.1 * rng.standard_normal((R, 40))
+    gram = np.einsum("rsi,rsj->rij", A, A) / 40
+    rhs = np.einsum("rsi,rs->ri", A, y) / 40
+    const = (y * y).mean(axis=1)
+    mask = np.ones((R, p), dtype=bool)
+    mask[::2, 5] = False
+    weights = np.ones(p)
+    weights[0] = 0.0
+    nonneg = np.zeros(p, dtype=bool)
+    nonneg[4] = True
+    steps = lipschitz_steps(gram, mask)
+    res = batched_fista(
+        gram,
+        rhs,
+        const,
+        mask,
+        lam,
+        weights,
+        steps,
+        np.zeros((R, p)),
+        nonneg=nonneg,
+        tol=1e-10,
+    )
+    assert res.converged.all() and not res.flagged.any()
+    for r in range(R):
+        idx = np.flatnonzero(mask[r])
+        t = torch.as_tensor
+        sub = GramQuadratic(t(gram[r][np.ix_(idx, idx)]), t(rhs[r][idx]), const[r])
+        one = fista(
+            sub, L1(lam, t(weights[idx]), t(nonneg[idx])), max_iter=10_000, tol=1e-10
+        )
+        assert one.n_iter == res.n_iter[r]
+        np.testing.assert_allclose(res.coef[r][idx], one.coef.numpy(), atol=1e-13)
+        assert not res.coef[r][~mask[r]].any()
 
 
 def test_fast_path_matches_full_refits_case_iii():
@@ -198,13 +304,16 @@ def test_bad_arguments(noisy_pendulum):
         bootstrap(est, d.X, d.tau, groups=d.groups, level=95)
 
 
-def _calibration(n_draws, n_traj, n_resamples):
+def _calibration(n_draws, n_traj, n_resamples, noise="forces"):
     """Coverage of the true coefficients and inclusion, over noise draws.
 
-    Exact states, white noise on the measured forces (sd 0.05 N m against forces
-    of about 1 N m): the weak-form fit is unbiased, so the intervals alone are
-    tested. (With noise on the positions the current fit keeps a small bias, which
-    no bootstrap interval can cover; see the report of issue 19.)
+    ``noise="forces"``: exact states, white noise on the measured forces (sd 0.05
+    N m against forces of about 1 N m). ``noise="states"``: independent noise 0.02
+    on q, q_dot and q_ddot (protocol ``paper``) and exact forces; the weak form then
+    estimates the sampling interval and the noise covariance from the noisy states,
+    and the resamples must re-estimate the sampling interval for the intervals to
+    hold the fit's spread over draws (with it held fixed, 12 of 24 intervals
+    covered). Returns the coverage of the two true terms and the inclusion table.
     """
     system = single_pendulum()
     lib = _small_library()
@@ -217,9 +326,13 @@ def _calibration(n_draws, n_traj, n_resamples):
             n_trajectories=n_traj,
             duration=2.0,
             excitation="paper",
+            noise=0.02 if noise == "states" else 0.0,
+            protocol="paper",
             random_state=100 + seed,
         )
-        tau = d.tau + 0.05 * rng.standard_normal(d.tau.shape)
+        tau = d.tau
+        if noise == "forces":
+            tau = tau + 0.05 * rng.standard_normal(d.tau.shape)
         est = LagrangianSINDy(lib, formulation="weak")
         rep = bootstrap(
             est, d.X, tau, groups=d.groups, n_resamples=n_resamples, random_state=seed
@@ -239,9 +352,27 @@ def test_calibration_of_intervals():
     assert inclusion[:, 2:].mean(axis=0).max() <= 0.5
 
 
+def test_calibration_with_noise_on_the_states():
+    coverage, inclusion = _calibration(
+        n_draws=12, n_traj=10, n_resamples=30, noise="states"
+    )
+    # measured: coverage 0.958 (23 of 24 intervals); with the sampling interval
+    # held fixed in the resamples 0.50 (12 of 24). True terms kept in every
+    # resample, spurious terms in none.
+    assert coverage >= 0.85
+    assert inclusion[:, :2].min() >= 0.9
+    assert inclusion[:, 2:].mean(axis=0).max() <= 0.5
+
+
 @pytest.mark.slow
-def test_calibration_of_intervals_large():
-    coverage, inclusion = _calibration(n_draws=40, n_traj=12, n_resamples=100)
+@pytest.mark.parametrize("noise", ["forces", "states"])
+def test_calibration_of_intervals_large(noise):
+    coverage, inclusion = _calibration(
+        n_draws=40, n_traj=12, n_resamples=100, noise=noise
+    )
+    # measured: forces 0.850 (68 of 80 intervals, exactly at the target; the same
+    # with the code before the resamples estimated their own dt), states 0.925
+    # (74 of 80)
     assert coverage >= 0.85
     assert inclusion[:, :2].min() >= 0.9
     assert inclusion[:, 2:].mean(axis=0).max() <= 0.5

@@ -452,7 +452,9 @@ class EulerLagrangeOperator:
         lazy : bool, default=False
             Return, per window, a function of no arguments that sums the statistics
             when called (the shared integrands are evaluated now), so that windows
-            never asked for cost nothing more.
+            never asked for cost nothing more. It also takes ``dt=`` (another
+            sampling interval: the integrands do not depend on it, only the test
+            functions do).
         per_segment : bool, default=False
             Keep each segment's statistics apart: ``gram`` (and ``noise``) get a
             leading axis over the window's segments and ``n_windows`` is an array
@@ -501,7 +503,7 @@ class EulerLagrangeOperator:
             rows = order.shape[0] if per_segment else noise_rows
             sens = self._noise_sensitivities(q, qd, rows)
 
-        def build(window):
+        def build(window, dt=dt):
             stride = int(strides[window])
             psi, dpsi = (k.to(X) for k in bump_function(window, dt))
             grams, counts, slices = [], [], []
