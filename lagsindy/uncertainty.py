@@ -278,6 +278,13 @@ def bootstrap(
     With few trajectories (fewer than about 10), bootstrap intervals of any kind
     under-cover; so do they for terms whose inclusion is well below 1 (a point mass
     at 0 in the resampled distribution).
+
+    The intervals hold the fit's variability, not its bias. Derivatives estimated by
+    smoothing noisy positions bias the fit (cart-pendulum, position noise 1e-2,
+    P-spline: coefficients about 1 % low, intervals about +-0.5 % wide, coverage
+    0.28 in ``benchmarks/results/calibration.md``); noise on measured states or
+    forces does not (coverage 0.97). :func:`lagsindy.refine` (initial states fitted)
+    lowered that bias on such data (1.2 % to 0.5 % on one cart-pendulum data set).
     """
     if method not in _METHODS:
         raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
