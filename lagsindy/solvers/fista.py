@@ -503,16 +503,21 @@ def _batch_loop(
     w_prev = w.copy()
 
     def times_gram(x):
+        # Rows of x are zero outside their masks and g is symmetric; entries of the
+        # product outside the masks are never used (the iterates are masked).
         if shared:
-            return (x @ g) * fmask  # rows of x: masked vectors, g symmetric
+            return x @ g
         return np.matmul(g, x[:, :, None])[:, :, 0]
 
     def values(x):
-        fit = 0.5 * (x * times_gram(x)).sum(1) - (b * x).sum(1) + 0.5 * c
+        fit = 0.5 * np.einsum("ri,ri->r", x, times_gram(x)) - (b * x).sum(1) + 0.5 * c
         return fit + lam * (wts * np.abs(x)).sum(1)
 
     best_w, best_obj = w.copy(), values(w)
-    k = np.ones(len(rows))
+    # fista's momentum (k - 2) / (k + 1), 0 for k = 1, looked up by the counter k
+    counts = np.arange(max_iter + 2, dtype=float)
+    momentum = np.maximum((counts - 2) / (counts + 1), 0.0)
+    k = np.ones(len(rows), dtype=np.int64)
     rises = np.zeros(len(rows), dtype=np.int64)
     guard = np.zeros(len(rows), dtype=np.int64)
     stop = np.full(len(rows), math.inf)
@@ -529,18 +534,17 @@ def _batch_loop(
         out.step_reductions[o] = red[sel]
 
     for it in range(1, max_iter + 1):
-        beta = np.maximum((k - 2) / (k + 1), 0.0)
-        v = w + beta[:, None] * (w - w_prev)
+        v = w + momentum[k][:, None] * (w - w_prev)
         z = v - col_step * (times_gram(v) - b)
         w_new = np.sign(z) * np.maximum(np.abs(z) - thr, 0.0)
         if nn is not None:
             w_new = np.where(nn, np.maximum(w_new, 0.0), w_new)
         w_new *= fmask
         if restart:
-            uphill = ((v - w_new) * (w_new - w)).sum(1) > 0
-            k = np.where(uphill, 1.0, k + 1.0)
+            uphill = np.einsum("ri,ri->r", v - w_new, w_new - w) > 0
+            k = np.where(uphill, 1, k + 1)
         else:
-            k = k + 1.0
+            k = k + 1
         w_prev, w = w, w_new
         if it % check_every != 0 and it != max_iter:
             continue
@@ -565,7 +569,7 @@ def _batch_loop(
             red = red + reset
             w = np.where(reset[:, None], best_w, w)
             w_prev = np.where(reset[:, None], best_w, w_prev)
-            k = np.where(reset, 1.0, k)
+            k = np.where(reset, 1, k)
             rises = np.where(reset, 0, rises)
         better = ~up & (obj <= best_obj)
         best_obj = np.where(better, obj, best_obj)
@@ -577,7 +581,7 @@ def _batch_loop(
         if nn is not None:
             at_zero = np.where(nn, np.maximum(-grad - lw, 0.0), at_zero)
         dist = np.where(w != 0, np.abs(grad + lw * np.sign(w)), at_zero)
-        dist = (dist * fmask).max(1)
+        dist = np.where(fmask > 0, dist, 0.0).max(1)
         stop = np.where(reset, stop, dist)
         done = ~reset & (dist <= tol)
         if it == max_iter:
