@@ -67,7 +67,9 @@ def test_fista_batch_equals_fista_per_problem(shared):
     assert res.n_iter[0] == 0 and res.converged[0]
     iters = []
     for r in range(1, n_prob):
-        want, one = _one(grams[r], rhs[r], const[r], 1e-3, weights[r], mask[r], nonneg[r])
+        want, one = _one(
+            grams[r], rhs[r], const[r], 1e-3, weights[r], mask[r], nonneg[r]
+        )
         np.testing.assert_allclose(res.coef[r], want, rtol=0, atol=1e-10)
         assert np.all(res.coef[r][~mask[r]] == 0)
         assert res.converged[r] == one.converged
@@ -125,9 +127,7 @@ def test_staged_fista_batch_equals_staged_fista():
         **settings,
     )
     for d, w, t, nn, res in zip(datafits, weights, thresholds, nonneg, got):
-        want = staged_fista(
-            d, penalty_weights=w, threshold=t, nonneg=nn, **settings
-        )
+        want = staged_fista(d, penalty_weights=w, threshold=t, nonneg=nn, **settings)
         np.testing.assert_array_equal(res.support, want.support)
         np.testing.assert_allclose(res.coef.numpy(), want.coef.numpy(), atol=1e-12)
         assert res.cost == pytest.approx(want.cost, rel=1e-10, abs=1e-15)
