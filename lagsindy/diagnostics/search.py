@@ -14,8 +14,8 @@ from sklearn.base import clone
 from sklearn.utils.validation import check_is_fitted
 
 from .._torch import to_tensor
-from ..formulation.operator import reuse_weak_columns
 from .._validation import validate_state, validate_tau
+from ..formulation.operator import reuse_weak_columns
 from .catalogue import (
     _DISSIPATIVE,
     _NONNEGATIVE,
