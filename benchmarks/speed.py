@@ -487,8 +487,16 @@ SEARCH_STEPS = [
         ("_noise_sensitivities", "_noise_block"),
     ),
     ("case III search (`fit_fixed`)", "cases/fixed.py", ("fit_fixed",)),
-    ("- sparse solves: ranking + shortlist", "cases/sparse.py", ("solve",)),
-    ("- - of which staged FISTA runs", "cases/sparse.py", ("staged",)),
+    (
+        "- sparse solves: ranking + shortlist",
+        "cases/sparse.py",
+        ("solve", "solve_many"),
+    ),
+    (
+        "- - of which staged FISTA runs (one by one, batched)",
+        "solvers/staged.py",
+        ("staged_fista", "staged_fista_batch"),
+    ),
     ("- - of which dense bounds (eigh)", "formulation/scaling.py", ("dense_residual",)),
     ("- mass normalization", "cases/fixed.py", ("solve_mass",)),
     (

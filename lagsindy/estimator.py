@@ -590,7 +590,7 @@ def _build_dissipation(dissipation, library):
     dlib = clone(dissipation)
     if dlib.coordinates is None:
         dlib.set_params(coordinates=coordinates)
-    dlib.build()
+    _build_cached(dlib)
     if list(dlib.coordinates_) != coordinates:
         raise ValueError(
             f"the dissipation library's coordinates {list(dlib.coordinates_)} differ "
@@ -598,6 +598,35 @@ def _build_dissipation(dissipation, library):
         )
     terms, removed = reduce_forces(library.terms_, dlib.terms_, coordinates)
     return terms, removed, dlib
+
+
+# Built dissipation candidates by library parameters (``diagnose`` refits the same
+# dissipation library several times; building simplifies every term with sympy).
+_BUILT_DISSIPATION: dict = {}
+_BUILT_DISSIPATION_SIZE = 16
+
+
+def _build_cached(dlib):
+    """``dlib.build()``, reusing the terms built earlier from equal parameters.
+
+    The terms (frozen :class:`~lagsindy.dissipation.ForceTerm`) are shared, the
+    lists are not; only the library class itself is cached (a subclass may build
+    differently).
+    """
+    from .dissipation import DissipationLibrary
+
+    if type(dlib) is not DissipationLibrary:
+        return dlib.build()
+    key = repr(sorted(dlib.get_params(deep=False).items()))
+    if key not in _BUILT_DISSIPATION:
+        dlib.build()
+        if len(_BUILT_DISSIPATION) >= _BUILT_DISSIPATION_SIZE:
+            _BUILT_DISSIPATION.pop(next(iter(_BUILT_DISSIPATION)))
+        _BUILT_DISSIPATION[key] = (list(dlib.coordinates_), list(dlib.terms_))
+        return dlib
+    names, terms = _BUILT_DISSIPATION[key]
+    dlib.coordinates_, dlib.terms_ = list(names), list(terms)
+    return dlib
 
 
 def _term_index(library, param, term) -> int:

@@ -284,3 +284,34 @@ def test_degenerate_case_III_model_is_flagged():
         LagrangianSINDy(
             s.paper_library(), fixed_term="theta1_dot**2", unpenalized=["cos(theta1)"]
         ).fit(data.X)
+
+
+def test_dissipation_terms_are_built_once_per_parameters(monkeypatch):
+    """A refit with an equal dissipation library reuses its built terms (diagnose
+    refits several times); other parameters build again, and the fits agree."""
+    import lagsindy.dissipation as dissipation_module
+    import lagsindy.estimator as estimator_module
+    from lagsindy import DissipationLibrary
+    from lagsindy.systems import cart_pendulum, make_dataset
+
+    monkeypatch.setattr(estimator_module, "_BUILT_DISSIPATION", {})
+    calls = []
+    original = dissipation_module.make_term
+
+    def counted(*args, **kwargs):
+        calls.append(args[0])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(dissipation_module, "make_term", counted)
+    system = cart_pendulum()
+    data = make_dataset(system, n_trajectories=3, excitation="sincos", random_state=0)
+    fits = []
+    for kinds in (["viscous"], ["viscous"], ["viscous", "coulomb"]):
+        est = LagrangianSINDy(
+            system.paper_library(), dissipation=DissipationLibrary(kinds=kinds)
+        )
+        fits.append(est.fit(data.X, data.tau, groups=data.groups))
+    assert calls == ["viscous", "viscous"] + ["viscous"] * 2 + ["coulomb"] * 2
+    np.testing.assert_array_equal(fits[0].coef_, fits[1].coef_)
+    names = [t.name for t in fits[1].dissipation_library_.terms_]
+    assert names == ["viscous(x)", "viscous(theta)"]

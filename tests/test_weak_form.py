@@ -491,3 +491,51 @@ def test_weak_r2_scores_what_the_weak_form_fits(cart_positions_only):
     assert r2_weak > 0.99  # measured 0.9966
     assert r2_strong < 0.6  # measured 0.489
     assert pointwise < 0  # measured -3.17
+
+
+def test_reuse_weak_columns_gives_the_statistics_of_a_fresh_call(monkeypatch):
+    """Inside reuse_weak_columns a second call on the same samples with other forces
+    takes the features' part from the first and equals a fresh call (noise part
+    included); other samples, or leaving the block, compute afresh."""
+    import lagsindy.formulation.operator as operator_module
+
+    data = make_dataset(
+        cart_pendulum(), n_trajectories=3, excitation="sincos", noise=0.01,
+        random_state=4,
+    )  # fmt: skip
+    lib = cart_pendulum().paper_library()
+    op = EulerLagrangeOperator(lib.coordinates_, lib.terms_)
+    X = torch.tensor(data.X)
+    tau = torch.tensor(data.tau)
+    shifted = torch.roll(tau, 3, dims=0) * 1.5
+    segs = [torch.arange(0, 500), torch.arange(500, 1000), torch.arange(1000, 1500)]
+    cov = torch.diag(torch.tensor([1e-4, 2e-4, 3e-4, 1e-3], dtype=torch.float64))
+    kw = dict(
+        strides={61: 15, 121: 30}, dt=0.01, noise_cov=cov, noise_rows=700,
+        return_noise=True,
+    )  # fmt: skip
+    by_window = {61: segs, 121: segs[:2]}
+    reused = []
+    original = operator_module.EulerLagrangeOperator._reused_grams
+
+    def spy(self, *args, **kwargs):
+        reused.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(operator_module.EulerLagrangeOperator, "_reused_grams", spy)
+    fresh = op.weak_grams(X, shifted, by_window, **kw)
+    with operator_module.reuse_weak_columns():
+        first = op.weak_grams(X, tau, by_window, **kw)
+        assert not reused
+        again = op.weak_grams(X, shifted, by_window, **kw)
+        assert len(reused) == 1
+        op.weak_grams(X * 1.01, shifted, by_window, **kw)  # other samples: afresh
+        assert len(reused) == 1
+    op.weak_grams(X, shifted, by_window, **kw)  # outside the block: afresh
+    assert len(reused) == 1
+    for window in by_window:
+        for a, b in zip(again[window], fresh[window]):
+            a, b = np.asarray(a), np.asarray(b)
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
+        # the forces' row did change: the comparison can fail
+        assert not torch.allclose(first[window][0][:, -1], fresh[window][0][:, -1])

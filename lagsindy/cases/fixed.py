@@ -66,14 +66,9 @@ def fit_fixed(problem: Problem) -> Solution:
                 warnings.simplefilter("ignore")
             coef, result, r = solve_mass(p, verbose if single else 0)
         fits.append(("mass", r, coef, result))
-    for r in candidates:
-        free = np.array([k for k in np.flatnonzero(identifiable) if k != r])
-        with warnings.catch_warnings():
-            # Warnings of candidates that lose are noise; the winner's are re-raised.
-            if not single:
-                warnings.simplefilter("ignore")
-            # In the search over every term, one start ranks the candidates;
-            # the shortlist is re-solved with every start below.
+    if single:
+        for r in candidates:
+            free = np.array([k for k in np.flatnonzero(identifiable) if k != r])
             coef, result = p.solver.solve(
                 p.balanced,
                 free,
@@ -81,36 +76,55 @@ def fit_fixed(problem: Problem) -> Solution:
                 -1.0,
                 penalty,
                 1.0,
-                verbose if single else 0,
-                starts=None if single else 1,
+                verbose,
                 constrain=bool(traces[r] > 0),
             )
-        coef[r] = 1.0
-        fits.append(("term", r, coef, result))
+            coef[r] = 1.0
+            fits.append(("term", r, coef, result))
+    else:
+        # In the search over every term, one start ranks the candidates (their
+        # solves batched); the shortlist is re-solved with every start below.
+        # Warnings of candidates that lose are noise; the winner's are re-raised.
+        jobs = [
+            (
+                np.array([k for k in np.flatnonzero(identifiable) if k != r]),
+                r,
+                -1.0,
+                bool(traces[r] > 0),
+                None,
+            )
+            for r in candidates
+        ]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            solved = p.solver.solve_many(p.balanced, jobs, penalty, 1.0, starts=1)
+        for r, (coef, result) in zip(candidates, solved):
+            coef[r] = 1.0
+            fits.append(("term", r, coef, result))
     if single:
         kind, r, coef, result = fits[0]
         return Solution(coef, result, r, kind)
     # Rank the term candidates by relative residual, then score the best few (and
     # the mass normalization) on accelerations.
     term_fits = sorted((f for f in fits if f[0] == "term"), key=lambda f: f[3].cost)
+    # The ranking's one-start result is each solve's first start: only the later
+    # starts are run, and only where the first stays above the bound.
+    top = term_fits[:SELECTION_TOP]
+    jobs = [
+        (
+            np.array([k for k in np.flatnonzero(identifiable) if k != r]),
+            r,
+            -1.0,
+            bool(traces[r] > 0),
+            ranked,
+        )
+        for _, r, _, ranked in top
+    ]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        solved = p.solver.solve_many(p.balanced, jobs, penalty, 1.0)
     resolved = []
-    for _, r, _, ranked in term_fits[:SELECTION_TOP]:
-        free = np.array([k for k in np.flatnonzero(identifiable) if k != r])
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            # The ranking's one-start result is this solve's first start: only the
-            # later starts are run, and only where the first stays above the bound.
-            coef, result = p.solver.solve(
-                p.balanced,
-                free,
-                r,
-                -1.0,
-                penalty,
-                1.0,
-                0,
-                constrain=traces[r] > 0,
-                first=ranked,
-            )
+    for (_, r, _, _), (coef, result) in zip(top, solved):
         coef[r] = 1.0
         resolved.append(("term", r, coef, result))
     shortlist = [f for f in fits if f[0] == "mass"] + resolved

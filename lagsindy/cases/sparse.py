@@ -18,6 +18,7 @@ from sklearn.utils import check_random_state
 from .._torch import to_numpy
 from ..formulation.scaling import dense_residual
 from ..solvers import GramQuadratic, staged_fista
+from ..solvers.staged import staged_fista_batch
 
 # Starts of the staged path: lam, lam / lam_decay, ...; and the relative residual
 # margin within which the sparsest of their results is preferred.
@@ -229,6 +230,127 @@ class SparseSolve:
         if result is not first:  # ``first``'s records were mapped by its own solve
             remap_stages(result.stages, free, to_numpy(scale), balanced.n_features)
         return coef, result
+
+    def solve_many(self, balanced, jobs, penalty, reference, starts=None):
+        """:meth:`solve` of several problems, their staged solves batched.
+
+        ``jobs`` holds one ``(free, target, sign, constrain, first)`` tuple per
+        problem (the arguments of :meth:`solve` of the same names; ``verbose`` is 0
+        and there is no warm start). Problems of the same size on the CPU in double
+        precision go through :func:`~lagsindy.solvers.staged.staged_fista_batch`
+        together, one batch per start of the path; the outcome is that of
+        :meth:`solve` on each, up to rounding.
+
+        Returns
+        -------
+        list of (coef, result)
+            As :meth:`solve` returns, in the order of ``jobs``.
+        """
+        starts = LAM_STARTS if starts is None else starts
+        prepared = []
+        for free, target, sign, constrain, first in jobs:
+            datafit, to_coef = balanced.problem(free, target, sign)
+            weights = torch.as_tensor(
+                penalty[free], dtype=datafit.rhs.dtype, device=datafit.rhs.device
+            )
+            nonneg = self.nonneg(free, weights.device) if constrain else None
+            prepared.append(
+                (np.asarray(free), datafit, to_coef, weights, nonneg, first)
+            )
+        results = [None] * len(jobs)
+        batched = []
+        for j, (free, datafit, *_rest) in enumerate(prepared):
+            cpu64 = (
+                datafit.rhs.device.type == "cpu" and datafit.rhs.dtype == torch.float64
+            )
+            if cpu64 and len(jobs) > 1:
+                batched.append(j)
+            else:
+                free_, target, sign, constrain, first = jobs[j]
+                results[j] = self.solve(
+                    balanced,
+                    free_,
+                    target,
+                    sign,
+                    penalty,
+                    reference,
+                    0,
+                    starts=starts,
+                    constrain=constrain,
+                    first=first,
+                )
+        if batched:
+            solved = self._batch(
+                balanced, [prepared[j] for j in batched], reference, starts
+            )
+            for j, out in zip(batched, solved):
+                results[j] = out
+        return results
+
+    def _batch(self, balanced, prepared, reference, starts):
+        """The staged solves (every start) of ``prepared`` problems of ``balanced``."""
+        n_features = balanced.n_features
+        n = len(prepared)
+        # Every problem's Gram matrix is a block of one scaled Gram matrix: the
+        # batched iterations multiply by that matrix once for all of them.
+        union = np.unique(np.concatenate([job[0] for job in prepared]))
+        common = to_numpy(balanced.block(union)[0])
+        index = [np.searchsorted(union, job[0]) for job in prepared]
+        paths = [[] for _ in range(n)]
+        open_ = list(range(n))
+        bounds = [None] * n
+        one_start = self.lam == 0 or starts <= 1
+        for k in range(1 if one_start else starts):
+            lam = self.lam / self.lam_decay**k if self.lam_decay > 1 else self.lam
+            run = [j for j in open_ if not (k == 0 and prepared[j][5] is not None)]
+            solved = staged_fista_batch(
+                [prepared[j][1] for j in run],
+                lam=lam,
+                penalty_weights=[prepared[j][3] for j in run],
+                threshold=[
+                    torch.as_tensor(
+                        self.thresholds(prepared[j][0]), dtype=prepared[j][3].dtype
+                    )
+                    for j in run
+                ],
+                reference=reference,
+                lam_decay=self.lam_decay,
+                step_growth=self.step_growth,
+                alpha=self.alpha,
+                max_stages=self.max_stages,
+                max_iter=self.max_iter,
+                tol=self.tol,
+                solver_tol=self.solver_tol,
+                debias=self.debias,
+                nonneg=[prepared[j][4] for j in run],
+                shared=(common, [index[j] for j in run]),
+            )
+            fresh = dict(zip(run, solved))
+            still = []
+            for j in open_:
+                res = fresh[j] if j in fresh else prepared[j][5]
+                paths[j].append(res)
+                if one_start or self.lam_decay <= 1:
+                    continue
+                if bounds[j] is None:
+                    bounds[j] = dense_residual(prepared[j][1])
+                if res.cost > (1 + PATH_TIE) * bounds[j] + PATH_FLOOR:
+                    still.append(j)
+            open_ = still
+            if not open_:
+                break
+        out = []
+        for (free, datafit, to_coef, _, _, first), path in zip(prepared, paths):
+            best = min(r.cost for r in path)
+            near = [r for r in path if r.cost <= (1 + PATH_TIE) * best + 1e-12]
+            result = min(near, key=lambda r: int((r.coef != 0).sum()))
+            coef = np.zeros(n_features)
+            coef[free] = to_numpy(to_coef(result.coef))
+            if result is not first:  # ``first``'s records were mapped by its own solve
+                scale = to_numpy(to_coef(torch.ones_like(datafit.rhs)))
+                remap_stages(result.stages, free, scale, n_features)
+            out.append((coef, result))
+        return out
 
 
 def remap_stages(stages, free, scale, n_features):

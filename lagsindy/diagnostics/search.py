@@ -15,6 +15,7 @@ from sklearn.utils.validation import check_is_fitted
 
 from .._torch import to_tensor
 from .._validation import validate_state, validate_tau
+from ..formulation.operator import reuse_weak_columns
 from .catalogue import (
     _DISSIPATIVE,
     _NONNEGATIVE,
@@ -852,7 +853,10 @@ def _input_delay(est, X, tau, segments, dt, verbose):
     if getattr(est, "window_", None) is not None:
         base.set_params(window=est.window_)  # the window est's fit chose
     try:
-        with warnings.catch_warnings():
+        # Its refits differ only in the shifted input: with the weak form they
+        # reuse the first one's feature integrals (the Gram matrices agree with
+        # fits afresh to rounding; the search reads the refits' supports).
+        with warnings.catch_warnings(), reuse_weak_columns():
             warnings.simplefilter("ignore")
             estimate = estimate_delay(base, X, tau, t, groups=groups)
             shifted = shift_input(tau, t, estimate.delay, groups)

@@ -23,7 +23,9 @@ the same tensor as ``-Q_j(q, qdot)`` so that ``Theta @ c = tau`` still holds.
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import functools
+import hashlib
 import warnings
 from collections.abc import Callable, Sequence
 
@@ -38,6 +40,30 @@ from .._expr import compile_torch, symbols_for
 DEFAULT_CHUNK_SIZE = 32_768
 # Samples used to evaluate the weak form's noise correction (a sum over samples).
 NOISE_ROWS = 10_000
+
+# Per-window weak-form columns of the features kept for reuse (see reuse_weak_columns);
+# None outside a reuse block.
+_WEAK_REUSE = contextvars.ContextVar("lagsindy_weak_reuse", default=None)
+
+
+@contextlib.contextmanager
+def reuse_weak_columns():
+    """Within the block, weak-form statistics of the same samples reuse the features.
+
+    Fits that differ only in the generalized forces (an input delay search shifts the
+    input and refits) have the same feature integrands and window sums; inside this
+    block :meth:`EulerLagrangeOperator.weak_grams` keeps them (keyed by the features,
+    the samples, the windows and the noise covariance) and only integrates the new
+    forces. The Gram matrices so assembled equal the ones computed afresh up to
+    rounding (the feature block is the first call's, the force row is summed on its
+    own). The kept columns are dropped when the block ends.
+    """
+    token = _WEAK_REUSE.set({})
+    try:
+        yield
+    finally:
+        _WEAK_REUSE.reset(token)
+
 
 TermFunction = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 
@@ -472,6 +498,16 @@ class EulerLagrangeOperator:
         base = list(segments_by_window[windows[0]])
         order = torch.cat(base)
         q, qd = X[order, :d], X[order, d : 2 * d]
+        store = _WEAK_REUSE.get()
+        key = None
+        if store is not None and y is not None and extra is None and not per_segment:
+            key = self._reuse_key(
+                X, order, segments_by_window, strides, dt, noise_cov, noise_rows
+            )
+            if all(w in store.get(key, {}) for w in windows):
+                return self._reused_grams(
+                    store[key], X, y, order, windows, dt, return_noise, lazy
+                )
         # Integrands per sample: a-weighted (with dpsi) and b-weighted (with psi) parts.
         a_parts, b_parts = [], []
         if self._fn is not None:
@@ -506,7 +542,7 @@ class EulerLagrangeOperator:
         def build(window, dt=dt):
             stride = int(strides[window])
             psi, dpsi = (k.to(X) for k in bump_function(window, dt))
-            grams, counts, slices = [], [], []
+            grams, counts, slices, feats = [], [], [], []
             weights = [X.new_zeros(order.shape[0]) for _ in range(3)]
             for seg in segments_by_window[window]:
                 first, n = offsets[int(seg[0])]
@@ -518,6 +554,8 @@ class EulerLagrangeOperator:
                 )
                 counts.append(cols.shape[0])
                 grams.append(torch.einsum("wip,wiq->ipq", cols, cols))
+                if key is not None:
+                    feats.append((sl, cols[:, :, :-1]))
                 if sens is not None:
                     for acc, w in zip(
                         weights, _window_weights(n, -dt * dpsi, -dt * psi, stride)
@@ -538,6 +576,65 @@ class EulerLagrangeOperator:
                 noise = self._noise_block(
                     sens, weights, noise_cov, width, slices if per_segment else None
                 )
+            if key is not None:  # the features' part, for fits with other forces
+                kept = store.setdefault(key, {})
+                kept[window] = (gram, noise, n_windows, stride, feats)
+            return (
+                (gram, noise, n_windows) if return_noise else (gram - noise, n_windows)
+            )
+
+        if lazy:
+            return {w: functools.partial(build, w) for w in windows}
+        return {w: build(w) for w in windows}
+
+    def _reuse_key(self, X, order, segments_by_window, strides, dt, noise_cov, rows):
+        """What the feature part of :meth:`weak_grams` depends on (without ``y``)."""
+        d = self.n_dof
+        digest = hashlib.blake2b(
+            X[order, : 2 * d].detach().cpu().contiguous().numpy().tobytes(),
+            digest_size=16,
+        ).hexdigest()
+        layout = tuple(
+            (int(w), int(strides[w]), tuple((int(s[0]), len(s)) for s in segs))
+            for w, segs in segments_by_window.items()
+        )
+        cov = None if noise_cov is None else noise_cov.detach().cpu().numpy().tobytes()
+        return (
+            tuple(self.coordinates),
+            tuple(self.terms),
+            tuple(tuple(f) for f in self.forces),
+            str(X.dtype),
+            str(X.device),
+            digest,
+            layout,
+            float(dt),
+            cov,
+            int(rows),
+        )
+
+    def _reused_grams(self, kept, X, y, order, windows, dt, return_noise, lazy):
+        """:meth:`weak_grams` from a reuse block's kept feature columns and new ``y``.
+
+        The feature block of each Gram matrix is the kept one; the force row and
+        column are sums of the kept feature columns times the new force's window
+        integrals.
+        """
+        tau = y[order]
+
+        def build(window):
+            gram, noise, n_windows, stride, feats = kept[window]
+            psi, _ = (k.to(X) for k in bump_function(window, dt))
+            gram = gram.clone()
+            last = gram.shape[1] - 1
+            cross = torch.zeros_like(gram[:, :last, last])
+            square = torch.zeros_like(gram[:, last, last])
+            for sl, cols in feats:
+                ycols = -dt * _correlate(-tau[sl], psi, stride)
+                cross += torch.einsum("wip,wi->ip", cols, ycols)
+                square += (ycols * ycols).sum(0)
+            gram[:, :last, last] = cross
+            gram[:, last, :last] = cross
+            gram[:, last, last] = square
             return (
                 (gram, noise, n_windows) if return_noise else (gram - noise, n_windows)
             )

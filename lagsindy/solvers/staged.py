@@ -248,3 +248,175 @@ def warn_not_converged(stages, max_iter):
             ConvergenceWarning,
             stacklevel=3,
         )
+
+
+def staged_fista_batch(
+    datafits,
+    *,
+    lam: float,
+    penalty_weights,
+    threshold,
+    reference: float = 0.0,
+    lam_decay: float = 10.0,
+    step_growth: float = 2.0,
+    alpha: float | None = None,
+    max_stages: int = 5,
+    max_iter: int = 10_000,
+    tol: float = 1e-3,
+    solver_tol: float = 1e-8,
+    debias: bool = True,
+    nonneg=None,
+    shared=None,
+) -> list:
+    """:func:`staged_fista` of several problems, their FISTA runs batched.
+
+    Every problem goes through the schedule of :func:`staged_fista` (same stages,
+    thresholds, stopping rule and unpenalised refit); the FISTA runs of one stage
+    are one :func:`~lagsindy.solvers.fista.fista_batch` call over the problems
+    still in the schedule, so that the interpreter overhead of an iteration is paid
+    once per stage rather than once per problem. The results are those of
+    :func:`staged_fista` on each problem, up to rounding.
+
+    Parameters
+    ----------
+    datafits : list of GramQuadratic
+        CPU problems; without ``shared``, all with the same number of features.
+    lam, reference, lam_decay, step_growth, alpha, max_stages, max_iter, tol, \
+solver_tol, debias
+        As in :func:`staged_fista` (shared by the problems).
+    penalty_weights : list of Tensor
+        Each problem's L1 weights.
+    threshold : list of Tensor
+        Each problem's relative hard thresholds (one per feature).
+    nonneg : list of (Tensor of bool or None), optional
+        Each problem's non-negative features.
+    shared : tuple (ndarray of shape (m, m), list of int ndarray), optional
+        One matrix ``C`` and, per problem, the indices ``idx`` with
+        ``datafits[r].gram == C[idx][:, idx]``: the problems' gradients are then
+        one product with ``C``.
+
+    Returns
+    -------
+    list of StagedResult
+        One per datafit, in order.
+    """
+    from .fista import fista_batch
+
+    n_prob = len(datafits)
+    if n_prob == 0:
+        return []
+    dtype = datafits[0].rhs.dtype
+
+    def arr(t):
+        return t.detach().cpu().numpy()
+
+    if shared is None:
+        gram = np.stack([arr(d.gram) for d in datafits])
+        index = [np.arange(d.n_features) for d in datafits]
+    else:
+        gram, index = np.asarray(shared[0]), [np.asarray(i) for i in shared[1]]
+    m = gram.shape[-1]
+    rhs = np.zeros((n_prob, m))
+    w_np = np.zeros((n_prob, m))
+    nn_np = None
+    weights = [torch.as_tensor(w, dtype=dtype) for w in penalty_weights]
+    nonneg = [None] * n_prob if nonneg is None else list(nonneg)
+    nn_t = [None if x is None else torch.as_tensor(x, dtype=torch.bool) for x in nonneg]
+    for r, (d, idx) in enumerate(zip(datafits, index)):
+        rhs[r, idx] = arr(d.rhs)
+        w_np[r, idx] = arr(weights[r])
+        if nn_t[r] is not None:
+            if nn_np is None:
+                nn_np = np.zeros((n_prob, m), dtype=bool)
+            nn_np[r, idx] = arr(nn_t[r])
+    const = np.array([d.const for d in datafits])
+    thresholds = [
+        torch.as_tensor(t, dtype=dtype).expand(d.n_features).clone()
+        for t, d in zip(threshold, datafits)
+    ]
+    supports = [np.arange(d.n_features) for d in datafits]
+    w_full = [d.zeros() for d in datafits]
+    stages = [[] for _ in range(n_prob)]
+    total_iter = [0] * n_prob
+    reductions = [0] * n_prob
+    converged = [True] * n_prob
+    costs = [d.relative_residual(w) for d, w in zip(datafits, w_full)]
+    running = list(range(n_prob))
+    cur_lam = float(lam)
+    for s in range(max_stages):
+        if not running:
+            break
+        rows = np.array(running)
+        mask = np.zeros((len(rows), m), dtype=bool)
+        w0 = np.zeros((len(rows), m))
+        for i, r in enumerate(running):
+            mask[i, index[r][supports[r]]] = True
+            w0[i, index[r]] = arr(w_full[r])
+        step = None if alpha is None else float(alpha) * step_growth**s
+        res = fista_batch(
+            gram if shared is not None else gram[rows],
+            rhs[rows],
+            const[rows],
+            cur_lam,
+            w_np[rows],
+            w0,
+            mask,
+            None if nn_np is None else nn_np[rows],
+            step=None if step is None else np.full(len(rows), step),
+            max_iter=max_iter,
+            tol=solver_tol,
+        )
+        still = []
+        for i, r in enumerate(running):
+            support = supports[r]
+            total_iter[r] += int(res.n_iter[i])
+            reductions[r] += int(res.step_reductions[i])
+            converged[r] = converged[r] and bool(res.converged[i])
+            w_sub = torch.as_tensor(res.coef[i, index[r][support]], dtype=dtype)
+            mags = w_sub.abs()
+            largest = float(mags.max()) if mags.numel() else 0.0
+            sup_t = torch.as_tensor(support)
+            if largest > 0:  # an all-zero stage (lam too high) removes nothing
+                penalised = weights[r][sup_t] > 0
+                small = mags < thresholds[r][sup_t] * max(largest, reference)
+                keep = ~(small & penalised)
+            else:
+                keep = torch.ones_like(mags, dtype=torch.bool)
+            w_sub = torch.where(keep, w_sub, torch.zeros_like(w_sub))
+            w_new = datafits[r].zeros()
+            w_new[sup_t] = w_sub
+            w_full[r] = w_new
+            costs[r] = datafits[r].relative_residual(w_new)
+            new_support = support[keep.numpy()]
+            stages[r].append(
+                Stage(
+                    cur_lam,
+                    float(res.step[i]),
+                    int(res.n_iter[i]),
+                    bool(res.converged[i]),
+                    float(res.stop_crit[i]),
+                    w_new.numpy().copy(),
+                    new_support.copy(),
+                    costs[r],
+                )
+            )
+            supports[r] = new_support
+            nonzero = float(w_sub.abs().max()) > 0 if w_sub.numel() else False
+            if not (costs[r] <= tol and nonzero):
+                still.append(r)
+        running = still
+        cur_lam /= lam_decay
+    results = []
+    for r in range(n_prob):
+        w, support, cost = w_full[r], supports[r], costs[r]
+        if debias and len(support):
+            w, support = _debias(
+                datafits[r], support, weights[r], thresholds[r], reference, w, nn_t[r]
+            )
+            cost = datafits[r].relative_residual(w)
+        results.append(
+            StagedResult(
+                w, support, stages[r], total_iter[r], converged[r], cost, reductions[r]
+            )
+        )
+    return results
