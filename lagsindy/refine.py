@@ -317,9 +317,9 @@ def refine(
         the coefficients (multiple shooting); ``"data"``: they are held at the
         estimated states of ``X``. Held states carry the errors of estimated
         velocities (largest at the ends of a trajectory) into every rollout, and
-        the coefficients then absorb them: on simulated data with position noise
-        1e-2 the coefficients moved away from the truth by up to 8 % with held
-        states.
+        the coefficients then absorb them: on a simulated cart-pendulum with
+        position noise 1e-2 the largest coefficient error went from 1.2 % (the
+        sparse fit) to 14 % with held states, and to 0.6 % with fitted ones.
     substeps : int, default=1
         Runge-Kutta steps per sample. A warning says when the integration error
         (estimated with twice the steps) is not small against the rollout error.
@@ -537,19 +537,13 @@ def refine(
             "matrix or divergence): refine needs a model whose rollouts exist"
         )
     low = np.concatenate([np.where(free >= n_lag, 0.0, -np.inf), np.full(B * ns, -np.inf)])
-    x_scale = np.concatenate(
-        [
-            np.maximum(np.abs(c0[free]), 1e-3 * np.abs(c0).max()),
-            np.tile(0.01 * state_spread[:ns], B),
-        ]
-    )
     with np.errstate(all="ignore"):
         result = least_squares(
             lambda x: evaluate(x)[0],
             x_start,
             jac=lambda x: evaluate(x)[1],
             bounds=(low, np.full(x_start.size, np.inf)),
-            x_scale=x_scale,
+            x_scale="jac",  # |c| and the states' spread: 30+ iterations on a cart
             method="trf",
             tr_solver="lsmr" if ns else "exact",
             ftol=tol,

@@ -284,7 +284,7 @@ def bootstrap(
     P-spline: coefficients about 1 % low, intervals about +-0.5 % wide, coverage
     0.28 in ``benchmarks/results/calibration.md``); noise on measured states or
     forces does not (coverage 0.97). :func:`lagsindy.refine` (initial states fitted)
-    lowered that bias on such data (1.2 % to 0.5 % on one cart-pendulum data set).
+    lowered that bias on such data (1.2 % to 0.6 % on one cart-pendulum data set).
     """
     if method not in _METHODS:
         raise ValueError(f"method must be one of {_METHODS}, got {method!r}")

@@ -67,6 +67,7 @@ def test_shortlist_scores_equal_one_operator_per_model(problem):
     assert len({round(g, 6) for g in got[:-1]}) > 1  # the models do score differently
 
 
+@pytest.mark.slow  # 20 s; test_lockstep_solves checks the batched search's reuse
 def test_first_start_result_stands_for_the_first_start(problem):
     """solve(first=<starts=1 result>) equals a fresh solve, restarts included."""
     p = problem

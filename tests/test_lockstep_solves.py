@@ -171,7 +171,11 @@ def test_solve_many_equals_solve(problem):
     again = [(f, r, s, c, res) for (f, r, s, c, _), (_, res) in zip(jobs, ranked)]
     full = p.solver.solve_many(p.balanced, again, p.penalty, 1.0)
     restarted = 0
-    for (f, r, s, c, _), (coef1, res1), (coef, res) in zip(jobs, ranked, full):
+    for i, ((f, r, s, c, _), (coef1, res1), (coef, res)) in enumerate(
+        zip(jobs, ranked, full)
+    ):
+        if res is res1 and i % 3:  # one-by-one solves of a third of the one-start
+            continue  # candidates and of every restarted one (suite time)
         args = (p.balanced, f, r, s, p.penalty, 1.0, 0)
         want1, one1 = p.solver.solve(*args, starts=1)
         want, one = p.solver.solve(*args)

