@@ -317,7 +317,7 @@ def _batch_supported(fitted) -> bool:
 def _batched_resamples(fitted, stats, mults, start=None):
     """Case I resamples solved together: the staged solve of
     :func:`_solve_from_gram` with every stage's FISTA iterations batched over the
-    resamples (:func:`~lagsindy.solvers.batched_fista.batched_fista`).
+    resamples (:func:`~lagsindy.solvers.staged.staged_fista_batch`).
 
     The per-resample steps (balancing, thresholds, the path's second start,
     debiasing) are those of :class:`~lagsindy.cases.SparseSolve`, so each resample
@@ -328,8 +328,7 @@ def _batched_resamples(fitted, stats, mults, start=None):
     """
     from .cases.sparse import LAM_STARTS, PATH_FLOOR, PATH_TIE
     from .formulation.scaling import dense_residual
-    from .solvers.batched_fista import batched_fista, lipschitz_steps
-    from .solvers.staged import _debias
+    from .solvers.staged import staged_fista_batch
 
     n_features = len(fitted.feature_names_)
     correct = getattr(fitted, "noise_cov_", None) is not None
@@ -372,102 +371,32 @@ def _batched_resamples(fitted, stats, mults, start=None):
     scales = np.stack(scales)
     free = free_ref
     p = len(free)
-    G = np.stack([d.gram.numpy() for _, d in problems])
-    b = np.stack([d.rhs.numpy() for _, d in problems])
-    c = np.array([d.const for _, d in problems])
-    weights = penalty[free].astype(float)
-    thresholds = solver.thresholds(free).astype(float)
+    weights = torch.as_tensor(penalty[free], dtype=torch.float64)
+    thresholds = torch.as_tensor(solver.thresholds(free), dtype=torch.float64)
     nonneg_t = solver.nonneg(free, "cpu")
-    nonneg = None if nonneg_t is None else nonneg_t.numpy()
     w0 = np.zeros((len(problems), p))
     if start is not None:
         w0 = np.asarray(start)[free][None, :] / scales
-    if nonneg is not None:
-        w0 = np.where(nonneg[None, :], np.maximum(w0, 0.0), w0)
+    if nonneg_t is not None:
+        w0 = np.where(nonneg_t.numpy()[None, :], np.maximum(w0, 0.0), w0)
 
     def path(rows, lam):
-        """The staged schedule of ``staged_fista`` for the problems ``rows``."""
-        Gr, br, cr = G[rows], b[rows], c[rows]
-        mask = np.ones((len(rows), p), dtype=bool)
-        w = w0[rows].copy()
-        finished = np.zeros(len(rows), dtype=bool)
-        flagged = np.zeros(len(rows), dtype=bool)
-        cur = float(lam)
-        for _ in range(solver.max_stages):
-            act = np.flatnonzero(~finished & ~flagged)
-            if act.size == 0:
-                break
-            # Only the columns some active problem still has (later stages: few).
-            cols = np.flatnonzero(mask[act].any(axis=0))
-            sub = np.ix_(act, cols, cols)
-            res = batched_fista(
-                Gr[sub],
-                br[np.ix_(act, cols)],
-                cr[act],
-                mask[np.ix_(act, cols)],
-                cur,
-                weights[cols],
-                lipschitz_steps(Gr[sub], mask[np.ix_(act, cols)]),
-                w[np.ix_(act, cols)],
-                nonneg=None if nonneg is None else nonneg[cols],
-                max_iter=solver.max_iter,
-                tol=solver.solver_tol,
+        """The staged schedule of every problem in ``rows`` (one batch);
+        ``(coefficients, relative residual)`` each, or ``None`` for all of them
+        when the batch's divergence guard gives up (then each is solved alone)."""
+        try:
+            solved = staged_fista_batch(
+                [problems[r][1] for r in rows],
+                lam=lam,
+                penalty_weights=[weights] * len(rows),
+                threshold=[thresholds] * len(rows),
+                nonneg=[nonneg_t] * len(rows),
+                w0=[torch.from_numpy(w0[r]) for r in rows],
+                **solver._schedule(),
             )
-            full_coef = np.zeros((len(act), p))
-            full_coef[:, cols] = res.coef
-            res.coef = full_coef
-            flagged[act[res.flagged]] = True
-            for j, r in enumerate(act):
-                if res.flagged[j]:
-                    continue
-                sup = np.flatnonzero(mask[r])
-                w_sub = res.coef[j][sup]
-                mags = np.abs(w_sub)
-                largest = float(mags.max()) if mags.size else 0.0
-                if largest > 0:
-                    keep = ~(
-                        (mags < thresholds[sup] * max(largest, 0.0))
-                        & (weights[sup] > 0)
-                    )
-                else:
-                    keep = np.ones(mags.shape, dtype=bool)
-                w_sub = np.where(keep, w_sub, 0.0)
-                w[r] = 0.0
-                w[r, sup] = w_sub
-                mask[r] = False
-                mask[r, sup[keep]] = True
-            costs = np.array(
-                [_rel(Gr[r], br[r], cr[r], w[r]) for r in range(len(rows))]
-            )
-            for r in act:
-                if flagged[r]:
-                    continue
-                if (
-                    costs[r] <= solver.tol
-                    and np.abs(w[r][mask[r]]).max(initial=0.0) > 0
-                ):
-                    finished[r] = True
-            cur /= solver.lam_decay
-        results = []
-        for r in range(len(rows)):
-            if flagged[r]:
-                results.append(None)
-                continue
-            _, datafit = problems[rows[r]]
-            w_t = torch.as_tensor(w[r], dtype=datafit.rhs.dtype)
-            support = np.flatnonzero(mask[r])
-            if solver.debias and len(support):
-                w_t, support = _debias(
-                    datafit,
-                    support,
-                    torch.as_tensor(weights, dtype=w_t.dtype),
-                    torch.as_tensor(thresholds, dtype=w_t.dtype),
-                    0.0,
-                    w_t,
-                    nonneg_t,
-                )
-            results.append((w_t.cpu().numpy(), datafit.relative_residual(w_t)))
-        return results
+        except FloatingPointError:
+            return [None] * len(rows)
+        return [(res.coef.numpy(), res.cost) for res in solved]
 
     rows = np.arange(len(problems))
     first = path(rows, solver.lam)
@@ -544,14 +473,6 @@ def _balance_many(grams, n_rows, n_features, normalize, project_psd):
     if not normalize:
         col = np.where(col > 0, 1.0, col)
     return gram, col
-
-
-def _rel(gram, rhs, const, w):
-    """Relative residual of one Gram problem (``GramQuadratic.relative_residual``)."""
-    if const <= 0:
-        return 0.0
-    val = float(0.5 * w @ (gram @ w) - rhs @ w + 0.5 * const)
-    return max(0.0, 2.0 * val / const)
 
 
 def _refit_resample(base, Xa, tau, groups_rows, mult, weak):

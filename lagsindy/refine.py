@@ -34,6 +34,7 @@ from sklearn.utils.validation import check_is_fitted
 from . import _validation as val
 from ._expr import symbols_for
 from ._torch import resolve_dtype
+from .estimator import _checked_mass
 from .formulation.weak import _jumps, estimate_sampling_interval, trajectory_segments
 
 # A coefficient that moves by more than this (relative) is reported: the equation
@@ -89,9 +90,7 @@ class Refinement:
 
     def __str__(self) -> str:
         worst = max(self.changes.items(), key=lambda kv: abs(kv[1]), default=None)
-        move = (
-            f"; largest change {worst[0]} {100 * worst[1]:+.1f} %" if worst else ""
-        )
+        move = f"; largest change {worst[0]} {100 * worst[1]:+.1f} %" if worst else ""
         return (
             f"rollout refinement over {self.n_windows} windows of {self.horizon} "
             f"samples: RMSE {self.rmse_before:.4g} -> {self.rmse_after:.4g} "
@@ -225,7 +224,9 @@ def _scale(weights, q):
         return np.ones(d)
     if isinstance(weights, str):
         if weights != "std":
-            raise ValueError(f'weights must be None, "std" or {d} numbers, got {weights!r}')
+            raise ValueError(
+                f'weights must be None, "std" or {d} numbers, got {weights!r}'
+            )
         spread = q.std(axis=0)
         return np.where(spread > 0, spread, 1.0)
     w = np.asarray(weights, dtype=float)
@@ -363,8 +364,11 @@ def refine(
     >>> print(refined.refinement_)                            # doctest: +SKIP
     """
     check_is_fitted(est)
-    for name, value, low in (("horizon", horizon, 2), ("substeps", substeps, 1),
-                             ("max_iter", max_iter, 1)):
+    for name, value, low in (
+        ("horizon", horizon, 2),
+        ("substeps", substeps, 1),
+        ("max_iter", max_iter, 1),
+    ):
         if not (isinstance(value, Integral) and value >= low):
             raise ValueError(f"{name} must be an integer >= {low}, got {value!r}")
     if initial_states not in ("fit", "data"):
@@ -404,7 +408,9 @@ def refine(
         dt = (
             float(fitted.dt)
             if fitted.dt is not None
-            else estimate_sampling_interval(Xt, d, [torch.as_tensor(s) for s in segments])
+            else estimate_sampling_interval(
+                Xt, d, [torch.as_tensor(s) for s in segments]
+            )
         )
         # no times: split where the positions jump against the velocities (gaps)
         segments = [
@@ -413,9 +419,7 @@ def refine(
             if seg.size > 2
             for part in np.split(
                 seg,
-                np.flatnonzero(
-                    _jumps(Xt[seg, :d], Xt[seg, d : 2 * d], dt).numpy()
-                ) + 1,
+                np.flatnonzero(_jumps(Xt[seg, :d], Xt[seg, d : 2 * d], dt).numpy()) + 1,
             )
             if part.size
         ]
@@ -455,7 +459,9 @@ def refine(
     B = x0.shape[0]
     measured = Xa[idx, :d]  # (B, horizon + 1, d)
     scale = _scale(weights, Xa[:, :d])
-    spread = float(np.sqrt(np.mean((Xa[:, :d] - Xa[:, :d].mean(axis=0)) ** 2 / scale**2)))
+    spread = float(
+        np.sqrt(np.mean((Xa[:, :d] - Xa[:, :d].mean(axis=0)) ** 2 / scale**2))
+    )
     tau_nodes = None
     if forced:
         tau_nodes = np.asarray(tau_a, dtype=float)[idx]
@@ -523,8 +529,11 @@ def refine(
                 jac = dense
             cache[key] = (r[0], jac)
             if verbose:
-                print(f"[refine] integration {len(calls) + 1}: RMSE "
-                      f"{np.sqrt(np.sum(r[0] ** 2)):.6g}", flush=True)
+                print(
+                    f"[refine] integration {len(calls) + 1}: RMSE "
+                    f"{np.sqrt(np.sum(r[0] ** 2)):.6g}",
+                    flush=True,
+                )
             calls.append(key)
         return cache[key]
 
@@ -536,7 +545,9 @@ def refine(
             "the fitted model cannot be integrated over every window (singular mass "
             "matrix or divergence): refine needs a model whose rollouts exist"
         )
-    low = np.concatenate([np.where(free >= n_lag, 0.0, -np.inf), np.full(B * ns, -np.inf)])
+    low = np.concatenate(
+        [np.where(free >= n_lag, 0.0, -np.inf), np.full(B * ns, -np.inf)]
+    )
     with np.errstate(all="ignore"):
         result = least_squares(
             lambda x: evaluate(x)[0],
@@ -563,9 +574,7 @@ def refine(
     integrator_error = float(
         np.sqrt(np.mean(((finer - coarse)[..., 1:, :] / scale) ** 2))
     )
-    changes = {
-        names[k]: float(coef[k] / c0[k] - 1) for k in free
-    }
+    changes = {names[k]: float(coef[k] / c0[k] - 1) for k in free}
     converged = bool(result.status > 0)
     if not converged:
         warnings.warn(
@@ -597,13 +606,13 @@ def refine(
             stacklevel=2,
         )
 
-    all_new = all_coef.astype(float).copy()
+    all_new = all_coef.astype(float)
     all_new[support] = coef
-    p = fitted.coef.size
     new_fitted = dataclasses.replace(
-        fitted, coef=all_new[:p], dissipation_coef=all_new[p:]
+        fitted, coef=all_new[:p_lag], dissipation_coef=all_new[p_lag:]
     )
-    new_fitted.mass_check = new_fitted.check_mass(Xt)
+    # checked (and warned about, naming the coordinates) as after a fit
+    new_fitted.mass_check = _checked_mass(new_fitted, Xt)
     out = copy.deepcopy(est)
     out._publish(new_fitted)
     out.refinement_ = Refinement(

@@ -22,7 +22,7 @@ refits.
 
 Case I resamples are solved together (:func:`_batched_resamples`): the balancing of
 every resample's Gram matrix and each stage's FISTA iterations run on stacked arrays
-(:mod:`lagsindy.solvers.batched_fista`), one batched product per iteration instead
+(:func:`lagsindy.solvers.staged.staged_fista_batch`), one batched product per iteration instead
 of one Python-level loop per resample, while the per-resample decisions (thresholds,
 the path's second start, the debiasing refit) follow
 :class:`~lagsindy.cases.SparseSolve`. Each resample gets the coefficients its own

@@ -34,8 +34,9 @@ def _perturbation(n, size=0.03):
 @pytest.fixture(scope="module")
 def double_chain():
     system = planar_chain(2, masses=[1.0, 0.6], lengths=[1.0, 0.7])
-    d = make_dataset(system, n_trajectories=6, duration=2.0, excitation=None,
-                     random_state=3)
+    d = make_dataset(
+        system, n_trajectories=6, duration=2.0, excitation=None, random_state=3
+    )
     lib = CandidateLibrary.chain(system.coordinates)
     est = LagrangianSINDy(lib, random_state=0).fit(d.X_clean, groups=d.groups)
     return system, d, lib, est
@@ -66,8 +67,14 @@ def test_passive_refinement_returns_to_the_exact_model(double_chain, initial_sta
 
 def test_forced_refinement_uses_the_forces_between_samples():
     system = cart_pendulum()
-    d = make_dataset(system, n_trajectories=4, duration=2.0, excitation="sincos",
-                     amplitude=3.0, random_state=1)
+    d = make_dataset(
+        system,
+        n_trajectories=4,
+        duration=2.0,
+        excitation="sincos",
+        amplitude=3.0,
+        random_state=1,
+    )
     lib = CandidateLibrary.chain(system.coordinates, angles=["theta"])
     est = LagrangianSINDy(lib, random_state=0).fit(d.X_clean, d.tau, groups=d.groups)
     support = est.coef_ != 0
@@ -81,8 +88,9 @@ def test_forced_refinement_uses_the_forces_between_samples():
 def test_dissipation_stays_non_negative():
     # data that gain energy: the best viscous coefficient would be negative
     system = single_pendulum().with_damping(viscous={"theta": -0.05})
-    d = make_dataset(system, n_trajectories=4, duration=2.0, excitation=None,
-                     random_state=2)
+    d = make_dataset(
+        system, n_trajectories=4, duration=2.0, excitation=None, random_state=2
+    )
     lib = CandidateLibrary.polynomial(["theta"], angles=["theta"], degree=2)
     est = LagrangianSINDy(
         lib, dissipation=DissipationLibrary(["viscous"]), fixed_term="theta_dot**2"
@@ -133,8 +141,9 @@ def test_errors_and_warnings(double_chain):
 
 def test_forced_model_needs_its_forces():
     system = single_pendulum()
-    d = make_dataset(system, n_trajectories=3, duration=2.0, excitation="paper",
-                     random_state=0)
+    d = make_dataset(
+        system, n_trajectories=3, duration=2.0, excitation="paper", random_state=0
+    )
     lib = CandidateLibrary.polynomial(["theta"], angles=["theta"], degree=2)
     est = LagrangianSINDy(lib).fit(d.X_clean, d.tau, groups=d.groups)
     with pytest.raises(ValueError, match="pass the forces"):
@@ -150,8 +159,15 @@ def test_fitted_initial_states_keep_noisy_starts_out_of_the_coefficients():
     # velocities at the windows' starts are off (most at the trajectories' ends);
     # held there, they pull the coefficients away from the truth
     system = cart_pendulum()
-    d = make_dataset(system, n_trajectories=10, duration=4.0, excitation="sincos",
-                     noise=1e-2, protocol="sensor", random_state=1)
+    d = make_dataset(
+        system,
+        n_trajectories=10,
+        duration=4.0,
+        excitation="sincos",
+        noise=1e-2,
+        protocol="sensor",
+        random_state=1,
+    )
     lib = CandidateLibrary.chain(system.coordinates, angles=["theta"])
     truth = lib.decompose(system.lagrangian)[0]
     est = LagrangianSINDy(lib, random_state=0).fit(d.X, d.tau, groups=d.groups)

@@ -127,57 +127,6 @@ def test_batched_resamples_equal_one_at_a_time(noisy_pendulum, formulation):
         assert np.abs(a - b).max() <= 1e-9 * np.abs(a).max()
 
 
-def test_batched_fista_follows_fista():
-    """Each problem of the batch takes fista's iterates: the same stopping
-    iteration and solution, with supports (masks), weights and a non-negative
-    coefficient."""
-    import torch
-
-    from lagsindy.solvers import GramQuadratic
-    from lagsindy.solvers.batched_fista import batched_fista, lipschitz_steps
-    from lagsindy.solvers.fista import fista
-    from lagsindy.solvers.penalties import L1
-
-    rng = np.random.default_rng(0)
-    R, p, lam = 6, 7, 0.05
-    A = rng.standard_normal((R, 40, p))
-    A[:, :, 1] = A[:, :, 0] + 0.1 * A[:, :, 1]  # correlated columns: slow, restarts
-    y = A[:, :, :3].sum(axis=2) + 0.1 * rng.standard_normal((R, 40))
-    gram = np.einsum("rsi,rsj->rij", A, A) / 40
-    rhs = np.einsum("rsi,rs->ri", A, y) / 40
-    const = (y * y).mean(axis=1)
-    mask = np.ones((R, p), dtype=bool)
-    mask[::2, 5] = False
-    weights = np.ones(p)
-    weights[0] = 0.0
-    nonneg = np.zeros(p, dtype=bool)
-    nonneg[4] = True
-    steps = lipschitz_steps(gram, mask)
-    res = batched_fista(
-        gram,
-        rhs,
-        const,
-        mask,
-        lam,
-        weights,
-        steps,
-        np.zeros((R, p)),
-        nonneg=nonneg,
-        tol=1e-10,
-    )
-    assert res.converged.all() and not res.flagged.any()
-    for r in range(R):
-        idx = np.flatnonzero(mask[r])
-        t = torch.as_tensor
-        sub = GramQuadratic(t(gram[r][np.ix_(idx, idx)]), t(rhs[r][idx]), const[r])
-        one = fista(
-            sub, L1(lam, t(weights[idx]), t(nonneg[idx])), max_iter=10_000, tol=1e-10
-        )
-        assert one.n_iter == res.n_iter[r]
-        np.testing.assert_allclose(res.coef[r][idx], one.coef.numpy(), atol=1e-13)
-        assert not res.coef[r][~mask[r]].any()
-
-
 def test_fast_path_matches_full_refits_case_iii():
     d = make_dataset(
         single_pendulum(),

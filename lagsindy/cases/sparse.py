@@ -101,6 +101,14 @@ class SparseSolve:
             threshold=torch.as_tensor(
                 self.thresholds(features), dtype=weights.dtype, device=weights.device
             ),
+            verbose=verbose,
+            **self._schedule(),
+            **kwargs,
+        )
+
+    def _schedule(self) -> dict:
+        """The staged schedule's settings, shared by one solve and the batch."""
+        return dict(
             lam_decay=self.lam_decay,
             step_growth=self.step_growth,
             alpha=self.alpha,
@@ -109,8 +117,6 @@ class SparseSolve:
             tol=self.tol,
             solver_tol=self.solver_tol,
             debias=self.debias,
-            verbose=verbose,
-            **kwargs,
         )
 
     def stages(
@@ -314,14 +320,7 @@ class SparseSolve:
                     for j in run
                 ],
                 reference=reference,
-                lam_decay=self.lam_decay,
-                step_growth=self.step_growth,
-                alpha=self.alpha,
-                max_stages=self.max_stages,
-                max_iter=self.max_iter,
-                tol=self.tol,
-                solver_tol=self.solver_tol,
-                debias=self.debias,
+                **self._schedule(),
                 nonneg=[prepared[j][4] for j in run],
                 shared=(common, [index[j] for j in run]),
             )

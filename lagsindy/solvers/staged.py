@@ -267,6 +267,7 @@ def staged_fista_batch(
     debias: bool = True,
     nonneg=None,
     shared=None,
+    w0=None,
 ) -> list:
     """:func:`staged_fista` of several problems, their FISTA runs batched.
 
@@ -294,6 +295,8 @@ solver_tol, debias
         One matrix ``C`` and, per problem, the indices ``idx`` with
         ``datafits[r].gram == C[idx][:, idx]``: the problems' gradients are then
         one product with ``C``.
+    w0 : list of Tensor, optional
+        Each problem's starting point (default zeros).
 
     Returns
     -------
@@ -335,7 +338,11 @@ solver_tol, debias
         for t, d in zip(threshold, datafits)
     ]
     supports = [np.arange(d.n_features) for d in datafits]
-    w_full = [d.zeros() for d in datafits]
+    w_full = (
+        [d.zeros() for d in datafits]
+        if w0 is None
+        else [torch.as_tensor(w, dtype=dtype).clone() for w in w0]
+    )
     stages = [[] for _ in range(n_prob)]
     total_iter = [0] * n_prob
     reductions = [0] * n_prob
