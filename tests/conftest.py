@@ -1,9 +1,12 @@
 import os
+import warnings
 
 import numpy as np
 import pytest
 import torch
 
+import lagsindy.estimator as estimator
+from lagsindy import LagrangianSINDy
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
 
@@ -46,3 +49,27 @@ def single_passive():
     return make_dataset(
         single_pendulum(), n_trajectories=40, excitation=None, random_state=2
     )
+
+
+@pytest.fixture(scope="session")
+def case_iii_problem():
+    """The case III Problem of a noisy passive cart-pendulum search."""
+    system = cart_pendulum()
+    data = make_dataset(
+        system,
+        n_trajectories=4,
+        excitation=None,
+        protocol="paper",
+        noise=0.05,
+        random_state=0,
+    )
+    seen = []
+    original = estimator.solve_case
+    try:
+        estimator.solve_case = lambda case, p: seen.append(p) or original(case, p)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            LagrangianSINDy(system.paper_library(), random_state=0).fit(data.X)
+    finally:
+        estimator.solve_case = original
+    return seen[0]

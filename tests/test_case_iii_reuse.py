@@ -1,40 +1,12 @@
 """Case III search: reused first starts and one-operator scoring change nothing."""
 
-import warnings
 
 import numpy as np
 import pytest
 import torch
 
-import lagsindy.estimator as estimator
-from lagsindy import LagrangianSINDy
 from lagsindy.cases.fixed import acceleration_r2s
 from lagsindy.formulation.operator import forward_accelerations
-from lagsindy.systems import cart_pendulum, make_dataset
-
-
-@pytest.fixture(scope="module")
-def problem():
-    """The case III Problem of a noisy passive cart-pendulum search."""
-    system = cart_pendulum()
-    data = make_dataset(
-        system,
-        n_trajectories=4,
-        excitation=None,
-        protocol="paper",
-        noise=0.05,
-        random_state=0,
-    )
-    seen = []
-    original = estimator.solve_case
-    try:
-        estimator.solve_case = lambda case, p: seen.append(p) or original(case, p)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            LagrangianSINDy(system.paper_library(), random_state=0).fit(data.X)
-    finally:
-        estimator.solve_case = original
-    return seen[0]
 
 
 def _r2_one_operator(p, coef, Xt):
@@ -49,8 +21,8 @@ def _r2_one_operator(p, coef, Xt):
     return r2_score(true, pred, multioutput="variance_weighted")
 
 
-def test_shortlist_scores_equal_one_operator_per_model(problem):
-    p = problem
+def test_shortlist_scores_equal_one_operator_per_model(case_iii_problem):
+    p = case_iii_problem
     free = np.flatnonzero(p.identifiable)
     coefs = []
     for r in free[:4]:
@@ -68,9 +40,9 @@ def test_shortlist_scores_equal_one_operator_per_model(problem):
 
 
 @pytest.mark.slow  # 20 s; test_lockstep_solves checks the batched search's reuse
-def test_first_start_result_stands_for_the_first_start(problem):
+def test_first_start_result_stands_for_the_first_start(case_iii_problem):
     """solve(first=<starts=1 result>) equals a fresh solve, restarts included."""
-    p = problem
+    p = case_iii_problem
     free = np.flatnonzero(p.identifiable)
     restarted = 0
     for r in free:

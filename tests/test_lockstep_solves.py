@@ -1,17 +1,13 @@
 """Batched (lockstep) FISTA and staged solves equal the one-problem solvers."""
 
-import warnings
 
 import numpy as np
 import pytest
 import torch
 
-import lagsindy.estimator as estimator
-from lagsindy import LagrangianSINDy
 from lagsindy.solvers import L1, GramQuadratic, fista, staged_fista
 from lagsindy.solvers.fista import fista_batch
 from lagsindy.solvers.staged import staged_fista_batch
-from lagsindy.systems import cart_pendulum, make_dataset
 
 
 def _gram(rng, n_rows, p, collinear=1e-3, n_true=3):
@@ -138,33 +134,9 @@ def test_staged_fista_batch_equals_staged_fista():
     assert len({len(r.support) for r in got}) > 1
 
 
-@pytest.fixture(scope="module")
-def problem():
-    """The case III Problem of a noisy passive cart-pendulum search."""
-    system = cart_pendulum()
-    data = make_dataset(
-        system,
-        n_trajectories=4,
-        excitation=None,
-        protocol="paper",
-        noise=0.05,
-        random_state=0,
-    )
-    seen = []
-    original = estimator.solve_case
-    try:
-        estimator.solve_case = lambda case, p: seen.append(p) or original(case, p)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            LagrangianSINDy(system.paper_library(), random_state=0).fit(data.X)
-    finally:
-        estimator.solve_case = original
-    return seen[0]
-
-
-def test_solve_many_equals_solve(problem):
+def test_solve_many_equals_solve(case_iii_problem):
     """The ranking's and the shortlist's batched solves equal one solve each."""
-    p = problem
+    p = case_iii_problem
     free = np.flatnonzero(p.identifiable)
     jobs = [(np.array([k for k in free if k != r]), r, -1.0, True, None) for r in free]
     ranked = p.solver.solve_many(p.balanced, jobs, p.penalty, 1.0, starts=1)
