@@ -370,7 +370,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             self, Xa, Xt, tau, tau_t, library, diss, groups, case
         )
         fitted = _fitted_state(self, library, diss, case, stats, solution, y, tau)
-        fitted.mass_check = _checked_mass(fitted, Xt)
+        fitted.mass_check = fitted.checked_mass(Xt, stacklevel=3)
         self._publish(fitted)
         return self
 
@@ -802,35 +802,6 @@ def _fitted_state(
         residual=result.cost,
         tau_1d=tau is not None and np.asarray(y).ndim == 1,
     )
-
-
-def _checked_mass(fitted: FittedLagrangian, Xt):
-    """Check the learned mass matrix on the data; warn when it is often singular."""
-    if not fitted.coef.any():
-        return MassCheck(1.0, list(fitted.coordinates), 0)
-    check = fitted.check_mass(Xt)
-    if check.fraction > MASS_BAD_FRACTION:
-        velocities = {str(v) for v in fitted.lagrangian.free_symbols}
-        absent = [c for c in fitted.coordinates if f"{c}_dot" not in velocities]
-        hint = f"; no learned term contains the velocity of {absent}" if absent else ""
-        advice = (
-            " In case III try another fixed term, or fixed_term=None to search "
-            "them all."
-            if fitted.case == "fixed"
-            else ""
-        )
-        warnings.warn(
-            "the learned mass matrix d2L/dqdot2 is singular or indefinite at "
-            f"{check.fraction:.0%} of the samples, along coordinate(s) "
-            f"{check.coordinates}{hint}, so the model cannot predict those "
-            "accelerations there (rollouts fail)."
-            + advice
-            + " With forces, check that the data excite every coordinate. "
-            "Test est.mass_check_.ok.",
-            UserWarning,
-            stacklevel=4,
-        )
-    return check
 
 
 def _from_params(cls, library, params):

@@ -11,6 +11,7 @@ without knowing the estimator.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -306,6 +307,38 @@ class FittedLagrangian:
         q, qd = Xt[rows, :d], Xt[rows, d : 2 * d]
         mass = torch.einsum("skij,k->sij", op.mass_matrices(q, qd), coef[: op.n_terms])
         return mass_matrix_check(mass, self.coordinates)
+
+    def checked_mass(self, Xt, stacklevel: int = 2) -> MassCheck:
+        """:meth:`check_mass`, with a warning when the mass matrix is singular or
+        indefinite at more than ``MASS_BAD_FRACTION`` of the rows (after a fit or a
+        refinement: the model cannot predict those accelerations)."""
+        if not self.coef.any():
+            return MassCheck(1.0, list(self.coordinates), 0)
+        check = self.check_mass(Xt)
+        if check.fraction > MASS_BAD_FRACTION:
+            velocities = {str(v) for v in self.lagrangian.free_symbols}
+            absent = [c for c in self.coordinates if f"{c}_dot" not in velocities]
+            hint = (
+                f"; no learned term contains the velocity of {absent}" if absent else ""
+            )
+            advice = (
+                " In case III try another fixed term, or fixed_term=None to search "
+                "them all."
+                if self.case == "fixed"
+                else ""
+            )
+            warnings.warn(
+                "the learned mass matrix d2L/dqdot2 is singular or indefinite at "
+                f"{check.fraction:.0%} of the samples, along coordinate(s) "
+                f"{check.coordinates}{hint}, so the model cannot predict those "
+                "accelerations there (rollouts fail)."
+                + advice
+                + " With forces, check that the data excite every coordinate. "
+                "Test est.mass_check_.ok.",
+                UserWarning,
+                stacklevel=stacklevel + 1,
+            )
+        return check
 
     def coef_table(self):
         """The coefficients as a DataFrame (see ``LagrangianSINDy.coef_table``)."""

@@ -34,7 +34,6 @@ from sklearn.utils.validation import check_is_fitted
 from . import _validation as val
 from ._expr import symbols_for
 from ._torch import resolve_dtype
-from .estimator import _checked_mass
 from .formulation.weak import _jumps, estimate_sampling_interval, trajectory_segments
 
 # A coefficient that moves by more than this (relative) is reported: the equation
@@ -612,7 +611,7 @@ def refine(
         fitted, coef=all_new[:p_lag], dissipation_coef=all_new[p_lag:]
     )
     # checked (and warned about, naming the coordinates) as after a fit
-    new_fitted.mass_check = _checked_mass(new_fitted, Xt)
+    new_fitted.mass_check = new_fitted.checked_mass(Xt, stacklevel=2)
     out = copy.deepcopy(est)
     out._publish(new_fitted)
     out.refinement_ = Refinement(
