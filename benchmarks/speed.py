@@ -504,7 +504,7 @@ SEARCH_STEPS = [
         "cases/fixed.py",
         ("acceleration_r2", "acceleration_r2s"),
     ),
-    ("mass-matrix check of the result", "lagsindy/estimator.py", ("_checked_mass",)),
+    ("mass-matrix check of the result", "lagsindy/model.py", ("checked_mass",)),
 ]
 
 # The same for one ``diagnose`` of the case I model.
