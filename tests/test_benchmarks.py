@@ -432,3 +432,15 @@ def test_speed_profile_steps_name_existing_functions():
         assert len(matches) == 1, (label, suffix)
         text = matches[0].read_text()
         assert any(re.search(rf"def {n}\(", text) for n in names), (label, names)
+
+
+def test_paired_comparison_counts_windows_and_brackets_the_median_difference():
+    from benchmarks.measured import paired_comparison
+
+    reference = np.array([1.0, 2.0, 3.0, 4.0, 5.0, np.nan])
+    errors = np.array([0.5, 2.5, 2.0, 4.5, 4.0, 1.0])  # the nan window is dropped
+    pc = paired_comparison(errors, reference)
+    assert (pc["wins"], pc["n"]) == (3, 5)
+    assert pc["ratio"] == pytest.approx(np.mean([0.5, 1.25, 2 / 3, 1.125, 0.8]))
+    assert pc["diff"] == pytest.approx(2.5 - 3.0)
+    assert pc["low"] <= pc["diff"] <= pc["high"]
