@@ -12,6 +12,7 @@ import warnings
 
 import numpy as np
 import pytest
+import torch
 
 import benchmarks._common as common
 from benchmarks import __main__ as runner
@@ -444,3 +445,29 @@ def test_paired_comparison_counts_windows_and_brackets_the_median_difference():
     assert pc["ratio"] == pytest.approx(np.mean([0.5, 1.25, 2 / 3, 1.125, 0.8]))
     assert pc["diff"] == pytest.approx(2.5 - 3.0)
     assert pc["low"] <= pc["diff"] <= pc["high"]
+
+
+def test_gpu_benchmark_runs_on_cpu_and_says_when_no_gpu(tiny_results):
+    from benchmarks import gpu
+
+    gpu.main(["--device", "cpu"])
+    text = (tiny_results / "gpu_quick.md").read_text()
+    _check_header(text)
+    row = next(line for line in text.splitlines() if line.startswith("| 3000 x 39 "))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1] == "cpu"
+    assert int(cells[6]) > 0  # aten operator calls of the profiled fit
+    if not torch.cuda.is_available():
+        gpu.main([])
+        assert "No GPU on this machine" in (tiny_results / "gpu_quick.md").read_text()
+
+
+@pytest.mark.gpu
+def test_gpu_benchmark_profiles_cuda_kernels(tiny_results):
+    from benchmarks import gpu
+
+    gpu.main([])
+    text = (tiny_results / "gpu_quick.md").read_text()
+    row = next(line for line in text.splitlines() if line.startswith("| 3000 x 39 "))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[1] == "cuda" and int(cells[6]) > 0 and cells[7].endswith("MiB")
