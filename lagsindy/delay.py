@@ -432,8 +432,10 @@ def _fold_scores(A, B, rows, folds, n_dof, scale):
     Row ``c`` of ``B`` is candidate ``c``'s (shifted) input, flattened as the rows of
     ``A``. In each fold the training rows' least squares of all the candidates is
     one :func:`numpy.linalg.lstsq` with a right-hand side per candidate (one
-    factorization of the fold's columns instead of one per candidate); the result
-    equals per-candidate solves up to rounding.
+    factorization of the fold's columns instead of one per candidate), equal to one
+    ``lstsq`` per candidate up to rounding. NumPy's BLAS runs on one thread here: on
+    a loaded machine its threaded products of this size wait for a busy core far
+    longer than they compute.
 
     Returns
     -------
@@ -441,10 +443,23 @@ def _fold_scores(A, B, rows, folds, n_dof, scale):
         Mean squared held-out error divided by ``scale``.
     """
     scores = np.empty((len(folds), B.shape[0]))
-    for f, (train, _) in enumerate(folds):
-        tr = np.repeat(np.isin(rows, train), n_dof)
-        te = ~tr
-        xi, *_ = np.linalg.lstsq(A[tr], B[:, tr].T, rcond=None)
-        err = A[te] @ xi - B[:, te].T  # (held-out rows, candidates)
-        scores[f] = np.mean(err**2, axis=0) / scale
+    with _one_blas_thread():
+        for f, (train, _) in enumerate(folds):
+            tr = np.repeat(np.isin(rows, train), n_dof)
+            te = ~tr
+            xi, *_ = np.linalg.lstsq(A[tr], B[:, tr].T, rcond=None)
+            err = A[te] @ xi - B[:, te].T  # (held-out rows, candidates)
+            scores[f] = np.mean(err**2, axis=0) / scale
     return scores
+
+
+def _one_blas_thread():
+    """Context limiting NumPy's BLAS to one thread (``threadpoolctl``, which
+    scikit-learn requires; a no-op without it)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - scikit-learn depends on it
+        import contextlib
+
+        return contextlib.nullcontext()
+    return threadpool_limits(1, user_api="blas")
