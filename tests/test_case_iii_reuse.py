@@ -119,3 +119,37 @@ def test_r2_scores_equal_sklearn():
     p[1, 0, 0] = 2.0
     want = [r2_score(np.ones((300, 2)), x, multioutput="variance_weighted") for x in p]
     np.testing.assert_array_equal(r2_scores(np.ones((300, 2)), p), want)
+
+
+def test_mass_traces_are_computed_once_per_fit(monkeypatch, case_iii_problem):
+    """The windows of a weak-form search share the mass-matrix traces (p.memo)."""
+    import warnings
+
+    from lagsindy import LagrangianSINDy
+    from lagsindy.cases import fixed
+    from lagsindy.systems import cart_pendulum, make_dataset
+
+    p = case_iii_problem
+    rows = p.solver.subsample_rows(p.Xt.shape[0], fixed.SELECTION_ROWS)
+    fresh = fixed._mass_traces(p, rows)
+    got = fixed.mass_traces(p)
+    np.testing.assert_array_equal(got, fresh)
+    got[:] = 0.0  # a copy: the memo keeps its own
+    np.testing.assert_array_equal(fixed.mass_traces(p), fresh)
+
+    calls, solves = [], []
+    original, solve = fixed._mass_traces, fixed.solve_mass
+    monkeypatch.setattr(
+        fixed, "_mass_traces", lambda *a: calls.append(1) or original(*a)
+    )
+    monkeypatch.setattr(fixed, "solve_mass", lambda *a: solves.append(1) or solve(*a))
+    system = cart_pendulum()
+    data = make_dataset(system, n_trajectories=6, excitation=None, random_state=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = LagrangianSINDy(system.paper_library(), fixed_term="mass").fit(
+            data.X, groups=data.groups
+        )
+    assert est.formulation_ == "weak"
+    assert len(solves) >= 2  # two windows were solved (the second checks the first)
+    assert len(calls) == 1

@@ -153,8 +153,20 @@ def fit_fixed(problem: Problem) -> Solution:
 
 
 def mass_traces(p: Problem) -> np.ndarray:
-    """Mean over (a subsample of) the data of tr(M_k) for every feature."""
+    """Mean over (a subsample of) the data of tr(M_k) for every feature.
+
+    Computed once per subsample and kept in ``p.memo``: the traces depend on the
+    data and the library only, so every window of a weak-form fit shares them.
+    """
     rows = p.solver.subsample_rows(p.Xt.shape[0], SELECTION_ROWS)
+    key = ("mass_traces", rows.tobytes())
+    if key not in p.memo:
+        p.memo[key] = _mass_traces(p, rows)
+    return p.memo[key].copy()
+
+
+def _mass_traces(p: Problem, rows) -> np.ndarray:
+    """:func:`mass_traces` on the data rows ``rows``, computed afresh."""
     Xs = p.Xt[torch.as_tensor(rows, device=p.Xt.device)]
     d = p.n_dof
     op = EulerLagrangeOperator(
