@@ -302,9 +302,7 @@ def acceleration_r2s(p: Problem, coefs, Xt) -> list:
             coefs[j][supports[j]], dtype=Xt.dtype, device=Xt.device
         )
     mc = torch.einsum("skij,mk->msij", mass, c[:, : op.n_terms])
-    bias = torch.einsum("sif,mf->msi", theta, c) - torch.einsum(
-        "msij,sj->msi", mc, qdd
-    )
+    bias = torch.einsum("sif,mf->msi", theta, c) - torch.einsum("msij,sj->msi", mc, qdd)
     pred = to_numpy(pinv_solve(mc, -bias))  # (models, rows, n_dof)
     scores = [-np.inf] * len(coefs)
     values = r2_scores(to_numpy(qdd), pred)
@@ -381,9 +379,7 @@ def _eig2(a, b, c):
     )
     rt1 = torch.where(sm < 0, 0.5 * (sm - rt), 0.5 * (sm + rt))
     safe_rt1 = torch.where(rt1 != 0, rt1, one)
-    rt2 = torch.where(
-        sm != 0, (acmx / safe_rt1) * acmn - (b / safe_rt1) * b, -0.5 * rt
-    )
+    rt2 = torch.where(sm != 0, (acmx / safe_rt1) * acmn - (b / safe_rt1) * b, -0.5 * rt)
     sgn1 = torch.where(sm < 0, -one, one)
     cs = torch.where(df >= 0, df + rt, df - rt)
     sgn2 = torch.where(df >= 0, one, -one)
