@@ -523,6 +523,11 @@ DIAGNOSE_STEPS = [
     ),
     ("refits from rows (`LagrangianSINDy.fit`)", "lagsindy/estimator.py", ("fit",)),
     ("input delay search (`estimate_delay`)", "lagsindy/delay.py", ("estimate_delay",)),
+    (
+        "- of which its least squares (`_fold_scores`, one per fold)",
+        "lagsindy/delay.py",
+        ("_fold_scores",),
+    ),
     ("candidate catalogue (`_catalogue`)", "diagnostics/catalogue.py", ("_catalogue",)),
 ]
 
@@ -754,9 +759,7 @@ def ratios_section(baseline=None, repeats=3, quick=False, processes=2):
         after.append(_run_in(spec, "ratios"))
         print("ratios after", after[-1], flush=True)
         if baseline:
-            before.append(
-                _run_in({**spec, "diagnose": False}, "ratios", code_root=baseline)
-            )
+            before.append(_run_in(spec, "ratios", code_root=baseline))
             print("ratios before", before[-1], flush=True)
     lines += [
         "### (c) Passive search and diagnosis against one case I fit",
@@ -770,7 +773,7 @@ def ratios_section(baseline=None, repeats=3, quick=False, processes=2):
         "fit in the same process."
         + (
             f" 'before' imports lagsindy from `{baseline}` (commit "
-            f"{_commit(baseline)}), same data, without the diagnoses (unchanged code)."
+            f"{_commit(baseline)}), same data and runs."
             if baseline
             else ""
         ),

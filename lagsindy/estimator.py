@@ -705,9 +705,11 @@ def _fit_windows(est, Xa, Xt, tau, tau_t, library, diss, groups, case):
     """Statistics and solution, the window chosen by :func:`choose_window`."""
     ladder = _statistics(est, Xt, tau_t, library, diss, groups, case)
     search = case == "fixed" and est.fixed_term is None
+    memo = {}  # what the windows' problems share (data and library only)
 
     def solve(stats, like=None):
         problem = _problem(est, stats, library, diss, Xa, Xt, tau)
+        problem.memo = memo
         if like is not None and search:  # confirm with the scale already chosen
             scale = (
                 "mass" if like.normalization == "mass" else library.terms_[like.fixed]

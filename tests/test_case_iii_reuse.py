@@ -59,3 +59,97 @@ def test_first_start_result_stands_for_the_first_start(case_iii_problem):
             np.testing.assert_array_equal(a.support, b.support)
         restarted += reused_res is not ranked
     assert restarted > 0  # some candidates need the second start on these data
+
+
+def _symmetric_cases(n, seed=0):
+    """Symmetric n x n matrices: generic, indefinite, singular, zero, rank one."""
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randn(600, n, n, dtype=torch.float64, generator=g)
+    m = a @ a.transpose(1, 2)
+    m[:100] -= 2 * torch.eye(n, dtype=torch.float64)  # indefinite
+    m[100:200, -1, :] = 0  # singular, with exact zeros (a model without a velocity)
+    m[100:200, :, -1] = 0
+    m[200:220] = 0
+    v = torch.randn(100, n, dtype=torch.float64, generator=g)
+    m[300:400] = 3 * v[:, :, None] * v[:, None, :]  # rank one
+    m[400:450, 0, 0] = m[400:450, -1, -1]  # equal diagonal
+    m[450:500, 0, 0] = -m[450:500, -1, -1]  # zero trace (n = 2)
+    m = 0.5 * (m + m.transpose(1, 2))
+    return m, torch.randn(600, n, dtype=torch.float64, generator=g)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3])
+def test_pinv_solve_equals_torch_pinv(n):
+    from lagsindy.cases.fixed import pinv_solve
+
+    m, b = _symmetric_cases(n)
+    want = (torch.linalg.pinv(m, hermitian=True) @ b.unsqueeze(-1)).squeeze(-1)
+    got = pinv_solve(m, b)
+    size = want.abs().amax(-1).clamp(min=1e-300)
+    err = (got - want).abs().amax(-1) / size
+    cond = torch.linalg.cond(m)
+    ok = torch.isfinite(cond)
+    # measured (n = 2): error / (cond * eps) <= 1.44, i.e. the rounding of either
+    # method; exactly singular (zero rows) and zero matrices agree exactly
+    assert float((err[ok] / (cond[ok] * 2.2e-16)).max()) < 50
+    assert torch.equal(got[100:220].abs() > 0, want[100:220].abs() > 0)
+    torch.testing.assert_close(got[100:220], want[100:220], rtol=1e-12, atol=0)
+    # a sign flip or a missing 1/lambda in one eigen-direction shows at O(1)
+    assert float(err[220:300].max()) < 1e-9
+
+
+def test_r2_scores_equal_sklearn():
+    from sklearn.metrics import r2_score
+
+    from lagsindy.cases.fixed import r2_scores
+
+    rng = np.random.default_rng(0)
+    true = rng.standard_normal((300, 2)) * [1.0, 5.0]
+    pred = true + 0.3 * rng.standard_normal((4, 300, 2))
+    pred[1, :, 0] = true[:, 0]  # one output predicted exactly
+    constant = true.copy()
+    constant[:, 1] = 2.0  # an output without variance, predicted exactly or not
+    for t, p in ((true, pred), (constant, pred), (np.ones((300, 2)), pred)):
+        p = p.copy()
+        p[0, :, 1] = t[:, 1]
+        want = [r2_score(t, x, multioutput="variance_weighted") for x in p]
+        # measured: equal to 2e-16
+        np.testing.assert_allclose(r2_scores(t, p), want, rtol=0, atol=1e-13)
+    p = np.ones((2, 300, 2))
+    p[1, 0, 0] = 2.0
+    want = [r2_score(np.ones((300, 2)), x, multioutput="variance_weighted") for x in p]
+    np.testing.assert_array_equal(r2_scores(np.ones((300, 2)), p), want)
+
+
+def test_mass_traces_are_computed_once_per_fit(monkeypatch, case_iii_problem):
+    """The windows of a weak-form search share the mass-matrix traces (p.memo)."""
+    import warnings
+
+    from lagsindy import LagrangianSINDy
+    from lagsindy.cases import fixed
+    from lagsindy.systems import cart_pendulum, make_dataset
+
+    p = case_iii_problem
+    rows = p.solver.subsample_rows(p.Xt.shape[0], fixed.SELECTION_ROWS)
+    fresh = fixed._mass_traces(p, rows)
+    got = fixed.mass_traces(p)
+    np.testing.assert_array_equal(got, fresh)
+    got[:] = 0.0  # a copy: the memo keeps its own
+    np.testing.assert_array_equal(fixed.mass_traces(p), fresh)
+
+    calls, solves = [], []
+    original, solve = fixed._mass_traces, fixed.solve_mass
+    monkeypatch.setattr(
+        fixed, "_mass_traces", lambda *a: calls.append(1) or original(*a)
+    )
+    monkeypatch.setattr(fixed, "solve_mass", lambda *a: solves.append(1) or solve(*a))
+    system = cart_pendulum()
+    data = make_dataset(system, n_trajectories=6, excitation=None, random_state=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = LagrangianSINDy(system.paper_library(), fixed_term="mass").fit(
+            data.X, groups=data.groups
+        )
+    assert est.formulation_ == "weak"
+    assert len(solves) >= 2  # two windows were solved (the second checks the first)
+    assert len(calls) == 1

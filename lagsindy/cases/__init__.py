@@ -13,7 +13,7 @@ Each returns a :class:`Solution`; :class:`~lagsindy.LagrangianSINDy` picks the c
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -43,6 +43,10 @@ class Problem:
         Feature names.
     solver : SparseSolve
     fixed_term : str, sympy.Expr, "mass" or None
+    memo : dict
+        Results that depend only on the data and the library (not on the window's
+        statistics), shared by the problems of one fit (the estimator passes one
+        dict to every window's problem): e.g. case III's mass-matrix traces.
     """
 
     balanced: object
@@ -54,6 +58,7 @@ class Problem:
     names: np.ndarray
     solver: SparseSolve
     fixed_term: object = None
+    memo: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def coordinates(self) -> list:

@@ -13,10 +13,9 @@ import warnings
 
 import numpy as np
 import torch
-from sklearn.metrics import r2_score
 
 from .._torch import to_numpy
-from ..formulation.operator import EulerLagrangeOperator, accelerations_from
+from ..formulation.operator import EulerLagrangeOperator
 from ..solvers import GramQuadratic
 from . import Problem, Solution
 
@@ -154,8 +153,20 @@ def fit_fixed(problem: Problem) -> Solution:
 
 
 def mass_traces(p: Problem) -> np.ndarray:
-    """Mean over (a subsample of) the data of tr(M_k) for every feature."""
+    """Mean over (a subsample of) the data of tr(M_k) for every feature.
+
+    Computed once per subsample and kept in ``p.memo``: the traces depend on the
+    data and the library only, so every window of a weak-form fit shares them.
+    """
     rows = p.solver.subsample_rows(p.Xt.shape[0], SELECTION_ROWS)
+    key = ("mass_traces", rows.tobytes())
+    if key not in p.memo:
+        p.memo[key] = _mass_traces(p, rows)
+    return p.memo[key].copy()
+
+
+def _mass_traces(p: Problem, rows) -> np.ndarray:
+    """:func:`mass_traces` on the data rows ``rows``, computed afresh."""
     Xs = p.Xt[torch.as_tensor(rows, device=p.Xt.device)]
     d = p.n_dof
     op = EulerLagrangeOperator(
@@ -250,36 +261,168 @@ def acceleration_r2s(p: Problem, coefs, Xt) -> list:
     """Variance-weighted R^2 of the accelerations each model in ``coefs`` predicts.
 
     The Euler-Lagrange columns and per-term mass matrices of the union of the models'
-    supports are evaluated once on ``Xt`` (one operator, not one per model); each
-    model then uses its own support's slices of them.
+    supports are evaluated once on ``Xt`` (one operator, not one per model). All the
+    models are then scored together: their mass matrices ``M(c)`` and right-hand
+    sides are one stacked product over the union's features, the accelerations
+    ``M(c)^+ (-h(c))`` one batched pseudo-inverse solve (:func:`pinv_solve`, closed
+    form for one and two degrees of freedom) and the scores one vectorized
+    :func:`r2_scores`. The result equals the former one-model-at-a-time scoring
+    (``accelerations_from`` and ``sklearn.metrics.r2_score`` per model) up to
+    rounding.
+
+    Parameters
+    ----------
+    p : Problem
+    coefs : list of ndarray of shape (n_features,)
+        The models' coefficients.
+    Xt : Tensor of shape (n_samples, 3 * n_dof)
+        The rows to score on.
+
+    Returns
+    -------
+    list of float
+        One score per model; ``-inf`` for a model without terms or whose predicted
+        accelerations are not finite.
     """
     supports = [np.flatnonzero(c) for c in coefs]
-    nonempty = [s_ for s_ in supports if s_.size]
-    if not nonempty:
+    scored = [j for j, s_ in enumerate(supports) if s_.size]
+    if not scored:
         return [-np.inf] * len(coefs)
-    union = np.unique(np.concatenate(nonempty))
+    union = np.unique(np.concatenate([supports[j] for j in scored]))
     op = p.feature_operator(union, Xt.device, Xt.dtype)
     n = p.n_dof
     q, qd, qdd = Xt[:, :n], Xt[:, n : 2 * n], Xt[:, 2 * n : 3 * n]
     theta = op.columns(Xt)  # (rows, n_dof, features of the union)
     mass = op.mass_matrices(q, qd)  # (rows, terms of the union, n_dof, n_dof)
-    true = to_numpy(qdd)
-    scores = []
-    for coef, support in zip(coefs, supports):
-        if support.size == 0:
-            scores.append(-np.inf)
-            continue
-        pos = np.searchsorted(union, support)
-        pred = to_numpy(
-            accelerations_from(
-                theta[:, :, pos],
-                mass[:, pos[pos < op.n_terms]],
-                torch.as_tensor(coef[support], dtype=Xt.dtype, device=Xt.device),
-                qdd,
-            )
+    # Each scored model's coefficients over the union (zero off its support).
+    c = torch.zeros((len(scored), len(union)), dtype=Xt.dtype, device=Xt.device)
+    for i, j in enumerate(scored):
+        pos = np.searchsorted(union, supports[j])
+        c[i, torch.as_tensor(pos, device=Xt.device)] = torch.as_tensor(
+            coefs[j][supports[j]], dtype=Xt.dtype, device=Xt.device
         )
-        if not np.all(np.isfinite(pred)):
-            scores.append(-np.inf)
-            continue
-        scores.append(float(r2_score(true, pred, multioutput="variance_weighted")))
+    mc = torch.einsum("skij,mk->msij", mass, c[:, : op.n_terms])
+    bias = torch.einsum("sif,mf->msi", theta, c) - torch.einsum("msij,sj->msi", mc, qdd)
+    pred = to_numpy(pinv_solve(mc, -bias))  # (models, rows, n_dof)
+    scores = [-np.inf] * len(coefs)
+    values = r2_scores(to_numpy(qdd), pred)
+    for i, j in enumerate(scored):
+        if np.all(np.isfinite(pred[i])):
+            scores[j] = float(values[i])
     return scores
+
+
+def pinv_solve(mat, rhs):
+    """``pinv(mat, hermitian=True) @ rhs`` for a batch of small symmetric matrices.
+
+    The pseudo-inverse of :func:`torch.linalg.pinv` (``hermitian=True``, default
+    tolerance: eigenvalues of magnitude at most ``n * eps`` times the largest are
+    dropped; the lower triangle is used), applied to ``rhs``. For ``n = 1`` and
+    ``n = 2`` the eigen-decomposition is in closed form (the 2 x 2 one as LAPACK's
+    ``dlaev2``: the smaller eigenvalue from the determinant, without cancellation),
+    element-wise over the batch instead of one LAPACK call per matrix; the result
+    equals ``torch.linalg.pinv``'s up to rounding. Larger matrices use
+    :func:`torch.linalg.pinv`.
+
+    Parameters
+    ----------
+    mat : Tensor of shape (..., n, n)
+        Symmetric matrices.
+    rhs : Tensor of shape (..., n)
+
+    Returns
+    -------
+    Tensor of shape (..., n)
+    """
+    n = mat.shape[-1]
+    eps = torch.finfo(mat.dtype).eps
+    if n == 1:
+        a = mat[..., 0, 0]
+        keep = a.abs() > eps * a.abs()
+        inv = torch.where(keep, 1.0 / torch.where(keep, a, torch.ones_like(a)), 0.0)
+        return rhs * inv.unsqueeze(-1)
+    if n != 2:
+        return (torch.linalg.pinv(mat, hermitian=True) @ rhs.unsqueeze(-1)).squeeze(-1)
+    a, b, c = mat[..., 0, 0], mat[..., 1, 0], mat[..., 1, 1]
+    rt1, rt2, cs, sn = _eig2(a, b, c)
+    big = rt1.abs()
+    tol = 2 * eps * big
+    inv1 = torch.where(big > tol, 1.0 / torch.where(big > tol, rt1, 1.0), 0.0)
+    keep2 = rt2.abs() > tol
+    inv2 = torch.where(keep2, 1.0 / torch.where(keep2, rt2, 1.0), 0.0)
+    r0, r1 = rhs[..., 0], rhs[..., 1]
+    p1 = (cs * r0 + sn * r1) * inv1  # along (cs, sn), the eigenvalue rt1
+    p2 = (cs * r1 - sn * r0) * inv2  # along (-sn, cs), the eigenvalue rt2
+    return torch.stack([cs * p1 - sn * p2, sn * p1 + cs * p2], dim=-1)
+
+
+def _eig2(a, b, c):
+    """Eigen-decomposition of the symmetric 2 x 2 matrices ``[[a, b], [b, c]]``.
+
+    LAPACK's ``dlaev2``, element-wise: ``rt1`` is the eigenvalue of larger
+    magnitude, ``rt2`` the other, ``(cs, sn)`` the unit eigenvector of ``rt1``.
+    """
+    one = torch.ones_like(a)
+    sm, df = a + c, a - c
+    adf, tb = df.abs(), 2.0 * b
+    ab = tb.abs()
+    acmx = torch.where(a.abs() > c.abs(), a, c)
+    acmn = torch.where(a.abs() > c.abs(), c, a)
+    safe_adf = torch.where(adf > 0, adf, one)
+    safe_ab = torch.where(ab > 0, ab, one)
+    rt = torch.where(
+        adf > ab,
+        adf * torch.sqrt(1.0 + (ab / safe_adf) ** 2),
+        torch.where(
+            adf < ab, ab * torch.sqrt(1.0 + (adf / safe_ab) ** 2), ab * 2.0**0.5
+        ),
+    )
+    rt1 = torch.where(sm < 0, 0.5 * (sm - rt), 0.5 * (sm + rt))
+    safe_rt1 = torch.where(rt1 != 0, rt1, one)
+    rt2 = torch.where(sm != 0, (acmx / safe_rt1) * acmn - (b / safe_rt1) * b, -0.5 * rt)
+    sgn1 = torch.where(sm < 0, -one, one)
+    cs = torch.where(df >= 0, df + rt, df - rt)
+    sgn2 = torch.where(df >= 0, one, -one)
+    acs = cs.abs()
+    ct = -tb / torch.where(cs != 0, cs, one)
+    sn_a = 1.0 / torch.sqrt(1.0 + ct * ct)
+    cs_a = ct * sn_a
+    tn = -cs / torch.where(tb != 0, tb, one)
+    cs_b = torch.where(ab == 0, one, 1.0 / torch.sqrt(1.0 + tn * tn))
+    sn_b = torch.where(ab == 0, torch.zeros_like(a), tn * cs_b)
+    cs1 = torch.where(acs > ab, cs_a, cs_b)
+    sn1 = torch.where(acs > ab, sn_a, sn_b)
+    swap = sgn1 == sgn2
+    cs1, sn1 = torch.where(swap, -sn1, cs1), torch.where(swap, cs1, sn1)
+    return rt1, rt2, cs1, sn1
+
+
+def r2_scores(true, pred):
+    """``sklearn.metrics.r2_score(true, pred[m], multioutput="variance_weighted")``
+    for every model ``m`` at once.
+
+    Parameters
+    ----------
+    true : ndarray of shape (n_samples, n_outputs)
+    pred : ndarray of shape (n_models, n_samples, n_outputs)
+
+    Returns
+    -------
+    ndarray of shape (n_models,)
+        As ``r2_score`` computes it (``force_finite=True``): an output with zero
+        variance scores 1 when predicted exactly, else 0; when every output has
+        zero variance, the outputs' scores are averaged with equal weights.
+    """
+    numerator = ((true[None] - pred) ** 2).sum(axis=1)  # (models, outputs)
+    denominator = ((true - np.average(true, axis=0)) ** 2).sum(axis=0)
+    nonzero_den = denominator != 0
+    nonzero_num = numerator != 0
+    valid = nonzero_den[None] & nonzero_num
+    out = np.ones_like(numerator)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = 1 - numerator / np.where(nonzero_den, denominator, 1.0)[None]
+    out = np.where(valid, ratio, out)
+    out = np.where(nonzero_num & ~nonzero_den[None], 0.0, out)
+    if not np.any(nonzero_den):  # every output constant: uniform weights
+        return out.mean(axis=1)
+    return np.average(out, axis=1, weights=denominator)
