@@ -38,6 +38,11 @@ from .._batched import TermKernels, compile_terms
 from .._expr import compile_torch, symbols_for
 
 DEFAULT_CHUNK_SIZE = 32_768
+# Elements (float64: 8 bytes each) of the buffers of one chunk of the strong-form Gram
+# (``EulerLagrangeOperator.gram``): the columns are written and multiplied while
+# they are still in the processor's cache, rather than streamed through memory.
+GRAM_CACHE = 1 << 20
+GRAM_MIN_CHUNK = 256
 # Samples used to evaluate the weak form's noise correction (a sum over samples).
 NOISE_ROWS = 10_000
 
@@ -339,15 +344,43 @@ class EulerLagrangeOperator:
         n_extra = 0 if extra is None else extra.shape[2]
         width = self.n_columns + n_extra + (0 if y is None else 1)
         out = X.new_zeros((self.n_dof, width, width))
-        for sl in _chunks(X.shape[0], self.chunk_size):
-            # layout (n_dof, columns, samples): one matrix product per dof
-            parts = [self._columns_t(X[sl])]
+        p, buf, work = self.n_columns, None, {}
+        for sl in _chunks(X.shape[0], self._gram_chunk(width)):
+            # layout (n_dof, columns, samples): one matrix product per dof, on a
+            # buffer reused from chunk to chunk (cache-sized: its columns are
+            # written, then read by the product while they are still in cache)
+            m = sl.stop - sl.start
+            if buf is None or buf.shape[2] != m:
+                buf = X.new_empty((self.n_dof, width, m))
+            self._columns_into(X[sl], buf[:, :p], work)
             if extra is not None:
-                parts.append(extra[sl].permute(1, 2, 0))
+                buf[:, p : p + n_extra] = extra[sl].permute(1, 2, 0)
             if y is not None:
-                parts.append(y[sl].T.unsqueeze(1))
-            a_t = torch.cat(parts, dim=1)
-            out += a_t @ a_t.transpose(1, 2)
+                buf[:, -1] = y[sl].T
+            out.baddbmm_(buf, buf.transpose(1, 2))
+        return out
+
+    def _gram_chunk(self, width: int) -> int:
+        """Samples per chunk of :meth:`gram`: its buffers fit about ``GRAM_CACHE``."""
+        per_sample = self.n_dof * width
+        if isinstance(self._fn, TermKernels) and self._fn.plan is not None:
+            kernel = self._fn.plan["columns"]
+            per_sample += kernel.n_rows + 2 * kernel.level_width
+        step = GRAM_CACHE // max(per_sample, 1)
+        return max(GRAM_MIN_CHUNK, min(int(self.chunk_size), step))
+
+    def _columns_into(self, X: torch.Tensor, out: torch.Tensor, work: dict):
+        """:meth:`_columns_t` written into ``out`` (n_dof, n_columns, n_samples)."""
+        if not isinstance(self._fn, TermKernels) or self._fn.plan is None:
+            out.copy_(self._columns_t(X))
+            return out
+        q, qd, qdd = self._split(X)
+        p = self.n_terms
+        self._fn.columns_into(
+            q, qd, qdd, out[:, :p], _general_columns(self.chunk_size), work
+        )
+        if self._force_fn is not None:
+            out[:, p:] = -self.force_values(q, qd).permute(1, 2, 0)
         return out
 
     def _columns_t(self, X: torch.Tensor) -> torch.Tensor:
@@ -544,13 +577,17 @@ class EulerLagrangeOperator:
             psi, dpsi = (k.to(X) for k in bump_function(window, dt))
             grams, counts, slices, feats = [], [], [], []
             weights = [X.new_zeros(order.shape[0]) for _ in range(3)]
+            bands = {}  # per segment length: the windows' banded matrices
             for seg in segments_by_window[window]:
                 first, n = offsets[int(seg[0])]
                 sl = slice(first, first + n)
                 slices.append(sl)
+                if n not in bands:
+                    bands[n] = (_band(dpsi, n, stride), _band(psi, n, stride))
+                band_a, band_b = bands[n]
                 cols = -dt * (
-                    _correlate(a_int[sl], dpsi, stride)
-                    + _correlate(b_int[sl], psi, stride)
+                    _correlate(a_int[sl], dpsi, stride, band_a)
+                    + _correlate(b_int[sl], psi, stride, band_b)
                 )
                 counts.append(cols.shape[0])
                 grams.append(torch.einsum("wip,wiq->ipq", cols, cols))
@@ -797,14 +834,31 @@ def bump_function(window: int, dt: float, power: int = 4):
     return psi, dpsi
 
 
-def _correlate(signal: torch.Tensor, kernel: torch.Tensor, stride: int) -> torch.Tensor:
-    """Sliding sums ``sum_j kernel[j] signal[start + j]`` along dim 0, every ``stride``."""
+def _correlate(
+    signal: torch.Tensor, kernel: torch.Tensor, stride: int, band=None
+) -> torch.Tensor:
+    """Sliding sums ``sum_j kernel[j] signal[start + j]`` along dim 0, every ``stride``.
+
+    One matrix product with the banded matrix of the windows (``band``, from
+    :func:`_band`, when the caller has it already): on CPU in float64 this is many
+    times faster than ``conv1d`` with one input channel, which has no fast kernel.
+    """
     n = signal.shape[0]
-    flat = signal.reshape(n, -1).T.unsqueeze(1)  # (channels, 1, n)
-    out = torch.nn.functional.conv1d(
-        flat, kernel.view(1, 1, -1).to(signal), stride=stride
+    if band is None:
+        band = _band(kernel.to(signal), n, stride)
+    return (band @ signal.reshape(n, -1)).reshape(-1, *signal.shape[1:])
+
+
+def _band(kernel: torch.Tensor, n: int, stride: int) -> torch.Tensor:
+    """``B`` of shape (n_windows, n) with ``B[w, w * stride + j] = kernel[j]``."""
+    k = kernel.shape[0]
+    n_win = max(0, (n - k) // stride + 1)
+    band = kernel.new_zeros((n_win, n))
+    starts = torch.arange(n_win, device=kernel.device).unsqueeze(1) * stride
+    band.scatter_(
+        1, starts + torch.arange(k, device=kernel.device), kernel.expand(n_win, k)
     )
-    return out.squeeze(1).T.reshape(-1, *signal.shape[1:])
+    return band
 
 
 def _window_weights(n: int, kernel_a, kernel_b, stride: int):
