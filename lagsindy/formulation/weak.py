@@ -335,7 +335,8 @@ def check_time_order(X: torch.Tensor, n_dof: int, segments) -> float:
     does not. (Lag 1 alone rejected time-ordered data at noise 0.08 and above.)
     """
     # All segments at once: positions, and the running trapezoid integral of the
-    # velocities, restarted at each segment's first row (its step there is 0).
+    # velocities over all rows; a lag's pairs are those inside one segment, whose
+    # integrals then never include a step across segments.
     segments = [seg for seg in segments if len(seg) > 0]
     if not segments:
         return 0.0
@@ -350,7 +351,6 @@ def check_time_order(X: torch.Tensor, n_dof: int, segments) -> float:
     position = torch.arange(rows.numel(), device=X.device) - starts[seg_of]
     left = lengths[seg_of] - 1 - position
     mid = torch.cat([qd.new_zeros((1, n_dof)), (qd[1:] + qd[:-1]) / 2])
-    mid[position == 0] = 0.0
     cum = torch.cumsum(mid, dim=0)
     best = 0.0
     for k in TIME_ORDER_LAGS:
