@@ -372,19 +372,21 @@ def estimate_sampling_interval(X: torch.Tensor, n_dof: int, segments) -> float:
     so fast, well-determined steps count most) is insensitive to the few jumps where
     one trajectory ends and the next begins, and to noise.
     """
+    # On NumPy arrays (in X's dtype): boolean masks cost several times less there.
+    Xn = X.detach().cpu().numpy() if torch.is_tensor(X) else np.asarray(X)
     ratios, weights = [], []
     for seg in segments:
-        q, qd = X[seg, :n_dof], X[seg, n_dof : 2 * n_dof]
+        idx = seg.cpu().numpy() if torch.is_tensor(seg) else np.asarray(seg)
+        q, qd = Xn[idx, :n_dof], Xn[idx, n_dof : 2 * n_dof]
         if q.shape[0] < 2:
             continue
         mid = (qd[1:] + qd[:-1]) / 2
-        ok = mid.abs() > 0
-        ratios.append(((q[1:] - q[:-1])[ok] / mid[ok]).flatten())
-        weights.append((mid[ok] ** 2).flatten())
-    if not ratios or sum(int(w.numel()) for w in weights) == 0:
+        ok = np.abs(mid) > 0
+        ratios.append((q[1:] - q[:-1])[ok] / mid[ok])
+        weights.append(mid[ok] ** 2)
+    if not ratios or sum(w.size for w in weights) == 0:
         raise ValueError("cannot estimate dt: the velocities are all zero; pass dt=")
-    r, w = to_numpy(torch.cat(ratios)), to_numpy(torch.cat(weights))
-    return weighted_median(r, w)
+    return weighted_median(np.concatenate(ratios), np.concatenate(weights))
 
 
 # Candidates below which weighted_median sorts what is left instead of selecting.
