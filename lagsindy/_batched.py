@@ -10,9 +10,10 @@ at compile time as a short list of (coefficient, monomial) pairs. Evaluation is 
 handful of batched tensor operations for the whole library, whatever its size:
 
 1. the base features of all samples (one ``sin``/``cos`` per distinct argument);
-2. their powers (one ``pow``);
+2. their powers (a table of successive products, no general ``pow``);
 3. every distinct monomial as a product of a few gathered powers;
-4. the columns as one scatter-add of coefficient-weighted monomials.
+4. the columns as one sparse matrix product of coefficient-weighted monomials,
+   written in place (``addmm``) into the caller's buffer.
 
 Terms outside this form (``exp``, ``sqrt``, powers of sums, negative powers) keep the
 general path: the sympy tree compiled by :func:`lagsindy._expr.compile_torch` and
@@ -235,7 +236,7 @@ class _Kernel:
         return max(self.n_rows, self.n_out)
 
     def tensors(self, like: torch.Tensor):
-        """The kernel's index tensors and sparse matrix on ``like``'s device and dtype."""
+        """Index tensors and sparse matrix of the kernel, on ``like``'s device/dtype."""
         key = (like.device, like.dtype)
         hit = self._cache.get(key)
         if hit is None:
@@ -290,7 +291,7 @@ class _Kernel:
         return state
 
     def monomials(self, base: torch.Tensor, work: dict | None = None) -> torch.Tensor:
-        """Every stored monomial ``(n_rows, n)`` from the base features ``(n_features, n)``.
+        """Every stored monomial ``(n_rows, n)`` from base features ``(n_features, n)``.
 
         ``work``: a dict kept between calls on as many samples, whose buffers are
         reused (no new memory per call).
@@ -301,7 +302,12 @@ class _Kernel:
 
         def buffer(name, rows):
             buf = work.get(name)
-            if buf is None or buf.shape != (rows, n) or buf.dtype != base.dtype:
+            if (
+                buf is None
+                or buf.shape != (rows, n)
+                or buf.dtype != base.dtype
+                or buf.device != base.device
+            ):
                 buf = work[name] = base.new_empty((rows, n))
             return buf
 
@@ -482,7 +488,12 @@ class TermKernels:
         d, n = self.n_dof, q_t.shape[1]
         n_features = 3 * d + len(self.plan["trig"])
         base = None if work is None else work.get("base")
-        if base is None or base.shape != (n_features, n) or base.dtype != q_t.dtype:
+        if (
+            base is None
+            or base.shape != (n_features, n)
+            or base.dtype != q_t.dtype
+            or base.device != q_t.device
+        ):
             base = q_t.new_empty((n_features, n))
             if work is not None:
                 work["base"] = base

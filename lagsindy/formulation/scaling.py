@@ -26,7 +26,12 @@ def _balance_rows(mean_sq: np.ndarray) -> np.ndarray:
     a few numbers each, where the per-call overhead of torch (about 0.3 ms per
     iteration) or of NumPy's Python-level ``mean``/``allclose`` would dominate.
     """
-    n_dof, p = mean_sq.shape
+    with np.errstate(all="ignore"):  # inf and nan pass silently, as in torch
+        return _balance(mean_sq)
+
+
+def _balance(mean_sq):
+    n_dof = mean_sq.shape[0]
     rows = np.ones(n_dof, dtype=mean_sq.dtype)
     one = np.ones(n_dof, dtype=mean_sq.dtype)
     for _ in range(_BALANCE_MAX_ITER):

@@ -373,20 +373,25 @@ def estimate_sampling_interval(X: torch.Tensor, n_dof: int, segments) -> float:
     one trajectory ends and the next begins, and to noise.
     """
     # On NumPy arrays (in X's dtype): boolean masks cost several times less there.
+    # Overflows give inf and nan silently, as in torch (the fit then reports
+    # non-finite statistics).
     Xn = X.detach().cpu().numpy() if torch.is_tensor(X) else np.asarray(X)
     ratios, weights = [], []
-    for seg in segments:
-        idx = seg.cpu().numpy() if torch.is_tensor(seg) else np.asarray(seg)
-        q, qd = Xn[idx, :n_dof], Xn[idx, n_dof : 2 * n_dof]
-        if q.shape[0] < 2:
-            continue
-        mid = (qd[1:] + qd[:-1]) / 2
-        ok = np.abs(mid) > 0
-        ratios.append((q[1:] - q[:-1])[ok] / mid[ok])
-        weights.append(mid[ok] ** 2)
-    if not ratios or sum(w.size for w in weights) == 0:
-        raise ValueError("cannot estimate dt: the velocities are all zero; pass dt=")
-    return weighted_median(np.concatenate(ratios), np.concatenate(weights))
+    with np.errstate(all="ignore"):
+        for seg in segments:
+            idx = seg.cpu().numpy() if torch.is_tensor(seg) else np.asarray(seg)
+            q, qd = Xn[idx, :n_dof], Xn[idx, n_dof : 2 * n_dof]
+            if q.shape[0] < 2:
+                continue
+            mid = (qd[1:] + qd[:-1]) / 2
+            ok = np.abs(mid) > 0
+            ratios.append((q[1:] - q[:-1])[ok] / mid[ok])
+            weights.append(mid[ok] ** 2)
+        if not ratios or sum(w.size for w in weights) == 0:
+            raise ValueError(
+                "cannot estimate dt: the velocities are all zero; pass dt="
+            )
+        return weighted_median(np.concatenate(ratios), np.concatenate(weights))
 
 
 # Candidates below which weighted_median sorts what is left instead of selecting.
@@ -403,6 +408,11 @@ def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
     """
     values = np.asarray(values, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
+    with np.errstate(all="ignore"):  # inf and nan pass silently, as in torch
+        return _weighted_median(values, weights)
+
+
+def _weighted_median(values, weights):
     half = weights.sum() / 2
     below = 0.0  # weight of the values already known to lie below the result
     while values.size > _MEDIAN_SORT:
