@@ -254,3 +254,32 @@ def test_feature_names_cache_follows_set_params_and_clone():
     assert copy.get_feature_names_out().tolist() == [str(t) for t in copy.terms_]
     assert "cos(theta)" in lib.get_feature_names_out().tolist()
     assert "cos(theta)" not in copy.get_feature_names_out().tolist()
+
+
+def test_weak_integrands_written_from_the_kernel_equal_the_concatenated_ones():
+    """The weak form's per-sample integrands, copied straight from the gradient
+    kernel into their buffers, equal those concatenated from the gradients (the
+    previous construction): dphi/dqd beside zeros, and dphi/dq, forces, -extra,
+    -y."""
+    from lagsindy.formulation.operator import lagrangian_gradients
+
+    names = ["x", "theta"]
+    lib = CandidateLibrary.polynomial(names, angles=["theta"], degree=3).build()
+    w1, w2 = sp.symbols("x_dot theta_dot", real=True)
+    op = EulerLagrangeOperator(names, lib.terms_, forces=[[-w1, 0], [0, -w2]])
+    q, qd, _ = _states(120, 3)
+    rng = np.random.default_rng(4)
+    order = torch.as_tensor(rng.permutation(120))
+    y = torch.tensor(rng.normal(size=(120, 2)))
+    extra = torch.tensor(rng.normal(size=(120, 2, 3)))
+    qo, qdo = q[order], qd[order]
+    g = lagrangian_gradients(op._fn, qo, qdo)
+    forces = op.force_values(qo, qdo)
+    e, tau = extra[order], y[order].unsqueeze(2)
+    zeros = [torch.zeros_like(x) for x in (forces, e, tau)]
+    want_a = torch.cat([g[:, :, 2:].transpose(1, 2), *zeros], dim=2)
+    want_b = torch.cat([g[:, :, :2].transpose(1, 2), forces, -e, -tau], dim=2)
+    a_int, b_int = op._weak_integrands(qo, qdo, order, y, extra)
+    # measured: equal (both are copies of the same kernel values)
+    np.testing.assert_array_equal(a_int.numpy(), want_a.numpy())
+    np.testing.assert_array_equal(b_int.numpy(), want_b.numpy())

@@ -541,26 +541,7 @@ class EulerLagrangeOperator:
                 return self._reused_grams(
                     store[key], X, y, order, windows, dt, return_noise, lazy
                 )
-        # Integrands per sample: a-weighted (with dpsi) and b-weighted (with psi) parts.
-        a_parts, b_parts = [], []
-        if self._fn is not None:
-            g = lagrangian_gradients(self._fn, q, qd, chunk_size=self.chunk_size)
-            a_parts.append(g[:, :, d:].transpose(1, 2))  # dphi/dqd: (n, d, p)
-            b_parts.append(g[:, :, :d].transpose(1, 2))  # dphi/dq
-        if self._force_fn is not None:
-            forces = self.force_values(q, qd)  # (n, d, f)
-            a_parts.append(torch.zeros_like(forces))
-            b_parts.append(forces)
-        if extra is not None:
-            e = extra[order]
-            a_parts.append(torch.zeros_like(e))
-            b_parts.append(-e)  # the column below is then +int psi e
-        if y is not None:
-            tau = y[order].unsqueeze(2)
-            a_parts.append(torch.zeros_like(tau))
-            b_parts.append(-tau)  # so that the column below is +int psi tau
-        a_int = torch.cat(a_parts, dim=2)
-        b_int = torch.cat(b_parts, dim=2)
+        a_int, b_int = self._weak_integrands(q, qd, order, y, extra)
         width = a_int.shape[2]
         # Where each base segment's rows sit in the integrands (by its first row).
         offsets, start = {}, 0
@@ -623,6 +604,41 @@ class EulerLagrangeOperator:
         if lazy:
             return {w: functools.partial(build, w) for w in windows}
         return {w: build(w) for w in windows}
+
+    def _weak_integrands(self, q, qd, order, y, extra):
+        """Integrands per sample, each of shape (n, n_dof, width): the a-weighted part
+        (with dpsi: dphi/dqd, zeros beside it) and the b-weighted part (with psi:
+        dphi/dq, the forces, ``-extra``, ``-y``).
+
+        Written into two buffers: when every term is batched, straight from the
+        gradient kernel's (term, [q, qd], sample) output, one transposing copy each.
+        """
+        d, n = self.n_dof, q.shape[0]
+        p = self.n_terms
+        f = len(self.forces)
+        n_extra = 0 if extra is None else extra.shape[2]
+        width = p + f + n_extra + (0 if y is None else 1)
+        a_int = q.new_zeros((n, d, width))
+        b_int = q.new_empty((n, d, width))
+        if self._fn is not None:
+            kernels = self._fn
+            batched = isinstance(kernels, TermKernels) and kernels.plan is not None
+            if batched and not kernels.general.size:
+                g = kernels._batched("grad", q, qd).view(p, 2 * d, n)
+                a_int[:, :, :p] = g[:, d:].permute(2, 1, 0)  # dphi/dqd: (n, d, p)
+                b_int[:, :, :p] = g[:, :d].permute(2, 1, 0)  # dphi/dq
+            else:
+                g = lagrangian_gradients(kernels, q, qd, chunk_size=self.chunk_size)
+                a_int[:, :, :p] = g[:, :, d:].transpose(1, 2)
+                b_int[:, :, :p] = g[:, :, :d].transpose(1, 2)
+        if self._force_fn is not None:
+            b_int[:, :, p : p + f] = self.force_values(q, qd)  # (n, d, f)
+        if extra is not None:
+            # the column below is then +int psi e
+            b_int[:, :, p + f : p + f + n_extra] = -extra[order]
+        if y is not None:
+            b_int[:, :, -1] = -y[order]  # so that the column below is +int psi tau
+        return a_int, b_int
 
     def _reuse_key(self, X, order, segments_by_window, strides, dt, noise_cov, rows):
         """What the feature part of :meth:`weak_grams` depends on (without ``y``)."""
