@@ -15,6 +15,8 @@ with ``device="cuda"`` and the speed-up is reported.
     python -m benchmarks.speed --quick    # smaller, for a smoke check
     python -m benchmarks.speed --ratios   # only the passive-search / diagnosis
                                           # section (replaced in speed.md)
+    python -m benchmarks.speed --fit-only     # only its (a) fits and (b) memory
+    python -m benchmarks.speed --floor-fits   # only the fit / Gram floor rows
 """
 
 from __future__ import annotations
@@ -115,6 +117,7 @@ def measure(spec):
         "time": statistics.median(times),
         "times": times,
         "cpu": statistics.median(cpu),
+        "cpus": cpu,
         "threads": torch.get_num_threads(),
         "rss_before_mib": rss_before / 1024,
         "peak_rss_mib": peak / 1024,
@@ -308,14 +311,18 @@ def measure_floor(spec):
     X, tau = random_rows(system, spec["n_rows"])
     LagrangianSINDy(library).fit(X[:2000], tau[:2000])  # warm-up
     a = torch.randn(X.shape[0] * system.n_dof, len(library) + 1, dtype=torch.float64)
-    floors, fits = [], []
+    floors, fits, floor_cpu, fit_cpu = [], [], [], []
+    load = [_load()]
     for _ in range(spec["repeats"]):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         a.T @ a
         floors.append(time.perf_counter() - start)
-        start = time.perf_counter()
+        floor_cpu.append(time.process_time() - start_cpu)
+        start, start_cpu = time.perf_counter(), time.process_time()
         LagrangianSINDy(library).fit(X, tau)
         fits.append(time.perf_counter() - start)
+        fit_cpu.append(time.process_time() - start_cpu)
+    load.append(_load())
     import lagsindy
 
     return {
@@ -324,8 +331,99 @@ def measure_floor(spec):
         "n_terms": len(library),
         "floor": statistics.median(floors),
         "fit": statistics.median(fits),
+        "floors": floors,
+        "fits": fits,
+        "floor_cpu": floor_cpu,
+        "fit_cpu": fit_cpu,
+        "load": load,
         "threads": torch.get_num_threads(),
     }
+
+
+FLOOR_FITS_MARKER = "\n### Fit against the Gram floor, remeasured"
+
+
+def floor_fits_section(baseline=None, repeats=3, quick=False, processes=2, argv=None):
+    """Markdown: only the fit / Gram floor rows of the floor section (``--floor-fits``).
+
+    Each row is one fresh process timing the floor and the fit alternately
+    (:func:`measure_floor`); best and median of ``repeats``, wall and CPU time,
+    and the load average when the process started and ended.
+    """
+    cases = [(20_000, 3)] if quick or tiny() else FLOOR_CASES
+    processes = 1 if quick or tiny() else processes
+    load_start = _load()
+    lines = [
+        FLOOR_FITS_MARKER.strip("\n") + " (issue 16)",
+        "",
+        f"Command `{command('speed', argv)}`, {_common.machine()}. Each row is one "
+        f"fresh process that times the floor (one float64 `A.T @ A` of the "
+        "regression tensor's size) and the default case I fit on the same rows, "
+        f"alternately, {repeats} times; ratios of the best times (of the medians "
+        "in brackets). Load average (1 min) when each process started / ended.",
+        "",
+        "| rows x terms | code | process | floor wall | fit wall | fit / floor "
+        "(medians) | floor CPU | fit CPU | fit / floor CPU | load |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for n_rows, degree in cases:
+        spec = {"n_rows": n_rows, "degree": degree, "repeats": repeats}
+        for k in range(processes):
+            for label, root in [("after", None)] + (
+                [("before", baseline)] if baseline else []
+            ):
+                r = _run_in(spec, "floor", root)
+                print("floor fits", label, r, flush=True)
+                if "error" in r:
+                    lines.append(
+                        f"| {n_rows} x deg {degree} | {label} | #{k + 1} | "
+                        f"error: {r['error']} | - | - | - | - | - | - |"
+                    )
+                    continue
+                fl, fi = min(r["floors"]), min(r["fits"])
+                fl_c, fi_c = min(r["floor_cpu"]), min(r["fit_cpu"])
+                lines.append(
+                    f"| {n_rows} x {r['n_terms']} | {label} | #{k + 1} | "
+                    f"{fl:.3g} s | {fi:.3g} s | **{fi / fl:.1f}** "
+                    f"({r['fit'] / r['floor']:.1f}) | {fl_c:.3g} s | {fi_c:.3g} s | "
+                    f"{fi_c / fl_c:.1f} | {r['load'][0]:.1f} / {r['load'][1]:.1f} |"
+                )
+    lines += [
+        "",
+        "Targets: 200k x 169 fit <= 5x the floor (same process); 50k x 39 fit "
+        f"<= 0.1 s. Load average (1 min) {load_start:.1f} at the start, "
+        f"{_load():.1f} at the end, on {os.cpu_count()} cores.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _replace_subsection(old_text, section, marker, parent):
+    """``old_text`` with the ``### `` subsection at ``marker`` replaced by ``section``.
+
+    The subsection runs to the next ``### `` or ``## `` heading. Without it,
+    ``section`` goes before the first ``### `` heading of the ``## `` section at
+    ``parent`` (or at that section's end; or at the end of the text).
+    """
+    if marker in old_text:
+        head, rest = old_text.split(marker, 1)
+        stops = [i for i in (rest.find("\n### "), rest.find("\n## ")) if i >= 0]
+        tail = rest[min(stops) :] if stops else ""
+        return head.rstrip("\n") + "\n\n" + section.strip("\n") + "\n" + tail
+    if parent not in old_text:
+        return old_text.rstrip("\n") + "\n\n" + section
+    head, rest = old_text.split(parent, 1)
+    stops = [i for i in (rest.find("\n### "), rest.find("\n## ")) if i >= 0]
+    at = min(stops) if stops else len(rest)
+    return (
+        head
+        + parent
+        + rest[:at].rstrip("\n")
+        + "\n\n"
+        + section.strip("\n")
+        + "\n"
+        + rest[at:]
+    )
 
 
 def measure_simulation(spec):
@@ -665,30 +763,13 @@ def _least_disturbed(results):
     return min(ok, key=lambda r: r["cpu"]["case I"]) if ok else results[0]
 
 
-def ratios_section(baseline=None, repeats=3, quick=False, processes=2):
-    """Markdown: issue 16's (a) 50k x 39 fit, (b) 1M x 169 memory, (c) ratios.
+FIT_MARKER = "\n### (a) Case I fit, cart-pendulum"
+FIT_END_MARKER = "\n### (c) Passive search"
 
-    (a) and (c) run in ``processes`` fresh processes each (alternating 'after' and
-    'before' for (c)): on a loaded 2-core machine a process with two torch threads
-    is now and then several times slower throughout (CPU time = wall time: its two
-    threads share one core and wait for each other), so every process is reported
-    and the targets are judged on the least disturbed one.
-    """
-    small = quick or tiny()
-    processes = 1 if small else processes
-    load_start = _load()
+
+def fit_lines(repeats=3, small=False, processes=2):
+    """Markdown lines of (a): the default data and the 50k x 39 random rows."""
     lines = [
-        RATIOS_MARKER.strip("\n") + " (issue 16)",
-        "",
-        f"Load average (1 min) at the start: {load_start:.1f} on {os.cpu_count()} "
-        "cores. The machine is shared, so wall times vary with the load; CPU times "
-        "(`time.process_time`, all of the process's threads: a torch thread that "
-        "spins while waiting counts too) vary less, and the ratios are taken within "
-        "one process. Each measurement runs in "
-        f"{processes} fresh process(es) (#1, #2...), one after the other: a process "
-        "whose two torch threads end up on one busy core is several times slower "
-        "throughout (its CPU time then equals its wall time), so all are shown.",
-        "",
         "### (a) Case I fit, cart-pendulum, 50k rows x 39 terms",
         "",
         "| data | formulation | process | best wall (median) | best CPU | "
@@ -731,11 +812,15 @@ def ratios_section(baseline=None, repeats=3, quick=False, processes=2):
                 f"error: {r['error']} | - | - |"
                 if "error" in r
                 else f"{min(r['times']):.3g} s ({r['time']:.3g} s) | "
-                f"{r['cpu']:.3g} s (median) | {r['threads']} |"
+                f"{min(r['cpus']):.3g} s | {r['threads']} |"
             )
         )
-    lines += ["", "Target: <= 0.1 s on 2 cores.", ""]
-    lines += [
+    return lines + ["", "Target: <= 0.1 s on 2 cores.", ""]
+
+
+def memory_lines(small=False):
+    """Markdown lines of (b): peak memory of one 1M x 169 fit."""
+    lines = [
         "### (b) Memory: 1M rows x 169 terms, case I on CPU",
         "",
         "| rows x terms | fit wall | fit CPU | RSS before the fit | peak RSS |",
@@ -751,7 +836,66 @@ def ratios_section(baseline=None, repeats=3, quick=False, processes=2):
             f"| {big} x {r['n_terms']} | {r['time']:.3g} s | {r['cpu']:.3g} s | "
             f"{r['rss_before_mib']:.0f} MiB | **{r['peak_rss_mib']:.0f} MiB** |"
         )
-    lines += ["", "Target: under 2 GB (2048 MiB) peak.", ""]
+    return lines + ["", "Target: under 2 GB (2048 MiB) peak.", ""]
+
+
+def fit_section(repeats=3, quick=False, processes=2, argv=None):
+    """Markdown: only (a) and (b) of the ratios section, with their own stamp.
+
+    Written by ``--fit-only`` between the (a) heading and the (c) heading of
+    ``speed.md``, so that (c), which other work regenerates, is left as it is.
+    """
+    small = quick or tiny()
+    processes = 1 if small else processes
+    load_start = _load()
+    lines = fit_lines(repeats, small, processes) + memory_lines(small)
+    lines += [
+        f"(a) and (b) measured by `{command('speed', argv)}` on "
+        f"{_common.machine()}; {processes} process(es) per row kind, "
+        f"best of {1 if small else repeats} fits each; load average (1 min) "
+        f"{load_start:.1f} at the start, {_load():.1f} at the end, on "
+        f"{os.cpu_count()} cores.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _replace_between(old_text, section, start, end):
+    """``old_text`` with the text from ``start`` up to ``end`` replaced by ``section``
+    (``section`` appended when either marker is missing)."""
+    if start not in old_text or end not in old_text.split(start, 1)[1]:
+        return old_text.rstrip("\n") + "\n\n" + section
+    head, rest = old_text.split(start, 1)
+    tail = rest[rest.index(end) :]
+    return head.rstrip("\n") + "\n\n" + section.strip("\n") + "\n" + tail
+
+
+def ratios_section(baseline=None, repeats=3, quick=False, processes=2):
+    """Markdown: issue 16's (a) 50k x 39 fit, (b) 1M x 169 memory, (c) ratios.
+
+    (a) and (c) run in ``processes`` fresh processes each (alternating 'after' and
+    'before' for (c)): on a loaded 2-core machine a process with two torch threads
+    is now and then several times slower throughout (CPU time = wall time: its two
+    threads share one core and wait for each other), so every process is reported
+    and the targets are judged on the least disturbed one.
+    """
+    small = quick or tiny()
+    processes = 1 if small else processes
+    load_start = _load()
+    lines = [
+        RATIOS_MARKER.strip("\n") + " (issue 16)",
+        "",
+        f"Load average (1 min) at the start: {load_start:.1f} on {os.cpu_count()} "
+        "cores. The machine is shared, so wall times vary with the load; CPU times "
+        "(`time.process_time`, all of the process's threads: a torch thread that "
+        "spins while waiting counts too) vary less, and the ratios are taken within "
+        "one process. Each measurement runs in "
+        f"{processes} fresh process(es) (#1, #2...), one after the other: a process "
+        "whose two torch threads end up on one busy core is several times slower "
+        "throughout (its CPU time then equals its wall time), so all are shown.",
+        "",
+    ]
+    lines += fit_lines(repeats, small, processes) + memory_lines(small)
     n_traj = 3 if small else 20
     spec = {"n_trajectories": n_traj, "repeats": 1 if small else repeats}
     after, before = [], []
@@ -936,6 +1080,18 @@ def main(argv=None):
         action="store_true",
         help="only the passive-search / diagnosis section (replaced in speed.md)",
     )
+    parser.add_argument(
+        "--fit-only",
+        action="store_true",
+        help="only (a) and (b) of the passive-search section: the 50k-row fits and "
+        "the 1M-row memory (replaced in speed.md; (c) is left as it is)",
+    )
+    parser.add_argument(
+        "--floor-fits",
+        action="store_true",
+        help="only the fit / Gram floor rows (a subsection of the floor section, "
+        "replaced in speed.md; the simulation and memory parts are left as they are)",
+    )
     parser.add_argument("--_measure", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--_ratios", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--_default", default=None, help=argparse.SUPPRESS)
@@ -959,6 +1115,27 @@ def main(argv=None):
         return
     quick = args.quick or tiny()
     name = "speed_quick.md" if quick else "speed.md"
+    if args.fit_only or args.floor_fits:
+        repeats = 1 if quick else min(args.repeats, 5)
+        path = _common.RESULTS / name
+        old = (
+            path.read_text()
+            if path.exists()
+            else header("Fit time: cart-pendulum, case I", command("speed", argv))
+        )
+        if args.fit_only:
+            section = fit_section(repeats=repeats, quick=quick, argv=argv)
+            text = _replace_between(old, section, FIT_MARKER, FIT_END_MARKER)
+        else:
+            section = floor_fits_section(
+                args.baseline, repeats=repeats, quick=quick, argv=argv
+            )
+            text = _replace_subsection(
+                old, section, FLOOR_FITS_MARKER, "\n## At the hardware floor"
+            )
+        write(name, text)
+        print(section)
+        return
     if args.ratios or args.floor_only:
         repeats = 1 if quick else min(args.repeats, 3)
         if args.ratios:

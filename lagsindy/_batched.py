@@ -10,9 +10,10 @@ at compile time as a short list of (coefficient, monomial) pairs. Evaluation is 
 handful of batched tensor operations for the whole library, whatever its size:
 
 1. the base features of all samples (one ``sin``/``cos`` per distinct argument);
-2. their powers (one ``pow``);
+2. their powers (a table of successive products, no general ``pow``);
 3. every distinct monomial as a product of a few gathered powers;
-4. the columns as one scatter-add of coefficient-weighted monomials.
+4. the columns as one sparse matrix product of coefficient-weighted monomials,
+   written in place (``addmm``) into the caller's buffer.
 
 Terms outside this form (``exp``, ``sqrt``, powers of sums, negative powers) keep the
 general path: the sympy tree compiled by :func:`lagsindy._expr.compile_torch` and
@@ -212,6 +213,21 @@ class _Kernel:
             [[k[0] for k in keys], [row[k[1]] for k in keys]], dtype=np.int64
         ).reshape(2, -1)
         self.values = np.asarray([entries[k] for k in keys], dtype=np.float64)
+        # Powers by repeated multiplication (a table of x, x^2, ... of the features
+        # that appear), not by a general pow: pow with a tensor of exponents costs
+        # tens of nanoseconds per element.
+        used = sorted({int(f) for f in self.pow_feature})
+        position = {f: j for j, f in enumerate(used)}
+        self.table_feature = np.asarray(used, dtype=np.int64)
+        self.table_depth = int(self.pow_exponent.max(initial=1))
+        self.table_index = np.asarray(
+            [
+                (int(e) - 1) * len(used) + position[int(f)]
+                for f, e in zip(self.pow_feature, self.pow_exponent)
+            ],
+            dtype=np.int64,
+        )
+        self.level_width = max((b - a for a, b, _, _ in self.levels), default=0)
         self._cache = {}
         return self
 
@@ -220,6 +236,7 @@ class _Kernel:
         return max(self.n_rows, self.n_out)
 
     def tensors(self, like: torch.Tensor):
+        """Index tensors and sparse matrix of the kernel, on ``like``'s device/dtype."""
         key = (like.device, like.dtype)
         hit = self._cache.get(key)
         if hit is None:
@@ -234,13 +251,37 @@ class _Kernel:
                 check_invariants=True,
             ).coalesce()
             hit = (
-                long(self.pow_feature),
-                torch.as_tensor(
-                    self.pow_exponent, dtype=like.dtype, device=like.device
-                ),
+                long(self.table_feature),
+                long(self.table_index),
                 [(a, b, long(p), long(f)) for a, b, p, f in self.levels],
                 matrix,
             )
+            self._cache[key] = hit
+        return hit
+
+    def blocks(self, like: torch.Tensor, n_blocks: int) -> list:
+        """The sparse matrix split into ``n_blocks`` equal blocks of output rows."""
+        key = (like.device, like.dtype, int(n_blocks))
+        hit = self._cache.get(key)
+        if hit is None:
+            size = self.n_out // n_blocks
+            hit = []
+            for b in range(n_blocks):
+                keep = (self.indices[0] >= b * size) & (
+                    self.indices[0] < (b + 1) * size
+                )
+                idx = self.indices[:, keep].copy()
+                idx[0] -= b * size
+                hit.append(
+                    torch.sparse_coo_tensor(
+                        torch.as_tensor(idx, dtype=torch.long, device=like.device),
+                        torch.as_tensor(
+                            self.values[keep], dtype=like.dtype, device=like.device
+                        ),
+                        (size, self.n_rows),
+                        check_invariants=True,
+                    ).coalesce()
+                )
             self._cache[key] = hit
         return hit
 
@@ -249,19 +290,78 @@ class _Kernel:
         state["_cache"] = {}
         return state
 
-    def evaluate(self, base: torch.Tensor) -> torch.Tensor:
-        """Outputs ``(n_out, n)`` from the base features ``(n_features, n)``."""
-        pow_feature, pow_exponent, levels, matrix = self.tensors(base)
+    def monomials(self, base: torch.Tensor, work: dict | None = None) -> torch.Tensor:
+        """Every stored monomial ``(n_rows, n)`` from base features ``(n_features, n)``.
+
+        ``work``: a dict kept between calls on as many samples, whose buffers are
+        reused (no new memory per call).
+        """
+        table_feature, table_index, levels, _ = self.tensors(base)
         n = base.shape[1]
-        rows = base.new_empty((self.n_rows, n))
+        work = {} if work is None else work
+
+        def buffer(name, rows):
+            buf = work.get(name)
+            if (
+                buf is None
+                or buf.shape != (rows, n)
+                or buf.dtype != base.dtype
+                or buf.device != base.device
+            ):
+                buf = work[name] = base.new_empty((rows, n))
+            return buf
+
+        rows = buffer("rows", self.n_rows)
         rows[0] = 1.0
-        if pow_feature.numel():
-            rows[1 : 1 + pow_feature.numel()] = (
-                base[pow_feature] ** pow_exponent[:, None]
-            )
+        n_pow = table_index.numel()
+        if n_pow:
+            if self.table_depth == 1:
+                torch.index_select(base, 0, table_feature, out=rows[1 : 1 + n_pow])
+            else:
+                width = table_feature.numel()
+                table = buffer("table", self.table_depth * width)
+                torch.index_select(base, 0, table_feature, out=table[:width])
+                for e in range(1, self.table_depth):
+                    torch.mul(
+                        table[(e - 1) * width : e * width],
+                        table[:width],
+                        out=table[e * width : (e + 1) * width],
+                    )
+                torch.index_select(table, 0, table_index, out=rows[1 : 1 + n_pow])
+        if levels:
+            left = buffer("left", self.level_width)
+            right = buffer("right", self.level_width)
         for first, stop, parent, factor in levels:
-            torch.mul(rows[parent], rows[factor], out=rows[first:stop])
-        return torch.sparse.mm(matrix, rows)
+            m = stop - first
+            torch.index_select(rows, 0, parent, out=left[:m])
+            torch.index_select(rows, 0, factor, out=right[:m])
+            torch.mul(left[:m], right[:m], out=rows[first:stop])
+        return rows
+
+    def evaluate(
+        self, base: torch.Tensor, out: torch.Tensor | None = None, work=None
+    ) -> torch.Tensor:
+        """Outputs ``(n_out, n)`` from the base features ``(n_features, n)``.
+
+        ``out``: where to write them (else a new tensor); ``work``: see
+        :meth:`monomials`.
+        """
+        matrix = self.tensors(base)[3]
+        rows = self.monomials(base, work)
+        if out is None:
+            out = base.new_empty((self.n_out, base.shape[1]))
+        # beta=0: out's previous content is ignored (not even its NaNs propagate).
+        return torch.addmm(out, matrix, rows, beta=0, out=out)
+
+    def evaluate_blocks(self, base: torch.Tensor, outs: Sequence, work=None):
+        """:meth:`evaluate` into ``outs``: one tensor per equal block of outputs.
+
+        Each of ``outs`` has shape ``(n_out // len(outs), n)`` (e.g. one coordinate's
+        columns inside a larger buffer).
+        """
+        rows = self.monomials(base, work)
+        for matrix, out in zip(self.blocks(base, len(outs)), outs):
+            torch.addmm(out, matrix, rows, beta=0, out=out)
 
 
 @functools.lru_cache(maxsize=128)
@@ -379,19 +479,34 @@ class TermKernels:
         return state
 
     # ------------------------------------------------------------- batched path
-    def _base(self, q_t, qd_t, qdd_t):
-        """Base features ``(n_features, n)``: q, qd, qdd, then sin/cos rows."""
-        rows = [q_t, qd_t, q_t if qdd_t is None else qdd_t]  # qdd unused without it
-        trig = []
-        for kind, arg in self.plan["trig"]:
+    def _base(self, q_t, qd_t, qdd_t, work=None):
+        """Base features ``(n_features, n)``: q, qd, qdd, then sin/cos rows.
+
+        ``work``: a dict kept between calls on as many samples; the features are
+        written into its buffer.
+        """
+        d, n = self.n_dof, q_t.shape[1]
+        n_features = 3 * d + len(self.plan["trig"])
+        base = None if work is None else work.get("base")
+        if (
+            base is None
+            or base.shape != (n_features, n)
+            or base.dtype != q_t.dtype
+            or base.device != q_t.device
+        ):
+            base = q_t.new_empty((n_features, n))
+            if work is not None:
+                work["base"] = base
+        base[:d] = q_t
+        base[d : 2 * d] = qd_t
+        base[2 * d : 3 * d] = q_t if qdd_t is None else qdd_t  # qdd unused without it
+        for k, (kind, arg) in enumerate(self.plan["trig"], start=3 * d):
             x = None
             for i, a in arg:
                 term = q_t[i] if a == 1.0 else a * q_t[i]
                 x = term if x is None else x + term
-            trig.append(torch.sin(x) if kind == "sin" else torch.cos(x))
-        if trig:
-            rows.append(torch.stack(trig))
-        return torch.cat(rows)
+            (torch.sin if kind == "sin" else torch.cos)(x, out=base[k])
+        return base
 
     def _batched(self, kind, q, qd, qdd=None):
         """``(n_out, n_samples)`` outputs of one kernel, in row batches."""
@@ -403,10 +518,13 @@ class TermKernels:
                 self._base(q.T, qd.T, None if qdd is None else qdd.T)
             )
         out = q.new_empty((kernel.n_out, n))
+        work = {}
         for start in range(0, n, step):
             sl = slice(start, start + step)
-            base = self._base(q[sl].T, qd[sl].T, None if qdd is None else qdd[sl].T)
-            out[:, sl] = kernel.evaluate(base)
+            base = self._base(
+                q[sl].T, qd[sl].T, None if qdd is None else qdd[sl].T, work
+            )
+            kernel.evaluate(base, out=out[:, sl], work=work)
         return out
 
     def columns_t(self, q, qd, qdd, general_columns):
@@ -422,6 +540,22 @@ class TermKernels:
         if self.general.size:
             g = general_columns(self._general(), q, qd, qdd)  # (n_samples, n, p_g)
             out[:, torch.as_tensor(self.general, device=q.device)] = g.permute(1, 2, 0)
+        return out
+
+    def columns_into(self, q, qd, qdd, out, general_columns, work=None):
+        """:meth:`columns_t` written into ``out`` of shape (n_dof, n_terms, n_samples).
+
+        When every term is batched, each coordinate's columns are written straight
+        into ``out[i]`` (no intermediate tensor); ``work`` (a dict kept between
+        calls on as many samples) holds the reused buffers.
+        """
+        if self.plan is None or self.general.size:
+            out.copy_(self.columns_t(q, qd, qdd, general_columns))
+            return out
+        base = self._base(q.T, qd.T, qdd.T, work)
+        self.plan["columns"].evaluate_blocks(
+            base, [out[i] for i in range(self.n_dof)], work
+        )
         return out
 
     def components(self, q, qd, general_components):
@@ -448,9 +582,10 @@ class TermKernels:
         s = q.shape[0]
         out = q.new_empty((s, self.n_terms, *tail))
         if self.plan is not None:
-            idx = torch.as_tensor(self.supported, device=q.device)
-            vals = self._batched(kind, q, qd)
-            out[:, idx] = vals.T.reshape(s, len(self.supported), *tail)
+            vals = self._batched(kind, q, qd).T.reshape(s, len(self.supported), *tail)
+            if not self.general.size:
+                return out.copy_(vals)  # a plain copy: much cheaper than indexing
+            out[:, torch.as_tensor(self.supported, device=q.device)] = vals
         if self.general.size:
             idx = torch.as_tensor(self.general, device=q.device)
             out[:, idx] = general(self._general(), q, qd)

@@ -439,8 +439,12 @@ class CandidateLibrary(BaseEstimator):
         return len(self._ensure_built().terms_)
 
     def get_feature_names_out(self, input_features=None) -> np.ndarray:
-        """Names of the candidate terms, as strings (sympy's ``str``)."""
-        return np.asarray([str(t) for t in self._ensure_built().terms_], dtype=object)
+        """Names of the candidate terms, as strings (sympy's ``str``).
+
+        The strings are cached per tuple of built terms (printing with sympy costs
+        about 0.1 ms a term, and a fit asks several times); a new array each call.
+        """
+        return np.asarray(_term_names(tuple(self._ensure_built().terms_)), dtype=object)
 
     def euler_lagrange(self) -> list[list[sp.Expr]]:
         """Symbolic Euler-Lagrange expressions, ``[term][coordinate]``."""
@@ -531,6 +535,12 @@ class CandidateLibrary(BaseEstimator):
 
     def __repr__(self, N_CHAR_MAX=700):
         return super().__repr__(N_CHAR_MAX=N_CHAR_MAX)
+
+
+@functools.lru_cache(maxsize=64)
+def _term_names(terms: tuple) -> tuple:
+    """``str`` of each term (cached: equal terms print alike)."""
+    return tuple(str(t) for t in terms)
 
 
 def _el_matrix(terms, coordinates, rng, n_points=None, expressions=None):

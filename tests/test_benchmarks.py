@@ -471,3 +471,36 @@ def test_gpu_benchmark_profiles_cuda_kernels(tiny_results):
     row = next(line for line in text.splitlines() if line.startswith("| 3000 x 39 "))
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[1] == "cuda" and int(cells[6]) > 0 and cells[7].endswith("MiB")
+
+
+def test_speed_fit_only_and_floor_fits_replace_only_their_parts():
+    """``--fit-only`` rewrites (a) and (b) but not (c); ``--floor-fits`` its own
+    subsection of the floor section, not the simulation parts beside it."""
+    from benchmarks import speed
+
+    text = (
+        "# Fit time\n\n## At the hardware floor (issue 16)\n\nfloor intro\n\n"
+        "### Simulation\n\nsim text\n\n"
+        "## Passive search and diagnosis against one fit (issue 16)\n\nintro\n\n"
+        "### (a) Case I fit, cart-pendulum, 50k rows x 39 terms\n\nold a\n\n"
+        "### (b) Memory\n\nold b\n\n### (c) Passive search and diagnosis\n\nc text\n"
+    )
+    new = speed._replace_between(
+        text,
+        "### (a) Case I fit, cart-pendulum\n\nnew a and b\n",
+        speed.FIT_MARKER,
+        speed.FIT_END_MARKER,
+    )
+    assert "new a and b" in new and "old a" not in new and "old b" not in new
+    assert new.endswith("### (c) Passive search and diagnosis\n\nc text\n")
+    assert new.startswith(text.split(speed.FIT_MARKER)[0].rstrip("\n"))
+    marker, parent = speed.FLOOR_FITS_MARKER, "\n## At the hardware floor"
+    first = speed._replace_subsection(
+        text, marker.strip() + "\n\nrows 1\n", marker, parent
+    )
+    assert first.index("floor intro") < first.index("rows 1") < first.index("sim text")
+    second = speed._replace_subsection(
+        first, marker.strip() + "\n\nrows 2\n", marker, parent
+    )
+    assert "rows 1" not in second and "rows 2" in second
+    assert second.replace("rows 2", "rows 1") == first

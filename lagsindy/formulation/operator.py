@@ -38,6 +38,11 @@ from .._batched import TermKernels, compile_terms
 from .._expr import compile_torch, symbols_for
 
 DEFAULT_CHUNK_SIZE = 32_768
+# Elements (float64: 8 bytes each) of the buffers of one chunk of the strong-form Gram
+# (``EulerLagrangeOperator.gram``): the columns are written and multiplied while
+# they are still in the processor's cache, rather than streamed through memory.
+GRAM_CACHE = 1 << 20
+GRAM_MIN_CHUNK = 256
 # Samples used to evaluate the weak form's noise correction (a sum over samples).
 NOISE_ROWS = 10_000
 
@@ -339,15 +344,43 @@ class EulerLagrangeOperator:
         n_extra = 0 if extra is None else extra.shape[2]
         width = self.n_columns + n_extra + (0 if y is None else 1)
         out = X.new_zeros((self.n_dof, width, width))
-        for sl in _chunks(X.shape[0], self.chunk_size):
-            # layout (n_dof, columns, samples): one matrix product per dof
-            parts = [self._columns_t(X[sl])]
+        p, buf, work = self.n_columns, None, {}
+        for sl in _chunks(X.shape[0], self._gram_chunk(width)):
+            # layout (n_dof, columns, samples): one matrix product per dof, on a
+            # buffer reused from chunk to chunk (cache-sized: its columns are
+            # written, then read by the product while they are still in cache)
+            m = sl.stop - sl.start
+            if buf is None or buf.shape[2] != m:
+                buf = X.new_empty((self.n_dof, width, m))
+            self._columns_into(X[sl], buf[:, :p], work)
             if extra is not None:
-                parts.append(extra[sl].permute(1, 2, 0))
+                buf[:, p : p + n_extra] = extra[sl].permute(1, 2, 0)
             if y is not None:
-                parts.append(y[sl].T.unsqueeze(1))
-            a_t = torch.cat(parts, dim=1)
-            out += a_t @ a_t.transpose(1, 2)
+                buf[:, -1] = y[sl].T
+            out.baddbmm_(buf, buf.transpose(1, 2))
+        return out
+
+    def _gram_chunk(self, width: int) -> int:
+        """Samples per chunk of :meth:`gram`: its buffers fit about ``GRAM_CACHE``."""
+        per_sample = self.n_dof * width
+        if isinstance(self._fn, TermKernels) and self._fn.plan is not None:
+            kernel = self._fn.plan["columns"]
+            per_sample += kernel.n_rows + 2 * kernel.level_width
+        step = GRAM_CACHE // max(per_sample, 1)
+        return max(GRAM_MIN_CHUNK, min(int(self.chunk_size), step))
+
+    def _columns_into(self, X: torch.Tensor, out: torch.Tensor, work: dict):
+        """:meth:`_columns_t` written into ``out`` (n_dof, n_columns, n_samples)."""
+        if not isinstance(self._fn, TermKernels) or self._fn.plan is None:
+            out.copy_(self._columns_t(X))
+            return out
+        q, qd, qdd = self._split(X)
+        p = self.n_terms
+        self._fn.columns_into(
+            q, qd, qdd, out[:, :p], _general_columns(self.chunk_size), work
+        )
+        if self._force_fn is not None:
+            out[:, p:] = -self.force_values(q, qd).permute(1, 2, 0)
         return out
 
     def _columns_t(self, X: torch.Tensor) -> torch.Tensor:
@@ -508,26 +541,7 @@ class EulerLagrangeOperator:
                 return self._reused_grams(
                     store[key], X, y, order, windows, dt, return_noise, lazy
                 )
-        # Integrands per sample: a-weighted (with dpsi) and b-weighted (with psi) parts.
-        a_parts, b_parts = [], []
-        if self._fn is not None:
-            g = lagrangian_gradients(self._fn, q, qd, chunk_size=self.chunk_size)
-            a_parts.append(g[:, :, d:].transpose(1, 2))  # dphi/dqd: (n, d, p)
-            b_parts.append(g[:, :, :d].transpose(1, 2))  # dphi/dq
-        if self._force_fn is not None:
-            forces = self.force_values(q, qd)  # (n, d, f)
-            a_parts.append(torch.zeros_like(forces))
-            b_parts.append(forces)
-        if extra is not None:
-            e = extra[order]
-            a_parts.append(torch.zeros_like(e))
-            b_parts.append(-e)  # the column below is then +int psi e
-        if y is not None:
-            tau = y[order].unsqueeze(2)
-            a_parts.append(torch.zeros_like(tau))
-            b_parts.append(-tau)  # so that the column below is +int psi tau
-        a_int = torch.cat(a_parts, dim=2)
-        b_int = torch.cat(b_parts, dim=2)
+        a_int, b_int = self._weak_integrands(q, qd, order, y, extra)
         width = a_int.shape[2]
         # Where each base segment's rows sit in the integrands (by its first row).
         offsets, start = {}, 0
@@ -544,13 +558,17 @@ class EulerLagrangeOperator:
             psi, dpsi = (k.to(X) for k in bump_function(window, dt))
             grams, counts, slices, feats = [], [], [], []
             weights = [X.new_zeros(order.shape[0]) for _ in range(3)]
+            bands = {}  # per segment length: the windows' banded matrices
             for seg in segments_by_window[window]:
                 first, n = offsets[int(seg[0])]
                 sl = slice(first, first + n)
                 slices.append(sl)
+                if n not in bands:
+                    bands[n] = (_band(dpsi, n, stride), _band(psi, n, stride))
+                band_a, band_b = bands[n]
                 cols = -dt * (
-                    _correlate(a_int[sl], dpsi, stride)
-                    + _correlate(b_int[sl], psi, stride)
+                    _correlate(a_int[sl], dpsi, stride, band_a)
+                    + _correlate(b_int[sl], psi, stride, band_b)
                 )
                 counts.append(cols.shape[0])
                 grams.append(torch.einsum("wip,wiq->ipq", cols, cols))
@@ -586,6 +604,41 @@ class EulerLagrangeOperator:
         if lazy:
             return {w: functools.partial(build, w) for w in windows}
         return {w: build(w) for w in windows}
+
+    def _weak_integrands(self, q, qd, order, y, extra):
+        """Integrands per sample, each of shape (n, n_dof, width): the a-weighted part
+        (with dpsi: dphi/dqd, zeros beside it) and the b-weighted part (with psi:
+        dphi/dq, the forces, ``-extra``, ``-y``).
+
+        Written into two buffers: when every term is batched, straight from the
+        gradient kernel's (term, [q, qd], sample) output, one transposing copy each.
+        """
+        d, n = self.n_dof, q.shape[0]
+        p = self.n_terms
+        f = len(self.forces)
+        n_extra = 0 if extra is None else extra.shape[2]
+        width = p + f + n_extra + (0 if y is None else 1)
+        a_int = q.new_zeros((n, d, width))
+        b_int = q.new_empty((n, d, width))
+        if self._fn is not None:
+            kernels = self._fn
+            batched = isinstance(kernels, TermKernels) and kernels.plan is not None
+            if batched and not kernels.general.size:
+                g = kernels._batched("grad", q, qd).view(p, 2 * d, n)
+                a_int[:, :, :p] = g[:, d:].permute(2, 1, 0)  # dphi/dqd: (n, d, p)
+                b_int[:, :, :p] = g[:, :d].permute(2, 1, 0)  # dphi/dq
+            else:
+                g = lagrangian_gradients(kernels, q, qd, chunk_size=self.chunk_size)
+                a_int[:, :, :p] = g[:, :, d:].transpose(1, 2)
+                b_int[:, :, :p] = g[:, :, :d].transpose(1, 2)
+        if self._force_fn is not None:
+            b_int[:, :, p : p + f] = self.force_values(q, qd)  # (n, d, f)
+        if extra is not None:
+            # the column below is then +int psi e
+            b_int[:, :, p + f : p + f + n_extra] = -extra[order]
+        if y is not None:
+            b_int[:, :, -1] = -y[order]  # so that the column below is +int psi tau
+        return a_int, b_int
 
     def _reuse_key(self, X, order, segments_by_window, strides, dt, noise_cov, rows):
         """What the feature part of :meth:`weak_grams` depends on (without ``y``)."""
@@ -797,14 +850,31 @@ def bump_function(window: int, dt: float, power: int = 4):
     return psi, dpsi
 
 
-def _correlate(signal: torch.Tensor, kernel: torch.Tensor, stride: int) -> torch.Tensor:
-    """Sliding sums ``sum_j kernel[j] signal[start + j]`` along dim 0, every ``stride``."""
+def _correlate(
+    signal: torch.Tensor, kernel: torch.Tensor, stride: int, band=None
+) -> torch.Tensor:
+    """Sliding sums ``sum_j kernel[j] signal[start + j]`` along dim 0, every ``stride``.
+
+    One matrix product with the banded matrix of the windows (``band``, from
+    :func:`_band`, when the caller has it already): on CPU in float64 this is many
+    times faster than ``conv1d`` with one input channel, which has no fast kernel.
+    """
     n = signal.shape[0]
-    flat = signal.reshape(n, -1).T.unsqueeze(1)  # (channels, 1, n)
-    out = torch.nn.functional.conv1d(
-        flat, kernel.view(1, 1, -1).to(signal), stride=stride
+    if band is None:
+        band = _band(kernel.to(signal), n, stride)
+    return (band @ signal.reshape(n, -1)).reshape(-1, *signal.shape[1:])
+
+
+def _band(kernel: torch.Tensor, n: int, stride: int) -> torch.Tensor:
+    """``B`` of shape (n_windows, n) with ``B[w, w * stride + j] = kernel[j]``."""
+    k = kernel.shape[0]
+    n_win = max(0, (n - k) // stride + 1)
+    band = kernel.new_zeros((n_win, n))
+    starts = torch.arange(n_win, device=kernel.device).unsqueeze(1) * stride
+    band.scatter_(
+        1, starts + torch.arange(k, device=kernel.device), kernel.expand(n_win, k)
     )
-    return out.squeeze(1).T.reshape(-1, *signal.shape[1:])
+    return band
 
 
 def _window_weights(n: int, kernel_a, kernel_b, stride: int):

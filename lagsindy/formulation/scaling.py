@@ -18,6 +18,38 @@ from ..solvers.datafits import GramQuadratic
 _BALANCE_MAX_ITER = 2000
 
 
+def _balance_rows(mean_sq: np.ndarray) -> np.ndarray:
+    """Row scales of the alternating row/column balancing of ``mean_sq`` (n_dof, p).
+
+    On NumPy arrays, with plain ufuncs (``add.reduce`` for ``mean``, the test of
+    ``allclose(new, rows, rtol=1e-10, atol=0)`` written out): the iterations are on
+    a few numbers each, where the per-call overhead of torch (about 0.3 ms per
+    iteration) or of NumPy's Python-level ``mean``/``allclose`` would dominate.
+    """
+    with np.errstate(all="ignore"):  # inf and nan pass silently, as in torch
+        return _balance(mean_sq)
+
+
+def _balance(mean_sq):
+    n_dof = mean_sq.shape[0]
+    rows = np.ones(n_dof, dtype=mean_sq.dtype)
+    one = np.ones(n_dof, dtype=mean_sq.dtype)
+    for _ in range(_BALANCE_MAX_ITER):
+        cols = np.sqrt(np.add.reduce(mean_sq / rows[:, None] ** 2, axis=0) / n_dof)
+        active = cols > 0
+        if not active.any():
+            break
+        ratio = mean_sq[:, active] / cols[active] ** 2
+        new_rows = np.sqrt(np.add.reduce(ratio, axis=1) / ratio.shape[1])
+        new_rows = np.where(new_rows > 0, new_rows, one)
+        new_rows = new_rows / np.exp(np.add.reduce(np.log(new_rows)) / n_dof)
+        if (np.abs(new_rows - rows) <= 1e-10 * np.abs(rows)).all():
+            rows = new_rows
+            break
+        rows = new_rows
+    return rows
+
+
 class BalancedGram:
     r"""Scaled least-squares problems from per-coordinate Gram statistics.
 
@@ -58,21 +90,9 @@ class BalancedGram:
         mean_sq = torch.clamp(mean_sq, min=0)
         rows = torch.ones(n_dof, dtype=gram.dtype, device=gram.device)
         if normalize and self.n_features:
-            for _ in range(_BALANCE_MAX_ITER):
-                cols = torch.sqrt((mean_sq / rows[:, None] ** 2).mean(dim=0))
-                active = cols > 0
-                if not bool(active.any()):
-                    break
-                ratio = mean_sq[:, active] / cols[active] ** 2
-                new_rows = torch.sqrt(ratio.mean(dim=1))
-                new_rows = torch.where(
-                    new_rows > 0, new_rows, torch.ones_like(new_rows)
-                )
-                new_rows = new_rows / torch.exp(torch.log(new_rows).mean())
-                if torch.allclose(new_rows, rows, rtol=1e-10, atol=0):
-                    rows = new_rows
-                    break
-                rows = new_rows
+            rows = torch.as_tensor(
+                _balance_rows(to_numpy(mean_sq)), dtype=gram.dtype, device=gram.device
+            )
         self.row_scale = rows
         weights = 1.0 / rows**2
         self.gram = (gram * weights[:, None, None]).sum(dim=0) / (n_samples * n_dof)

@@ -334,20 +334,31 @@ def check_time_order(X: torch.Tensor, n_dof: int, segments) -> float:
     the integrated motion grows with the lag, the noise of a position difference
     does not. (Lag 1 alone rejected time-ordered data at noise 0.08 and above.)
     """
-    # Per segment: positions and the running trapezoid integral of the velocities.
-    tracks = []
-    for seg in segments:
-        q, qd = X[seg, :n_dof], X[seg, n_dof : 2 * n_dof]
-        trap = torch.cumsum((qd[1:] + qd[:-1]) / 2, dim=0)
-        tracks.append((q, torch.cat([trap.new_zeros((1, n_dof)), trap])))
+    # All segments at once: positions, and the running trapezoid integral of the
+    # velocities over all rows; a lag's pairs are those inside one segment, whose
+    # integrals then never include a step across segments.
+    segments = [seg for seg in segments if len(seg) > 0]
+    if not segments:
+        return 0.0
+    rows = torch.cat(list(segments))
+    q, qd = X[rows, :n_dof], X[rows, n_dof : 2 * n_dof]
+    lengths = torch.as_tensor([len(seg) for seg in segments], device=X.device)
+    starts = torch.cumsum(lengths, 0) - lengths
+    # position of each row inside its segment, and the rows left after it
+    seg_of = torch.repeat_interleave(
+        torch.arange(len(segments), device=X.device), lengths
+    )
+    position = torch.arange(rows.numel(), device=X.device) - starts[seg_of]
+    left = lengths[seg_of] - 1 - position
+    mid = torch.cat([qd.new_zeros((1, n_dof)), (qd[1:] + qd[:-1]) / 2])
+    cum = torch.cumsum(mid, dim=0)
     best = 0.0
     for k in TIME_ORDER_LAGS:
-        long_enough = [(q, cum) for q, cum in tracks if q.shape[0] > k]
-        if not long_enough:
+        pairs = (left[:-k] >= k).unsqueeze(1) if rows.numel() > k else None
+        if pairs is None or not bool(pairs.any()):
             break
-        steps = [(q[k:] - q[:-k]).flatten() for q, _ in long_enough]
-        integrals = [(cum[k:] - cum[:-k]).flatten() for _, cum in long_enough]
-        a, b = torch.cat(steps), torch.cat(integrals)
+        a = torch.where(pairs, q[k:] - q[:-k], 0.0)
+        b = torch.where(pairs, cum[k:] - cum[:-k], 0.0)
         den = float(torch.sqrt((a * a).sum() * (b * b).sum()))
         if den > 0:
             best = max(best, float((a * b).sum()) / den)
@@ -361,22 +372,66 @@ def estimate_sampling_interval(X: torch.Tensor, n_dof: int, segments) -> float:
     so fast, well-determined steps count most) is insensitive to the few jumps where
     one trajectory ends and the next begins, and to noise.
     """
+    # On NumPy arrays (in X's dtype): boolean masks cost several times less there.
+    # Overflows give inf and nan silently, as in torch (the fit then reports
+    # non-finite statistics).
+    Xn = X.detach().cpu().numpy() if torch.is_tensor(X) else np.asarray(X)
     ratios, weights = [], []
-    for seg in segments:
-        q, qd = X[seg, :n_dof], X[seg, n_dof : 2 * n_dof]
-        if q.shape[0] < 2:
+    with np.errstate(all="ignore"):
+        for seg in segments:
+            idx = seg.cpu().numpy() if torch.is_tensor(seg) else np.asarray(seg)
+            q, qd = Xn[idx, :n_dof], Xn[idx, n_dof : 2 * n_dof]
+            if q.shape[0] < 2:
+                continue
+            mid = (qd[1:] + qd[:-1]) / 2
+            ok = np.abs(mid) > 0
+            ratios.append((q[1:] - q[:-1])[ok] / mid[ok])
+            weights.append(mid[ok] ** 2)
+        if not ratios or sum(w.size for w in weights) == 0:
+            raise ValueError(
+                "cannot estimate dt: the velocities are all zero; pass dt="
+            )
+        return weighted_median(np.concatenate(ratios), np.concatenate(weights))
+
+
+# Candidates below which weighted_median sorts what is left instead of selecting.
+_MEDIAN_SORT = 512
+
+
+def weighted_median(values: np.ndarray, weights: np.ndarray) -> float:
+    """The smallest value ``v`` whose weight ``sum(weights[values <= v])`` is at least
+    half the total weight (non-negative weights).
+
+    The lower weighted median, found by selection (quickselect on
+    :func:`numpy.partition`) in linear expected time rather than by a full sort;
+    the sums differ from a sorted cumulative sum only by their rounding.
+    """
+    values = np.asarray(values, dtype=np.float64)
+    weights = np.asarray(weights, dtype=np.float64)
+    with np.errstate(all="ignore"):  # inf and nan pass silently, as in torch
+        return _weighted_median(values, weights)
+
+
+def _weighted_median(values, weights):
+    half = weights.sum() / 2
+    below = 0.0  # weight of the values already known to lie below the result
+    while values.size > _MEDIAN_SORT:
+        pivot = np.partition(values, values.size // 2)[values.size // 2]
+        lower = values < pivot
+        w_lower = below + weights[lower].sum()
+        if w_lower >= half:
+            values, weights = values[lower], weights[lower]
             continue
-        mid = (qd[1:] + qd[:-1]) / 2
-        ok = mid.abs() > 0
-        ratios.append(((q[1:] - q[:-1])[ok] / mid[ok]).flatten())
-        weights.append((mid[ok] ** 2).flatten())
-    if not ratios or sum(int(w.numel()) for w in weights) == 0:
-        raise ValueError("cannot estimate dt: the velocities are all zero; pass dt=")
-    r, w = torch.cat(ratios), torch.cat(weights)
-    order = torch.argsort(r)
-    cum = torch.cumsum(w[order], 0)
-    k = int(torch.searchsorted(cum, cum[-1] / 2))
-    return float(r[order][min(k, r.numel() - 1)])
+        equal = values == pivot
+        w_equal = w_lower + weights[equal].sum()
+        if w_equal >= half:
+            return float(pivot)
+        upper = ~(lower | equal)
+        values, weights, below = values[upper], weights[upper], w_equal
+    order = np.argsort(values, kind="stable")
+    cum = below + np.cumsum(weights[order])
+    k = int(np.searchsorted(cum, half))
+    return float(values[order][min(k, values.size - 1)])
 
 
 def window_change(a, b) -> float:

@@ -1,0 +1,285 @@
+"""The fit's fast paths (issue 16) against plain reference computations.
+
+Each fast path replaced a simpler computation; the simpler one is written out here
+as the reference (the code before the change, or the definition), so that the two
+must keep agreeing: to rounding where the order of the sums changed, exactly where
+the fast path only selects (medians) or copies.
+"""
+
+import numpy as np
+import pytest
+import sympy as sp
+import torch
+from sklearn.base import clone
+
+import lagsindy.formulation.operator as operator_module
+from lagsindy import CandidateLibrary
+from lagsindy._batched import compile_terms
+from lagsindy._expr import symbols_for
+from lagsindy.euler_lagrange import EulerLagrangeOperator
+from lagsindy.formulation.operator import _band, _correlate
+from lagsindy.formulation.scaling import BalancedGram, _balance_rows
+from lagsindy.formulation.weak import (
+    check_time_order,
+    trajectory_segments,
+    weighted_median,
+)
+from lagsindy.library import euler_lagrange_expressions
+from lagsindy.systems import cart_pendulum, make_dataset
+
+
+def _states(n, seed):
+    rng = np.random.default_rng(seed)
+    return [
+        torch.tensor(rng.uniform(lo, hi, (n, 2)))
+        for lo, hi in ((-np.pi, np.pi), (-3, 3), (-3, 3))
+    ]
+
+
+def _sympy_columns(terms, names, q, qd, qdd):
+    """Theta[s, i, k] from sympy's Euler-Lagrange expressions."""
+    q_s, qd_s, qdd_s = symbols_for(names)
+    flat = [e for t in terms for e in euler_lagrange_expressions(t, names)]
+    f = sp.lambdify(q_s + qd_s + qdd_s, flat, modules="numpy")
+    n = q.shape[0]
+    values = f(*q.numpy().T, *qd.numpy().T, *qdd.numpy().T)
+    out = np.stack([np.broadcast_to(np.asarray(v, float), (n,)) for v in values], 1)
+    return out.reshape(n, len(terms), len(names)).transpose(0, 2, 1)
+
+
+# ----------------------------------------------------------------- strong-form Gram
+@pytest.mark.parametrize("cache", [1, 3000, 1 << 20])
+def test_gram_in_reused_chunk_buffers_matches_sympy_columns(monkeypatch, cache):
+    """The Gram accumulated chunk by chunk in one reused buffer (columns written in
+    place, forces, extra columns and the target beside them) equals A^T A of the
+    sympy columns, whatever the chunk size (1: the 256-row minimum; 3000 elements:
+    chunks of 13 rows and a partial last chunk; the default: one chunk)."""
+    monkeypatch.setattr(operator_module, "GRAM_CACHE", cache)
+    monkeypatch.setattr(operator_module, "GRAM_MIN_CHUNK", 1 if cache > 1 else 256)
+    names = ["x", "theta"]
+    lib = CandidateLibrary.polynomial(names, angles=["theta"], degree=3).build()
+    w1, w2 = sp.symbols("x_dot theta_dot", real=True)
+    op = EulerLagrangeOperator(names, lib.terms_, forces=[[-w1, 0], [0, -(w2**3)]])
+    q, qd, qdd = _states(300, 0)
+    X = torch.cat([q, qd, qdd], dim=1)
+    rng = np.random.default_rng(1)
+    y = torch.tensor(rng.normal(size=(300, 2)))
+    extra = torch.tensor(rng.normal(size=(300, 2, 1)))
+    forces = -np.stack([-qd[:, 0].numpy(), -(qd[:, 1].numpy() ** 3)], 1)  # columns -Q
+    force_cols = np.zeros((300, 2, 2))
+    force_cols[:, 0, 0], force_cols[:, 1, 1] = forces[:, 0], forces[:, 1]
+    a = np.concatenate(
+        [
+            _sympy_columns(lib.terms_, names, q, qd, qdd),
+            force_cols,
+            extra.numpy(),
+            y.numpy()[:, :, None],
+        ],
+        axis=2,
+    )
+    want = np.einsum("sip,siq->ipq", a, a)
+    got = op.gram(X, y, extra=extra).numpy()
+    # measured: 1.4e-16 of the largest entry, at every chunk size
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-13 * np.abs(want).max())
+
+
+def test_kernel_output_buffers_ignore_their_old_content():
+    """Kernels write into given buffers (addmm with beta=0): stale values, NaN
+    included, never leak into the result, and reused work buffers of another
+    sample count are replaced."""
+    lib = CandidateLibrary.polynomial(["x", "theta"], angles=["theta"], degree=4)
+    kernels = compile_terms(lib.build().terms_, ["x", "theta"])
+    kernel = kernels.plan["columns"]
+    work = {}
+    for n, seed in ((50, 0), (17, 1), (50, 2)):
+        q, qd, qdd = _states(n, seed)
+        base = kernels._base(q.T, qd.T, qdd.T, work)
+        fresh = kernel.evaluate(base.clone())
+        stale = torch.full((kernel.n_out, n), float("nan"), dtype=torch.float64)
+        kernel.evaluate(base, out=stale, work=work)
+        np.testing.assert_array_equal(stale.numpy(), fresh.numpy())
+        blocks = torch.full((2, kernel.n_out // 2, n), float("nan"), dtype=q.dtype)
+        kernel.evaluate_blocks(base, [blocks[0], blocks[1]], work)
+        np.testing.assert_array_equal(
+            blocks.reshape(kernel.n_out, n).numpy(), fresh.numpy()
+        )
+        want = _sympy_columns(lib.terms_, ["x", "theta"], q, qd, qdd)
+        # columns (dof, term) against sympy; measured: 3e-14 on entries up to 240
+        got = fresh.reshape(2, -1, n).permute(2, 0, 1).numpy()
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+# ----------------------------------------------------------------- weak form
+def test_band_correlation_equals_the_sliding_sums():
+    """Window sums as one banded matrix product: sum_j k[j] x[w * stride + j]."""
+    rng = np.random.default_rng(0)
+    signal = torch.tensor(rng.normal(size=(203, 2, 3)))
+    kernel = torch.tensor(rng.normal(size=41))
+    stride = 10
+    n_win = (203 - 41) // stride + 1
+    want = np.stack(
+        [
+            np.einsum("j,jab->ab", kernel.numpy(), signal.numpy()[s : s + 41])
+            for s in range(0, n_win * stride, stride)
+        ]
+    )
+    got = _correlate(signal, kernel, stride)
+    assert got.shape == (n_win, 2, 3)
+    # measured: equal (the product may sum in another order elsewhere)
+    np.testing.assert_allclose(got.numpy(), want, rtol=0, atol=1e-13)
+    again = _correlate(signal, kernel, stride, _band(kernel, 203, stride))
+    np.testing.assert_array_equal(again.numpy(), got.numpy())
+    assert _band(kernel, 30, stride).shape == (0, 30)  # shorter than the window
+
+
+def _sorted_weighted_median(r, w):
+    """The previous implementation: full sort, cumulative weights."""
+    r, w = torch.as_tensor(r), torch.as_tensor(w)
+    order = torch.argsort(r)
+    cum = torch.cumsum(w[order], 0)
+    k = int(torch.searchsorted(cum, cum[-1] / 2))
+    return float(r[order][min(k, r.numel() - 1)])
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 600, 5001])
+def test_weighted_median_by_selection_equals_the_sorted_one(n):
+    rng = np.random.default_rng(n)
+    cases = [
+        (rng.normal(size=n), rng.random(n)),
+        (rng.integers(-4, 4, n).astype(float), rng.random(n)),  # ties
+        (rng.integers(-2, 2, n).astype(float), np.ones(n)),  # ties, equal weights
+        (rng.normal(size=n), rng.integers(0, 3, n).astype(float)),  # zero weights
+    ]
+    # exactly half the weight below the middle value: the lower one is the median
+    cases.append((np.repeat([0.0, 1.0], [n // 2 + n % 2, n // 2]), np.ones(n)))
+    for values, weights in cases:
+        if weights.sum() == 0:
+            continue
+        assert weighted_median(values, weights) == _sorted_weighted_median(
+            values, weights
+        )
+
+
+def _per_segment_time_order(X, n_dof, segments, lags=(1, 2, 4, 8, 16, 32)):
+    """The previous implementation: one segment at a time."""
+    tracks = []
+    for seg in segments:
+        q, qd = X[seg, :n_dof], X[seg, n_dof : 2 * n_dof]
+        trap = torch.cumsum((qd[1:] + qd[:-1]) / 2, dim=0)
+        tracks.append((q, torch.cat([trap.new_zeros((1, n_dof)), trap])))
+    best = 0.0
+    for k in lags:
+        long_enough = [(q, cum) for q, cum in tracks if q.shape[0] > k]
+        if not long_enough:
+            break
+        a = torch.cat([(q[k:] - q[:-k]).flatten() for q, _ in long_enough])
+        b = torch.cat([(cum[k:] - cum[:-k]).flatten() for _, cum in long_enough])
+        den = float(torch.sqrt((a * a).sum() * (b * b).sum()))
+        if den > 0:
+            best = max(best, float((a * b).sum()) / den)
+    return best
+
+
+def test_time_order_on_all_segments_at_once_equals_per_segment():
+    data = make_dataset(
+        cart_pendulum(), n_trajectories=6, excitation="sincos", random_state=0
+    )
+    X = torch.tensor(data.X)
+    segments = trajectory_segments(X, 2, data.groups)
+    rng = np.random.default_rng(0)
+    short = [s[: int(rng.integers(1, 40))] for s in segments]  # some shorter than lags
+    noisy = X + 0.05 * torch.tensor(rng.normal(size=X.shape))
+    shuffled = X[torch.as_tensor(rng.permutation(X.shape[0]))]
+    for x, segs in [
+        (X, segments),
+        (X, short),
+        (noisy, segments),
+        (shuffled, segments),
+        (X, [s[:1] for s in segments]),  # no pair at any lag
+    ]:
+        want = _per_segment_time_order(x, 2, segs)
+        # measured: 1.1e-16 at most (the integrals run over all segments at once)
+        assert check_time_order(x, 2, segs) == pytest.approx(want, abs=1e-12)
+    assert check_time_order(X, 2, segments) > 0.99
+    assert check_time_order(X, 2, []) == 0.0
+
+
+# ----------------------------------------------------------------- scaling
+def _torch_balance(mean_sq, max_iter=2000):
+    """The previous implementation: the balancing iterations on tensors."""
+    rows = torch.ones(mean_sq.shape[0], dtype=mean_sq.dtype)
+    for _ in range(max_iter):
+        cols = torch.sqrt((mean_sq / rows[:, None] ** 2).mean(dim=0))
+        active = cols > 0
+        if not bool(active.any()):
+            break
+        ratio = mean_sq[:, active] / cols[active] ** 2
+        new_rows = torch.sqrt(ratio.mean(dim=1))
+        new_rows = torch.where(new_rows > 0, new_rows, torch.ones_like(new_rows))
+        new_rows = new_rows / torch.exp(torch.log(new_rows).mean())
+        if torch.allclose(new_rows, rows, rtol=1e-10, atol=0):
+            return new_rows
+        rows = new_rows
+    return rows
+
+
+def test_row_balance_on_numpy_equals_the_torch_iterations():
+    rng = np.random.default_rng(0)
+    for n_dof, p in ((2, 39), (3, 10), (1, 5)):
+        mean_sq = rng.lognormal(sigma=3.0, size=(n_dof, p))
+        mean_sq[0, 0] = 0.0  # a column zero in one coordinate
+        if n_dof > 1:
+            mean_sq[:, 1] = 0.0  # a column zero everywhere
+        want = _torch_balance(torch.tensor(mean_sq)).numpy()
+        # measured: 2.2e-16 relative at most
+        np.testing.assert_allclose(_balance_rows(mean_sq), want, rtol=1e-13)
+    gram = torch.tensor(rng.normal(size=(2, 6, 6)))
+    gram = gram @ gram.transpose(1, 2)
+    for dtype in (torch.float64, torch.float32):
+        balanced = BalancedGram(gram.to(dtype), 10, 5)
+        assert balanced.row_scale.dtype == dtype
+
+
+# ----------------------------------------------------------------- names
+def test_feature_names_cache_follows_set_params_and_clone():
+    lib = CandidateLibrary.polynomial(["x", "theta"], angles=["theta"], degree=2)
+    names = lib.get_feature_names_out()
+    assert names.tolist() == [str(t) for t in lib.terms_]
+    names[0] = "changed"  # each call returns a new array
+    assert lib.get_feature_names_out()[0] == str(lib.terms_[0])
+    lib.set_params(degree=3)  # rebuilt: the names of the new terms
+    assert lib.get_feature_names_out().tolist() == [str(t) for t in lib.terms_]
+    assert len(lib.get_feature_names_out()) == len(lib) > len(names)
+    copy = clone(lib).set_params(angles=None, raw_angles=True)
+    assert copy.get_feature_names_out().tolist() == [str(t) for t in copy.terms_]
+    assert "cos(theta)" in lib.get_feature_names_out().tolist()
+    assert "cos(theta)" not in copy.get_feature_names_out().tolist()
+
+
+def test_weak_integrands_written_from_the_kernel_equal_the_concatenated_ones():
+    """The weak form's per-sample integrands, copied straight from the gradient
+    kernel into their buffers, equal those concatenated from the gradients (the
+    previous construction): dphi/dqd beside zeros, and dphi/dq, forces, -extra,
+    -y."""
+    from lagsindy.formulation.operator import lagrangian_gradients
+
+    names = ["x", "theta"]
+    lib = CandidateLibrary.polynomial(names, angles=["theta"], degree=3).build()
+    w1, w2 = sp.symbols("x_dot theta_dot", real=True)
+    op = EulerLagrangeOperator(names, lib.terms_, forces=[[-w1, 0], [0, -w2]])
+    q, qd, _ = _states(120, 3)
+    rng = np.random.default_rng(4)
+    order = torch.as_tensor(rng.permutation(120))
+    y = torch.tensor(rng.normal(size=(120, 2)))
+    extra = torch.tensor(rng.normal(size=(120, 2, 3)))
+    qo, qdo = q[order], qd[order]
+    g = lagrangian_gradients(op._fn, qo, qdo)
+    forces = op.force_values(qo, qdo)
+    e, tau = extra[order], y[order].unsqueeze(2)
+    zeros = [torch.zeros_like(x) for x in (forces, e, tau)]
+    want_a = torch.cat([g[:, :, 2:].transpose(1, 2), *zeros], dim=2)
+    want_b = torch.cat([g[:, :, :2].transpose(1, 2), forces, -e, -tau], dim=2)
+    a_int, b_int = op._weak_integrands(qo, qdo, order, y, extra)
+    # measured: equal (both are copies of the same kernel values)
+    np.testing.assert_array_equal(a_int.numpy(), want_a.numpy())
+    np.testing.assert_array_equal(b_int.numpy(), want_b.numpy())
