@@ -13,7 +13,8 @@ The integration is a fixed-step classical Runge-Kutta scheme on the sample grid
 perturbations of the coefficients at once, so one Gauss-Newton iteration costs one
 batched integration. Passive data fix a Lagrangian only up to a factor: one
 coefficient (the fit's fixed term, else the largest) is held, the others move.
-Dissipation coefficients stay non-negative.
+Dissipative coefficients (viscous, relative, drag, Coulomb) stay non-negative; a
+bias or custom force is signed.
 """
 
 from __future__ import annotations
@@ -544,8 +545,23 @@ def refine(
             "the fitted model cannot be integrated over every window (singular mass "
             "matrix or divergence): refine needs a model whose rollouts exist"
         )
+    # Dissipative kinds (viscous, relative, drag, Coulomb) oppose the motion only
+    # with a non-negative coefficient, as in the fit; a bias (a constant force) or a
+    # custom force has either sign and stays unbounded.
+    dissipative = np.array(
+        [False] * n_lag
+        + [fitted.dissipation_terms[k - p_lag].dissipative for k in support[n_lag:]]
+    )
+    wrong_sign = [names[k] for k in free if dissipative[k] and c0[k] < 0]
+    if wrong_sign:
+        raise ValueError(
+            f"the model's dissipative term(s) {', '.join(wrong_sign)} have negative "
+            "coefficients: they feed energy in, and refine keeps dissipative "
+            "coefficients non-negative. Refit with the default non-negative "
+            "dissipation, or model the effect with a signed (bias or custom) term."
+        )
     low = np.concatenate(
-        [np.where(free >= n_lag, 0.0, -np.inf), np.full(B * ns, -np.inf)]
+        [np.where(dissipative[free], 0.0, -np.inf), np.full(B * ns, -np.inf)]
     )
     with np.errstate(all="ignore"):
         result = least_squares(

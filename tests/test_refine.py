@@ -6,6 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
+import sympy as sp
 from sklearn.exceptions import ConvergenceWarning
 
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy, refine
@@ -102,6 +103,47 @@ def test_dissipation_stays_non_negative():
     # at the bound, approached from inside (measured 0.00107); unbounded: negative
     assert 0 <= out.dissipation_coef_[0] < 0.005
     assert out.refinement_.rmse_after < 0.5 * out.refinement_.rmse_before
+
+
+@pytest.fixture(scope="module")
+def biased_pendulum():
+    # a constant torque -0.3 on a conservative pendulum: a signed "bias" force
+    system = single_pendulum().with_damping()
+    system.forces = [system.forces[0] - sp.Float(0.3)]
+    d = make_dataset(
+        system, n_trajectories=4, duration=2.0, excitation=None, random_state=2
+    )
+    lib = CandidateLibrary.polynomial(["theta"], angles=["theta"], degree=2)
+    est = LagrangianSINDy(
+        lib, dissipation=DissipationLibrary(["bias"]), fixed_term="theta_dot**2"
+    ).fit(d.X_clean, groups=d.groups)
+    assert [t.name for t in est.dissipation_terms_] == ["bias(theta)"]
+    return d, est
+
+
+@pytest.mark.parametrize("factor", [0.5, -0.5])
+def test_bias_forces_are_signed(biased_pendulum, factor):
+    # a bias is a constant force, not a dissipation: refine neither crashes on a
+    # negative start (a diagnosed double pendulum's bias did) nor stops it at zero
+    d, est = biased_pendulum
+    b = est.dissipation_coef_[0]  # measured -0.59997 (scale of theta_dot**2 = 1)
+    start = _with_coef(est, 1.0, dissipation=[factor * b])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # the bias moves by 100 %
+        out = refine(start, d.X_clean, groups=d.groups, t=d.t)
+    assert abs(out.dissipation_coef_[0] / b - 1) < 5e-4  # measured 5.5e-5
+    assert out.refinement_.rmse_after < 1e-5 * out.refinement_.rmse_before
+
+
+def test_negative_dissipative_start_is_refused(biased_pendulum):
+    d, _ = biased_pendulum
+    lib = CandidateLibrary.polynomial(["theta"], angles=["theta"], degree=2)
+    est = LagrangianSINDy(
+        lib, dissipation=DissipationLibrary(["viscous"]), fixed_term="theta_dot**2"
+    ).fit(d.X_clean, groups=d.groups)
+    start = _with_coef(est, 1.0, dissipation=[-0.1])
+    with pytest.raises(ValueError, match=r"viscous\(theta\).*feed energy in"):
+        refine(start, d.X_clean, groups=d.groups, t=d.t)
 
 
 def test_windows_never_span_a_gap(double_chain):
