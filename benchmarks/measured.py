@@ -399,7 +399,7 @@ def study(which: str, step: int, args):
         lines.append(
             f"- {form}: normalization `{est.normalization_}`"
             + (
-                f"; test window {est.window_} samples (`window=\"auto\"`)"
+                f'; test window {est.window_} samples (`window="auto"`)'
                 if getattr(est, "window_", None)
                 else ""
             )
@@ -431,9 +431,7 @@ def study(which: str, step: int, args):
     diag_final = reports["diagnosed"].final
     pipeline, pipe_times = {}, {}
     refined_diag, wall, cpu = _timed(
-        lambda: refine(
-            diag_final, X_id, groups=g_id, t=t_id, horizon=int(1000 / step)
-        )
+        lambda: refine(diag_final, X_id, groups=g_id, t=t_id, horizon=int(1000 / step))
     )
     pipeline["diagnosed, refined"] = refined_diag
     pipe_times["diagnosed, refined"] = (
@@ -444,13 +442,15 @@ def study(which: str, step: int, args):
     # counterpart of the authors' model without its joint damping
     from lagsindy import MechanicalModel
 
-    lagrangian_only = {
-        f"{label}, Lagrangian only": MechanicalModel(est.lagrangian_, coords)
-        for label, est in (
-            ("diagnosed", diag_final),
-            ("diagnosed, refined", refined_diag),
+    lagrangian_only, n_lagrangian = {}, {}
+    for label, est in (
+        ("diagnosed", diag_final),
+        ("diagnosed, refined", refined_diag),
+    ):
+        lagrangian_only[f"{label}, Lagrangian only"] = MechanicalModel(
+            est.lagrangian_, coords
         )
-    }
+        n_lagrangian[f"{label}, Lagrangian only"] = int(np.count_nonzero(est.coef_))
 
     models = {f"{f} fit": e for f, e in fits.items()}
     models.update({label: r.final for label, r in reports.items()})
@@ -544,7 +544,7 @@ def study(which: str, step: int, args):
         else:
             tcell = "-"
         lines.append(
-            f"| {name} | {_n_terms(model, truth)} | {_fmt(scores[name][0], 5)} "
+            f"| {name} | {n_lagrangian.get(name) or _n_terms(model, truth)} | {_fmt(scores[name][0], 5)} "
             f"| {_fmt(scores[name][1], 5)} | "
             + " | ".join(
                 f"{_fmt(float(np.nanmedian(errs[h][name])), 3)} rad" for h in HORIZONS
@@ -625,7 +625,7 @@ def study(which: str, step: int, args):
         f"{c:.1f} s CPU.\n\n```text\n{refined_diag.equation()}\n```\n"
     )
     lines.append(
-        "The rows \"..., Lagrangian only\" of the prediction table integrate the "
+        'The rows "..., Lagrangian only" of the prediction table integrate the '
         "diagnosed models' Lagrangian without their dissipation and forces, as the "
         "authors' model without its joint damping.\n"
     )
@@ -722,7 +722,12 @@ def start_check(est, truth, X, groups, t, step) -> str:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             r = refine(
-                e, X, groups=groups, t=t, horizon=int(1000 / step), initial_states="data"
+                e,
+                X,
+                groups=groups,
+                t=t,
+                horizon=int(1000 / step),
+                initial_states="data",
             )
         ratios = _ratios(r)
         worst = max(abs(ratios[k] / truth[k] - 1) for k in _lagrangian_keys(truth))
@@ -904,7 +909,7 @@ def main(argv=None):
         if which == "double" and sweep:
             bodies += (
                 "### Weak form at other test-function windows (conservative fit)\n\n"
-                "The default, `window=\"auto\"`, chose the window named in the fit "
+                'The default, `window="auto"`, chose the window named in the fit '
                 "lines above; here each row fixes the window.\n\n"
                 + window_sweep(step, sweep)
                 + "\n"
