@@ -208,9 +208,10 @@ def estimate_delay(
         linear in the coefficients, so each candidate and fold is an ordinary least
         squares on the support's force columns (all candidates cost less than one
         sparse fit); the estimator is refitted at the estimated delay and the search
-        repeated until the support no longer changes (at most 3 fits). The sparse
-        penalty only chooses the support, so with the right support both rank the
-        delays alike. Falls back to ``"refit"`` if the estimator's force columns
+        repeated until the support no longer changes or the estimate stays where the
+        last fit was made (within a hundredth of a sampling interval; at most 3
+        fits). The sparse penalty only chooses the support, so with the right
+        support both rank the delays alike. Falls back to ``"refit"`` if the estimator's force columns
         cannot be read.
     verbose : int, default=0
         Print progress (one line per candidate) when > 0.
@@ -391,6 +392,11 @@ def _force_columns(est, X):
     return cols.reshape(-1, coef.size)
 
 
+# Delays within this fraction of a sampling interval count as the same for the
+# support search's refits.
+SAME_DELAY = 1e-2
+
+
 def _support_search(
     estimator, Xk, frame, tau2, t, groups, rows, folds, candidates, scale, verbose
 ):
@@ -401,8 +407,15 @@ def _support_search(
     n_dof = tau2.shape[1]
     gk = groups[rows]
     shifted = np.stack([shift_input(tau2, t, d, groups)[rows] for d in candidates])
-    delay, support = 0.0, None
+    step = float(candidates[1] - candidates[0])
+    delay, support, fitted_at = 0.0, None, None
     for _ in range(3):
+        if fitted_at is not None and abs(delay - fitted_at) <= SAME_DELAY * step:
+            # The estimate is where the last fit was made: a refit there would see
+            # the input it saw (to a hundredth of a sample's change) and keep its
+            # support, so the search has converged.
+            break
+        fitted_at = delay
         est = clone(estimator)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
