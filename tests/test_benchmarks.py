@@ -320,15 +320,15 @@ def test_robustness_tiny(tiny_results):
     text = (tiny_results / "robustness_quick.md").read_text()
     _check_header(text)
     assert "## Largest sigma with exactly the true terms in every seed" in text
-    # Noise-free single pendulum: both formulations and the defaults find the
-    # structure.
+    # Noise-free single pendulum: both formulations and the defaults, with the
+    # paper's and the chain library, find the structure.
     row = next(
         line
         for line in text.splitlines()
         if line.startswith("| single_pendulum | active | shared |")
     )
-    assert "| strong | weak | defaults |" in text
-    assert all(row.split("|")[k].strip() != "none" for k in (5, 6, 7))
+    assert "| strong | weak | defaults | chain |" in text
+    assert all(row.split("|")[k].strip() != "none" for k in (5, 6, 7, 8))
     assert (tiny_results / "robustness_quick.png").stat().st_size > 1000
     assert (tiny_results / "robustness_quick.csv").exists()
 
