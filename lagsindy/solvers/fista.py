@@ -67,6 +67,14 @@ def fista(
     adaptive restart of O'Donoghue and Candes (momentum is reset when it points
     uphill), which keeps FISTA's rate and removes its oscillations.
 
+    On the CPU (the NumPy fast path) a run whose support and signs have not
+    changed between two checks tries the exact minimiser for them, one linear
+    solve on the support; where it keeps the signs and meets the stopping
+    criterion the run ends there. FISTA finds the support long before its
+    iterates converge on nearly collinear columns: on a problem with condition
+    number 3e4 this ended after 20 iterations at the minimiser (error 1e-13),
+    where the iterations alone took 1150 and stopped 1.6e-4 from it.
+
     Parameters
     ----------
     datafit, penalty
@@ -174,6 +182,12 @@ def _fista_loop(
         stop, first = state["stop"], state["it"] + 1
     history = [best_obj]
     n_iter = first - 1
+    # NumPy problems (fista's fast path) end on the exact minimiser of a steady
+    # support (see _polish); the pattern of signs at the last check:
+    polish = isinstance(datafit, _NumpyQuadratic) and isinstance(penalty, _NumpyL1)
+    last_pattern = None if state is None else state.get("pattern")
+    if polish and last_pattern is None:
+        last_pattern = np.zeros(w.shape, dtype=np.int8)
     for it in range(first, max_iter + 1):
         n_iter = it
         beta = (k - 2) / (k + 1) if k > 1 else 0.0
@@ -210,6 +224,23 @@ def _fista_loop(
             stop = penalty.subdiff_distance(w, datafit.gradient(w))
             if stop <= tol:
                 return SolverResult(w, it, True, stop, step, history, reductions)
+            if polish:
+                pattern = np.sign(w).astype(np.int8)
+                if np.array_equal(pattern, last_pattern):
+                    x, optimal, xdist = _polish(
+                        datafit.gram,
+                        datafit.rhs[None],
+                        (penalty.lam * penalty.weights)[None],
+                        None if penalty.nonneg is None else penalty.nonneg[None],
+                        w[None],
+                        np.ones((1, w.shape[0])),
+                        tol,
+                    )
+                    if optimal[0]:
+                        return SolverResult(
+                            x[0], it, True, float(xdist[0]), step, history, reductions
+                        )
+                last_pattern = pattern
     return SolverResult(w, n_iter, False, stop, step, history, reductions)
 
 
@@ -222,6 +253,66 @@ def _back(w, like: torch.Tensor) -> torch.Tensor:
     if isinstance(w, np.ndarray):
         return torch.from_numpy(w).to(dtype=like.dtype, device=like.device)
     return w
+
+
+def _polish(gram, b, lw, nn, w, fmask, tol):
+    """Exact minimisers on the iterates' supports and signs, where they are optimal.
+
+    For ``0.5 w' G w - b' w + sum_k lw_k |w_k|`` with the support ``S`` and signs
+    ``s`` of ``w`` known, the minimiser solves ``G_SS x_S = b_S - lw_S s_S``
+    (``x`` zero off ``S``). Where ``x`` keeps the signs ``s`` and satisfies the
+    optimality (KKT) conditions to ``tol``, it is the problem's solution: FISTA
+    identifies the support long before its iterates converge on it (slowly, on
+    nearly collinear columns), so this ends the iterations early with the exact
+    minimiser instead of one within ``tol``.
+
+    Parameters
+    ----------
+    gram : ndarray of shape (p, p) or (R, p, p)
+    b, lw, w : ndarray of shape (R, p)
+        Right-hand sides, L1 weights (``lam`` included) and iterates (zero
+        outside each problem's coordinates).
+    nn : ndarray of bool, shape (R, p), or None
+        Coordinates constrained to be non-negative.
+    fmask : ndarray of shape (R, p)
+        1 on each problem's coordinates, 0 elsewhere.
+    tol : float
+
+    Returns
+    -------
+    x : ndarray of shape (R, p)
+    optimal : ndarray of bool, shape (R,)
+    dist : ndarray of shape (R,)
+        The KKT distance of ``x`` (as :func:`fista`'s stopping criterion).
+    """
+    on = w != 0
+    sgn = np.sign(w)
+    p = w.shape[1]
+    both = on[:, :, None] & on[:, None, :]
+    mat = np.where(both, gram, 0.0) + np.eye(p) * (~on)[:, :, None]
+    rhs = np.where(on, b - lw * sgn, 0.0)
+    try:
+        x = np.linalg.solve(mat, rhs[:, :, None])[:, :, 0]
+    except np.linalg.LinAlgError:  # a singular block: keep iterating
+        return w, np.zeros(w.shape[0], dtype=bool), np.full(w.shape[0], np.inf)
+    grad = (x @ gram if gram.ndim == 2 else np.matmul(gram, x[:, :, None])[:, :, 0]) - b
+    dist = np.where(fmask > 0, _kkt_distance(x, grad, lw, nn), 0.0).max(1)
+    optimal = (
+        np.all(np.where(on, np.sign(x) == sgn, True), axis=1)
+        & np.all(np.isfinite(x), axis=1)
+        & (dist <= tol)
+    )
+    return x, optimal, dist
+
+
+def _kkt_distance(w, grad, lw, nn):
+    """Per row: distance of ``-grad`` to the subdifferential of the (weighted) L1
+    penalty at ``w`` (rows of ``w``; ``lw`` zero outside a row's coordinates, where
+    ``grad`` is not used)."""
+    at_zero = np.maximum(np.abs(grad) - lw, 0.0)
+    if nn is not None:
+        at_zero = np.where(nn, np.maximum(-grad - lw, 0.0), at_zero)
+    return np.where(w != 0, np.abs(grad + lw * np.sign(w)), at_zero)
 
 
 class _NumpyQuadratic:
@@ -521,6 +612,7 @@ def _batch_loop(
     rises = np.zeros(len(rows), dtype=np.int64)
     guard = np.zeros(len(rows), dtype=np.int64)
     stop = np.full(len(rows), math.inf)
+    last_pattern = np.zeros(w.shape, dtype=np.int8)
     col_step = step[:, None]
     thr = (step * lam)[:, None] * wts
 
@@ -577,13 +669,30 @@ def _batch_loop(
         # KKT distance (fista's subdiff_distance) of the rows that were not reset.
         grad = times_gram(w) - b
         lw = lam * wts
-        at_zero = np.maximum(np.abs(grad) - lw, 0.0)
-        if nn is not None:
-            at_zero = np.where(nn, np.maximum(-grad - lw, 0.0), at_zero)
-        dist = np.where(w != 0, np.abs(grad + lw * np.sign(w)), at_zero)
-        dist = np.where(fmask > 0, dist, 0.0).max(1)
+        dist = np.where(fmask > 0, _kkt_distance(w, grad, lw, nn), 0.0).max(1)
         stop = np.where(reset, stop, dist)
         done = ~reset & (dist <= tol)
+        # Rows whose support and signs held since the last check: try the exact
+        # minimiser on them (see _polish).
+        pattern = np.sign(w).astype(np.int8)
+        steady = ~done & ~reset & np.all(pattern == last_pattern, axis=1)
+        last_pattern = pattern
+        if np.any(steady):
+            sel = np.flatnonzero(steady)
+            x, optimal, xdist = _polish(
+                g if shared else g[sel],
+                b[sel],
+                lw[sel],
+                None if nn is None else nn[sel],
+                w[sel],
+                fmask[sel],
+                tol,
+            )
+            if np.any(optimal):
+                hit = sel[optimal]
+                w[hit] = x[optimal]
+                stop[hit] = xdist[optimal]
+                done[hit] = True
         if it == max_iter:
             finish(np.arange(len(rows)), it, done)
             return
@@ -604,12 +713,14 @@ def _batch_loop(
             step, red, w, w_prev = step[keep], red[keep], w[keep], w_prev[keep]
             best_w, best_obj, k = best_w[keep], best_obj[keep], k[keep]
             rises, guard, stop = rises[keep], guard[keep], stop[keep]
+            last_pattern = last_pattern[keep]
             col_step, thr = col_step[keep], thr[keep]
             if len(rows) == 1:  # one problem left: fista's own loop, cheaper
                 state = dict(
                     g=g, b=b, c=c, wts=wts, fmask=fmask, nn=nn, lam=lam, w=w,
                     w_prev=w_prev, best_w=best_w, best_obj=best_obj, k=k,
                     rises=rises, guard=guard, red=red, stop=stop, step=step,
+                    last_pattern=last_pattern,
                 )  # fmt: skip
                 _hand_over(out, rows[0], state, it, shared, max_iter, tol,
                            check_every, restart, max_step_reductions)  # fmt: skip
@@ -635,6 +746,7 @@ def _hand_over(
         "guard": int(st["guard"][0]),
         "reductions": int(st["red"][0]),
         "stop": float(st["stop"][0]),
+        "pattern": st["last_pattern"][0, on].copy(),
     }
     res = _fista_loop(
         datafit,
