@@ -55,7 +55,7 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps):
     """Candidate effects not already in the model's candidate set."""
     coords = est.coordinates_
     present_forces = {t.name for t in est.dissipation_terms_}
-    present_terms = {str(t) for t in est.library_.terms_}
+    present_terms = set(est.library_.get_feature_names_out())
     out = []
     for kind in kinds:
         if kind in _DISSIPATIVE:
@@ -110,7 +110,7 @@ def _effect_coefficient(est, cand, gains):
     if cand.kind == "gain":
         return float(gains[cand.term])
     if cand.kind == "conservative":
-        names = [str(t) for t in est.library_.terms_]
+        names = list(est.library_.get_feature_names_out())
         return (
             float(est.coef_[names.index(str(cand.term))])
             if str(cand.term) in names

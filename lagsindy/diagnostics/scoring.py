@@ -55,7 +55,9 @@ def _columns(est, candidates):
     op = EulerLagrangeOperator(coords, lib_terms, forces=[f.forces for f in forces])
     n_lib, n_force = len(lib_terms), len(forces)
     n_features = n_lib + n_force + len(gain)
-    index = {str(t): k for k, t in enumerate(lib_terms)}
+    # (the library's names are cached; a conservative candidate's name is its str)
+    names = list(est.library_.get_feature_names_out()) + [c.name for c in cons]
+    index = {name: k for k, name in enumerate(names)}
     index.update({f.name: n_lib + k for k, f in enumerate(forces)})
     index.update({c.name: n_lib + n_force + k for k, c in enumerate(gain)})
     nonneg = np.zeros(n_features, dtype=bool)
@@ -71,8 +73,8 @@ def _start_coefficients(est, index, n_features, n_lib, passive):
     largest Lagrangian coefficient's with mass normalization or in case II).
     """
     start_coef = np.zeros(n_features)
-    for t, c in zip(est.library_.terms_, est.coef_):
-        start_coef[index[str(t)]] = c
+    for name, c in zip(est.library_.get_feature_names_out(), est.coef_):
+        start_coef[index[name]] = c
     for f, c in zip(est.dissipation_terms_, est.dissipation_coef_):
         start_coef[index[f.name]] = c
     fixed_col = None

@@ -354,7 +354,11 @@ class _Search:
 
     def support_of(self, model):
         index = self.index
-        s = {index[str(t)] for t, c in zip(model.library_.terms_, model.coef_) if c}
+        s = {
+            index[name]
+            for name, c in zip(model.library_.get_feature_names_out(), model.coef_)
+            if c
+        }
         s |= {
             index[f.name]
             for f, c in zip(model.dissipation_terms_, model.dissipation_coef_)
@@ -706,8 +710,12 @@ class _Search:
         support, effects, gains = self.support, self.effects, self.gains
         value = self.value
         p1 = self.scorer_s.score(support)[0]
-        lib_before = {str(t) for t, c in zip(est.library_.terms_, est.coef_) if c}
-        lib_after = {str(t) for t, c in zip(final.library_.terms_, final.coef_) if c}
+        lib_before = {
+            n for n, c in zip(est.library_.get_feature_names_out(), est.coef_) if c
+        }
+        lib_after = {
+            n for n, c in zip(final.library_.get_feature_names_out(), final.coef_) if c
+        }
         effect_terms = {e.name for e in effects if e.kind == "conservative"}
         changes = {
             "removed": sorted(lib_before - lib_after),
