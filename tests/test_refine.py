@@ -86,17 +86,23 @@ def test_forced_refinement_uses_the_forces_between_samples():
     assert rel.max() < 3e-4  # measured 7.1e-5
 
 
-def test_dissipation_stays_non_negative():
-    # data that gain energy: the best viscous coefficient would be negative
-    system = single_pendulum().with_damping(viscous={"theta": -0.05})
+def _pendulum_with(system, kind):
+    """Passive pendulum data of ``system`` and a fit with one ``kind`` force term."""
     d = make_dataset(
         system, n_trajectories=4, duration=2.0, excitation=None, random_state=2
     )
     lib = CandidateLibrary.polynomial(["theta"], angles=["theta"], degree=2)
     est = LagrangianSINDy(
-        lib, dissipation=DissipationLibrary(["viscous"]), fixed_term="theta_dot**2"
+        lib, dissipation=DissipationLibrary([kind]), fixed_term="theta_dot**2"
     ).fit(d.X_clean, groups=d.groups)
-    assert [t.name for t in est.dissipation_terms_] == ["viscous(theta)"]
+    assert [t.name for t in est.dissipation_terms_] == [f"{kind}(theta)"]
+    return d, est
+
+
+def test_dissipation_stays_non_negative():
+    # data that gain energy: the best viscous coefficient would be negative
+    system = single_pendulum().with_damping(viscous={"theta": -0.05})
+    d, est = _pendulum_with(system, "viscous")
     start = _with_coef(est, 1.0, dissipation=[0.2])  # a damped start
     with pytest.warns(UserWarning, match=r"viscous\(theta\) -(99|100) %"):
         out = refine(start, d.X_clean, groups=d.groups, t=d.t)
@@ -110,15 +116,7 @@ def biased_pendulum():
     # a constant torque -0.3 on a conservative pendulum: a signed "bias" force
     system = single_pendulum().with_damping()
     system.forces = [system.forces[0] - sp.Float(0.3)]
-    d = make_dataset(
-        system, n_trajectories=4, duration=2.0, excitation=None, random_state=2
-    )
-    lib = CandidateLibrary.polynomial(["theta"], angles=["theta"], degree=2)
-    est = LagrangianSINDy(
-        lib, dissipation=DissipationLibrary(["bias"]), fixed_term="theta_dot**2"
-    ).fit(d.X_clean, groups=d.groups)
-    assert [t.name for t in est.dissipation_terms_] == ["bias(theta)"]
-    return d, est
+    return _pendulum_with(system, "bias")
 
 
 @pytest.mark.parametrize("factor", [0.5, -0.5])
@@ -135,12 +133,8 @@ def test_bias_forces_are_signed(biased_pendulum, factor):
     assert out.refinement_.rmse_after < 1e-5 * out.refinement_.rmse_before
 
 
-def test_negative_dissipative_start_is_refused(biased_pendulum):
-    d, _ = biased_pendulum
-    lib = CandidateLibrary.polynomial(["theta"], angles=["theta"], degree=2)
-    est = LagrangianSINDy(
-        lib, dissipation=DissipationLibrary(["viscous"]), fixed_term="theta_dot**2"
-    ).fit(d.X_clean, groups=d.groups)
+def test_negative_dissipative_start_is_refused():
+    d, est = _pendulum_with(single_pendulum(), "viscous")
     start = _with_coef(est, 1.0, dissipation=[-0.1])
     with pytest.raises(ValueError, match=r"viscous\(theta\).*feed energy in"):
         refine(start, d.X_clean, groups=d.groups, t=d.t)
