@@ -97,7 +97,18 @@ def shift_input(tau, t, delay, groups=None):
             f"t must have one time stamp per row of tau ({tau2.shape[0]}), got shape "
             f"{t.shape}"
         )
-    out = np.empty_like(tau2)
+    out = _shift_many(tau2, t, np.array([delay]), groups)[0]
+    return out[:, 0] if flat else out
+
+
+def _shift_many(tau2, t, delays, groups):
+    """:func:`shift_input` of the 2-d ``tau2`` for every delay in ``delays``.
+
+    One interpolation per trajectory and input for all the delays (the same
+    points, so the same values as one call per delay). Returns shape
+    ``(len(delays),) + tau2.shape``.
+    """
+    out = np.empty((len(delays),) + tau2.shape)
     for _, sl in _blocks(groups, len(t)):
         ts = t[sl]
         if np.any(np.diff(ts) <= 0):
@@ -105,9 +116,10 @@ def shift_input(tau, t, delay, groups=None):
                 "t must increase within each trajectory; pass groups= for stacked "
                 "trajectories"
             )
+        at = (ts[None, :] - delays[:, None]).ravel()
         for j in range(tau2.shape[1]):
-            out[sl, j] = np.interp(ts - delay, ts, tau2[sl, j])
-    return out[:, 0] if flat else out
+            out[:, sl, j] = np.interp(at, ts, tau2[sl, j]).reshape(len(delays), -1)
+    return out
 
 
 @dataclass
@@ -211,8 +223,8 @@ def estimate_delay(
         repeated until the support no longer changes or the estimate stays where the
         last fit was made (within a hundredth of a sampling interval; at most 3
         fits). The sparse penalty only chooses the support, so with the right
-        support both rank the delays alike. Falls back to ``"refit"`` if the estimator's force columns
-        cannot be read.
+        support both rank the delays alike. Falls back to ``"refit"`` if the
+        estimator's force columns cannot be read.
     verbose : int, default=0
         Print progress (one line per candidate) when > 0.
 
@@ -406,7 +418,7 @@ def _support_search(
 
     n_dof = tau2.shape[1]
     gk = groups[rows]
-    shifted = np.stack([shift_input(tau2, t, d, groups)[rows] for d in candidates])
+    shifted = _shift_many(tau2, t, np.asarray(candidates, dtype=float), groups)[:, rows]
     step = float(candidates[1] - candidates[0])
     delay, support, fitted_at = 0.0, None, None
     for _ in range(3):

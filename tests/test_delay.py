@@ -202,3 +202,21 @@ def test_fold_scores_equal_one_least_squares_per_candidate():
     # measured: equal to 7.5e-15 (relative); a mixed-up fold or candidate shows at 1e-1
     np.testing.assert_allclose(got, want, rtol=1e-12)
     assert np.ptp(want) > 1e-1 * want.mean()  # measured 0.39
+
+
+def test_shifts_for_many_delays_equal_one_shift_each(delayed):
+    from lagsindy.delay import _shift_many
+
+    _, _, tau, t, groups = delayed
+    tau = np.asarray(tau, dtype=float).reshape(len(t), -1)
+    delays = np.array([-0.02, -0.0031, 0.0, 0.004, 0.03])
+    many = _shift_many(tau, t, delays, groups)
+    for k, d in enumerate(delays):
+        # one interpolation per trajectory, input and delay (the definition)
+        ref = np.empty_like(tau)
+        for g in np.unique(groups):
+            rows = np.flatnonzero(groups == g)
+            for j in range(tau.shape[1]):
+                ref[rows, j] = np.interp(t[rows] - d, t[rows], tau[rows, j])
+        np.testing.assert_array_equal(many[k], ref)
+        np.testing.assert_array_equal(shift_input(tau, t, d, groups), ref)
