@@ -66,6 +66,12 @@ def _columns(est, candidates):
     return op, index, nonneg, n_lib
 
 
+def _kept_terms(model) -> set:
+    """Names of the library terms the fitted ``model`` keeps (cached names)."""
+    names = model.library_.get_feature_names_out()
+    return {name for name, c in zip(names, model.coef_) if c}
+
+
 def _start_coefficients(est, index, n_features, n_lib, passive):
     """The starting model's coefficients over the columns, and the fixed column.
 

@@ -30,6 +30,7 @@ from .scoring import (
     _columns,
     _fit_model,
     _force_scale,
+    _kept_terms,
     _mass_definite,
     _mass_samples,
     _NoWindows,
@@ -354,11 +355,7 @@ class _Search:
 
     def support_of(self, model):
         index = self.index
-        s = {
-            index[name]
-            for name, c in zip(model.library_.get_feature_names_out(), model.coef_)
-            if c
-        }
+        s = {index[name] for name in _kept_terms(model)}
         s |= {
             index[f.name]
             for f, c in zip(model.dissipation_terms_, model.dissipation_coef_)
@@ -710,12 +707,7 @@ class _Search:
         support, effects, gains = self.support, self.effects, self.gains
         value = self.value
         p1 = self.scorer_s.score(support)[0]
-        lib_before = {
-            n for n, c in zip(est.library_.get_feature_names_out(), est.coef_) if c
-        }
-        lib_after = {
-            n for n, c in zip(final.library_.get_feature_names_out(), final.coef_) if c
-        }
+        lib_before, lib_after = _kept_terms(est), _kept_terms(final)
         effect_terms = {e.name for e in effects if e.kind == "conservative"}
         changes = {
             "removed": sorted(lib_before - lib_after),
