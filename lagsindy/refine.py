@@ -13,8 +13,8 @@ The integration is a fixed-step classical Runge-Kutta scheme on the sample grid
 perturbations of the coefficients at once, so one Gauss-Newton iteration costs one
 batched integration. Passive data fix a Lagrangian only up to a factor: one
 coefficient (the fit's fixed term, else the largest) is held, the others move.
-Dissipative coefficients (viscous, relative, drag, Coulomb) stay non-negative; a
-bias or custom force is signed.
+Dissipative coefficients (viscous, relative, drag, Coulomb) keep the kinetic
+energy's sign (non-negative in the fit's scale); a bias or custom force is signed.
 """
 
 from __future__ import annotations
@@ -546,29 +546,36 @@ def refine(
             "matrix or divergence): refine needs a model whose rollouts exist"
         )
     # Dissipative kinds (viscous, relative, drag, Coulomb) oppose the motion only
-    # with a non-negative coefficient, as in the fit; a bias (a constant force) or a
-    # custom force has either sign and stays unbounded.
+    # with a coefficient of the kinetic energy's sign (positive in the fit's scale;
+    # a passive model may carry an overall negative factor); a bias (a constant
+    # force) or a custom force has either sign and stays unbounded.
     dissipative = np.array(
         [False] * n_lag
         + [fitted.dissipation_terms[k - p_lag].dissipative for k in support[n_lag:]]
     )
-    wrong_sign = [names[k] for k in free if dissipative[k] and c0[k] < 0]
+    kinetic = 1.0
+    if dissipative.any():
+        mass = dynamics.parts(x0[:, :d], x0[:, d : 2 * d])[0]
+        trace = np.einsum("k,skii->", c0[:n_lag], mass)
+        kinetic = -1.0 if trace < 0 else 1.0
+    wrong_sign = [names[k] for k in free if dissipative[k] and kinetic * c0[k] < 0]
     if wrong_sign:
         raise ValueError(
-            f"the model's dissipative term(s) {', '.join(wrong_sign)} have negative "
-            "coefficients: they feed energy in, and refine keeps dissipative "
-            "coefficients non-negative. Refit with the default non-negative "
-            "dissipation, or model the effect with a signed (bias or custom) term."
+            f"the model's dissipative term(s) {', '.join(wrong_sign)} have "
+            "coefficients of the sign opposite to its kinetic energy: they feed "
+            "energy in, and refine keeps dissipation dissipative. Refit with the "
+            "default sign constraint, or model the effect with a signed (bias or "
+            "custom) term."
         )
-    low = np.concatenate(
-        [np.where(dissipative[free], 0.0, -np.inf), np.full(B * ns, -np.inf)]
-    )
+    bounded = np.concatenate([dissipative[free], np.zeros(B * ns, dtype=bool)])
+    low = np.where(bounded & (kinetic > 0), 0.0, -np.inf)
+    high = np.where(bounded & (kinetic < 0), 0.0, np.inf)
     with np.errstate(all="ignore"):
         result = least_squares(
             lambda x: evaluate(x)[0],
             x_start,
             jac=lambda x: evaluate(x)[1],
-            bounds=(low, np.full(x_start.size, np.inf)),
+            bounds=(low, high),
             x_scale="jac",  # |c| and the states' spread: 30+ iterations on a cart
             method="trf",
             tr_solver="lsmr" if ns else "exact",
