@@ -369,9 +369,7 @@ def floor_fits_section(baseline=None, repeats=3, quick=False, processes=2, argv=
     for n_rows, degree in cases:
         spec = {"n_rows": n_rows, "degree": degree, "repeats": repeats}
         for k in range(processes):
-            for label, root in [("after", None)] + (
-                [("before", baseline)] if baseline else []
-            ):
+            for label, root in _codes(baseline):
                 r = _run_in(spec, "floor", root)
                 print("floor fits", label, r, flush=True)
                 if "error" in r:
@@ -462,6 +460,11 @@ def _run_in(spec, kind, code_root=None, timeout=1800):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def _codes(baseline):
+    """``(label, code root)`` of the code measured: this checkout, then ``baseline``."""
+    return [("after", None)] + ([("before", baseline)] if baseline else [])
+
+
 def _commit(path):
     try:
         out = subprocess.run(
@@ -504,9 +507,7 @@ def floor_section(baseline=None, repeats=3, quick=False):
     ]
     for n_rows, degree in cases:
         spec = {"n_rows": n_rows, "degree": degree, "repeats": repeats}
-        for label, root in [("after", None)] + (
-            [("before", baseline)] if baseline else []
-        ):
+        for label, root in _codes(baseline):
             r = _run_in(spec, "floor", root)
             print("floor", label, r, flush=True)
             if "error" in r:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import sympy as sp
 import torch
+from _sympy_reference import random_states, sympy_columns
 
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy._batched import compile_terms
@@ -17,7 +18,7 @@ from lagsindy.euler_lagrange import (
     lagrangian_gradients,
 )
 from lagsindy.formulation.operator import lagrangian_hessians
-from lagsindy.library import _KINDS, euler_lagrange_expressions
+from lagsindy.library import _KINDS
 
 # Every generated kind of library (a kind added to library._KINDS is tested too),
 # on a cart-like system (one raw coordinate, one angle) and on two angles.
@@ -26,25 +27,6 @@ SETUPS = [
     (["theta1", "theta2"], "all", 2),
 ]
 CASES = [(kind, *setup) for kind in _KINDS for setup in SETUPS]
-
-
-def _states(n_dof, n, seed):
-    rng = np.random.default_rng(seed)
-    return [
-        torch.tensor(rng.uniform(lo, hi, (n, n_dof)))
-        for lo, hi in ((-np.pi, np.pi), (-3, 3), (-3, 3))
-    ]
-
-
-def _sympy_columns(terms, names, q, qd, qdd):
-    """Theta[s, i, k] from sympy's Euler-Lagrange expressions."""
-    q_s, qd_s, qdd_s = symbols_for(names)
-    flat = [e for t in terms for e in euler_lagrange_expressions(t, names)]
-    f = sp.lambdify(q_s + qd_s + qdd_s, flat, modules="numpy")
-    n = q.shape[0]
-    values = f(*q.numpy().T, *qd.numpy().T, *qdd.numpy().T)
-    out = np.stack([np.broadcast_to(np.asarray(v, float), (n,)) for v in values], 1)
-    return out.reshape(n, len(terms), len(names)).transpose(0, 2, 1)
 
 
 def _assert_close(got, want, what):
@@ -58,9 +40,9 @@ def test_batched_columns_match_sympy_and_torch_func(kind, names, angles, degree)
     lib = CandidateLibrary(names, kind=kind, angles=angles, degree=degree).build()
     kernels = compile_terms(lib.terms_, names)
     assert kernels.general.size == 0  # every generated term takes the batched path
-    q, qd, qdd = _states(len(names), 40, 0)
+    q, qd, qdd = random_states(len(names), 40, 0)
     got = lagrangian_columns(kernels, q, qd, qdd).numpy()
-    want = _sympy_columns(lib.terms_, names, q, qd, qdd)
+    want = sympy_columns(lib.terms_, names, q, qd, qdd)
     _assert_close(got, want, f"{kind} {names}: batched vs sympy")
     q_s, qd_s, _ = symbols_for(names)
     old = lagrangian_columns(compile_torch(lib.terms_, (q_s, qd_s)), q, qd, qdd)
@@ -73,7 +55,7 @@ def test_batched_components_and_gradients_match_torch_func(kind, names, angles, 
     kernels = compile_terms(lib.terms_, names)
     q_s, qd_s, _ = symbols_for(names)
     plain = compile_torch(lib.terms_, (q_s, qd_s))
-    q, qd, _ = _states(len(names), 30, 1)
+    q, qd, _ = random_states(len(names), 30, 1)
     for got, want in zip(
         lagrangian_components(kernels, q, qd), lagrangian_components(plain, q, qd)
     ):
@@ -113,9 +95,9 @@ def test_mixed_terms_split_between_batched_and_general_paths():
     kernels = compile_terms(terms, names)
     assert kernels.supported.tolist() == [0, 2, 5]
     assert kernels.general.tolist() == [1, 3, 4, 6]
-    q, qd, qdd = _states(2, 25, 2)
+    q, qd, qdd = random_states(2, 25, 2)
     got = lagrangian_columns(kernels, q, qd, qdd).numpy()
-    _assert_close(got, _sympy_columns(terms, names, q, qd, qdd), "mixed vs sympy")
+    _assert_close(got, sympy_columns(terms, names, q, qd, qdd), "mixed vs sympy")
     hess = kernels.hessians(q, qd, lagrangian_hessians).numpy()
     q_s, qd_s, _ = symbols_for(names)
     x_s = q_s + qd_s
@@ -136,7 +118,7 @@ def test_mixed_terms_split_between_batched_and_general_paths():
 def test_kernels_are_callable_per_sample_and_pickle():
     lib = CandidateLibrary.polynomial(["x", "theta"], angles=["theta"], degree=2)
     kernels = lib.to_torch()
-    q, qd, qdd = _states(2, 10, 4)
+    q, qd, qdd = random_states(2, 10, 4)
     per_sample = torch.func.vmap(kernels)(q, qd)
     q_s, qd_s, _ = symbols_for(lib.coordinates_)
     f = sp.lambdify(q_s + qd_s, lib.terms_, modules="numpy")
@@ -157,7 +139,7 @@ def test_batched_rows_in_several_batches(monkeypatch):
 
     lib = CandidateLibrary.polynomial(["x", "theta"], angles=["theta"], degree=3)
     kernels = compile_terms(lib.terms_, lib.coordinates_)
-    q, qd, qdd = _states(2, 1000, 5)
+    q, qd, qdd = random_states(2, 1000, 5)
     whole = lagrangian_columns(kernels, q, qd, qdd)
     monkeypatch.setattr(batched, "BATCH_ELEMENTS", 1)  # 256 rows per batch
     np.testing.assert_array_equal(lagrangian_columns(kernels, q, qd, qdd), whole)
@@ -191,7 +173,7 @@ def test_force_values_and_jacobians_without_vmap_match_torch_func():
         [-(x**2) * td, sp.sin(t) * xd],
     ]
     op = EulerLagrangeOperator(["x", "theta"], [xd**2, sp.cos(t)], forces=forces)
-    q, qd, _ = _states(2, 30, 5)
+    q, qd, _ = random_states(2, 30, 5)
     f = op._force_fn
     per_sample = torch.func.vmap(f)(q, qd).reshape(30, 4, 2).transpose(1, 2)
     np.testing.assert_array_equal(op.force_values(q, qd).numpy(), per_sample.numpy())

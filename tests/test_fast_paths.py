@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import sympy as sp
 import torch
+from _sympy_reference import random_states, sympy_columns
 from sklearn.base import clone
 
 import lagsindy.formulation.operator as operator_module
 from lagsindy import CandidateLibrary
 from lagsindy._batched import compile_terms
-from lagsindy._expr import symbols_for
 from lagsindy.euler_lagrange import EulerLagrangeOperator
 from lagsindy.formulation.operator import _band, _correlate
 from lagsindy.formulation.scaling import BalancedGram, _balance_rows
@@ -24,27 +24,7 @@ from lagsindy.formulation.weak import (
     trajectory_segments,
     weighted_median,
 )
-from lagsindy.library import euler_lagrange_expressions
 from lagsindy.systems import cart_pendulum, make_dataset
-
-
-def _states(n, seed):
-    rng = np.random.default_rng(seed)
-    return [
-        torch.tensor(rng.uniform(lo, hi, (n, 2)))
-        for lo, hi in ((-np.pi, np.pi), (-3, 3), (-3, 3))
-    ]
-
-
-def _sympy_columns(terms, names, q, qd, qdd):
-    """Theta[s, i, k] from sympy's Euler-Lagrange expressions."""
-    q_s, qd_s, qdd_s = symbols_for(names)
-    flat = [e for t in terms for e in euler_lagrange_expressions(t, names)]
-    f = sp.lambdify(q_s + qd_s + qdd_s, flat, modules="numpy")
-    n = q.shape[0]
-    values = f(*q.numpy().T, *qd.numpy().T, *qdd.numpy().T)
-    out = np.stack([np.broadcast_to(np.asarray(v, float), (n,)) for v in values], 1)
-    return out.reshape(n, len(terms), len(names)).transpose(0, 2, 1)
 
 
 # ----------------------------------------------------------------- strong-form Gram
@@ -60,7 +40,7 @@ def test_gram_in_reused_chunk_buffers_matches_sympy_columns(monkeypatch, cache):
     lib = CandidateLibrary.polynomial(names, angles=["theta"], degree=3).build()
     w1, w2 = sp.symbols("x_dot theta_dot", real=True)
     op = EulerLagrangeOperator(names, lib.terms_, forces=[[-w1, 0], [0, -(w2**3)]])
-    q, qd, qdd = _states(300, 0)
+    q, qd, qdd = random_states(2, 300, 0)
     X = torch.cat([q, qd, qdd], dim=1)
     rng = np.random.default_rng(1)
     y = torch.tensor(rng.normal(size=(300, 2)))
@@ -70,7 +50,7 @@ def test_gram_in_reused_chunk_buffers_matches_sympy_columns(monkeypatch, cache):
     force_cols[:, 0, 0], force_cols[:, 1, 1] = forces[:, 0], forces[:, 1]
     a = np.concatenate(
         [
-            _sympy_columns(lib.terms_, names, q, qd, qdd),
+            sympy_columns(lib.terms_, names, q, qd, qdd),
             force_cols,
             extra.numpy(),
             y.numpy()[:, :, None],
@@ -92,7 +72,7 @@ def test_kernel_output_buffers_ignore_their_old_content():
     kernel = kernels.plan["columns"]
     work = {}
     for n, seed in ((50, 0), (17, 1), (50, 2)):
-        q, qd, qdd = _states(n, seed)
+        q, qd, qdd = random_states(2, n, seed)
         base = kernels._base(q.T, qd.T, qdd.T, work)
         fresh = kernel.evaluate(base.clone())
         stale = torch.full((kernel.n_out, n), float("nan"), dtype=torch.float64)
@@ -103,7 +83,7 @@ def test_kernel_output_buffers_ignore_their_old_content():
         np.testing.assert_array_equal(
             blocks.reshape(kernel.n_out, n).numpy(), fresh.numpy()
         )
-        want = _sympy_columns(lib.terms_, ["x", "theta"], q, qd, qdd)
+        want = sympy_columns(lib.terms_, ["x", "theta"], q, qd, qdd)
         # columns (dof, term) against sympy; measured: 3e-14 on entries up to 240
         got = fresh.reshape(2, -1, n).permute(2, 0, 1).numpy()
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
@@ -267,7 +247,7 @@ def test_weak_integrands_written_from_the_kernel_equal_the_concatenated_ones():
     lib = CandidateLibrary.polynomial(names, angles=["theta"], degree=3).build()
     w1, w2 = sp.symbols("x_dot theta_dot", real=True)
     op = EulerLagrangeOperator(names, lib.terms_, forces=[[-w1, 0], [0, -w2]])
-    q, qd, _ = _states(120, 3)
+    q, qd, _ = random_states(2, 120, 3)
     rng = np.random.default_rng(4)
     order = torch.as_tensor(rng.permutation(120))
     y = torch.tensor(rng.normal(size=(120, 2)))
