@@ -168,7 +168,10 @@ class SparseSolve:
             if k == 0 and first is not None:
                 res = first
             else:
-                res = self.staged(datafit, lam, features, weights, verbose, **kwargs)
+                extra = dict(kwargs)
+                if k > 0 and results[-1].first_stage is not None:
+                    extra["w0"] = results[-1].first_stage
+                res = self.staged(datafit, lam, features, weights, verbose, **extra)
             results.append(res)
             if self.lam_decay <= 1:
                 break
@@ -323,6 +326,7 @@ class SparseSolve:
                 **self._schedule(),
                 nonneg=[prepared[j][4] for j in run],
                 shared=(common, [index[j] for j in run]),
+                w0=None if k == 0 else [paths[j][-1].first_stage for j in run],
             )
             fresh = dict(zip(run, solved))
             still = []

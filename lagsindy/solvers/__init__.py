@@ -15,7 +15,8 @@ on :math:`G = A^\top A / n` and :math:`b = A^\top y / n`, so an iteration costs
 :math:`O(p^2)` whatever the number of samples.
 
 The package holds one module per role: :mod:`~lagsindy.solvers.datafits`,
-:mod:`~lagsindy.solvers.penalties`, :mod:`~lagsindy.solvers.fista` and
+:mod:`~lagsindy.solvers.penalties`, :mod:`~lagsindy.solvers.fista` (with its
+exact finishes in :mod:`~lagsindy.solvers.exact`) and
 :mod:`~lagsindy.solvers.staged`. :class:`BalancedGram` lives in
 :mod:`lagsindy.formulation.scaling` and is re-exported here.
 """

@@ -9,7 +9,14 @@ import numpy as np
 import torch
 
 from .datafits import GramQuadratic
+from .exact import _active_set, _kkt_distance, _polish
 from .penalties import L1
+
+# Iterations at which a run on NumPy arrays that is still going tries to finish by
+# an active-set search from its iterate (see _active_set); in a batch only while at
+# most ACTIVE_SET_ROWS problems are left (the search is one problem at a time).
+ACTIVE_SET_AT = frozenset(50 * 2**k for k in range(12))
+ACTIVE_SET_ROWS = 12
 
 _REQUIRED = {
     "datafit": (
@@ -188,6 +195,22 @@ def _fista_loop(
     last_pattern = None if state is None else state.get("pattern")
     if polish and last_pattern is None:
         last_pattern = np.zeros(w.shape, dtype=np.int8)
+        if np.any(w != 0):
+            # A warm start (the previous stage's thresholded solution) often has
+            # the support and signs of the minimiser already: try it first.
+            x, optimal, xdist = _polish(
+                datafit.gram,
+                datafit.rhs[None],
+                (penalty.lam * penalty.weights)[None],
+                None if penalty.nonneg is None else penalty.nonneg[None],
+                w[None],
+                np.ones((1, w.shape[0])),
+                tol,
+            )
+            if optimal[0]:
+                return SolverResult(
+                    x[0], 0, True, float(xdist[0]), step, history, reductions
+                )
     for it in range(first, max_iter + 1):
         n_iter = it
         beta = (k - 2) / (k + 1) if k > 1 else 0.0
@@ -241,6 +264,19 @@ def _fista_loop(
                             x[0], it, True, float(xdist[0]), step, history, reductions
                         )
                 last_pattern = pattern
+                if it in ACTIVE_SET_AT:
+                    x, ok, xdist = _active_set(
+                        datafit.gram,
+                        datafit.rhs,
+                        penalty.lam * penalty.weights,
+                        penalty.nonneg,
+                        w,
+                        tol,
+                    )
+                    if ok:
+                        return SolverResult(
+                            x, it, True, xdist, step, history, reductions
+                        )
     return SolverResult(w, n_iter, False, stop, step, history, reductions)
 
 
@@ -253,66 +289,6 @@ def _back(w, like: torch.Tensor) -> torch.Tensor:
     if isinstance(w, np.ndarray):
         return torch.from_numpy(w).to(dtype=like.dtype, device=like.device)
     return w
-
-
-def _polish(gram, b, lw, nn, w, fmask, tol):
-    """Exact minimisers on the iterates' supports and signs, where they are optimal.
-
-    For ``0.5 w' G w - b' w + sum_k lw_k |w_k|`` with the support ``S`` and signs
-    ``s`` of ``w`` known, the minimiser solves ``G_SS x_S = b_S - lw_S s_S``
-    (``x`` zero off ``S``). Where ``x`` keeps the signs ``s`` and satisfies the
-    optimality (KKT) conditions to ``tol``, it is the problem's solution: FISTA
-    identifies the support long before its iterates converge on it (slowly, on
-    nearly collinear columns), so this ends the iterations early with the exact
-    minimiser instead of one within ``tol``.
-
-    Parameters
-    ----------
-    gram : ndarray of shape (p, p) or (R, p, p)
-    b, lw, w : ndarray of shape (R, p)
-        Right-hand sides, L1 weights (``lam`` included) and iterates (zero
-        outside each problem's coordinates).
-    nn : ndarray of bool, shape (R, p), or None
-        Coordinates constrained to be non-negative.
-    fmask : ndarray of shape (R, p)
-        1 on each problem's coordinates, 0 elsewhere.
-    tol : float
-
-    Returns
-    -------
-    x : ndarray of shape (R, p)
-    optimal : ndarray of bool, shape (R,)
-    dist : ndarray of shape (R,)
-        The KKT distance of ``x`` (as :func:`fista`'s stopping criterion).
-    """
-    on = w != 0
-    sgn = np.sign(w)
-    p = w.shape[1]
-    both = on[:, :, None] & on[:, None, :]
-    mat = np.where(both, gram, 0.0) + np.eye(p) * (~on)[:, :, None]
-    rhs = np.where(on, b - lw * sgn, 0.0)
-    try:
-        x = np.linalg.solve(mat, rhs[:, :, None])[:, :, 0]
-    except np.linalg.LinAlgError:  # a singular block: keep iterating
-        return w, np.zeros(w.shape[0], dtype=bool), np.full(w.shape[0], np.inf)
-    grad = (x @ gram if gram.ndim == 2 else np.matmul(gram, x[:, :, None])[:, :, 0]) - b
-    dist = np.where(fmask > 0, _kkt_distance(x, grad, lw, nn), 0.0).max(1)
-    optimal = (
-        np.all(np.where(on, np.sign(x) == sgn, True), axis=1)
-        & np.all(np.isfinite(x), axis=1)
-        & (dist <= tol)
-    )
-    return x, optimal, dist
-
-
-def _kkt_distance(w, grad, lw, nn):
-    """Per row: distance of ``-grad`` to the subdifferential of the (weighted) L1
-    penalty at ``w`` (rows of ``w``; ``lw`` zero outside a row's coordinates, where
-    ``grad`` is not used)."""
-    at_zero = np.maximum(np.abs(grad) - lw, 0.0)
-    if nn is not None:
-        at_zero = np.where(nn, np.maximum(-grad - lw, 0.0), at_zero)
-    return np.where(w != 0, np.abs(grad + lw * np.sign(w)), at_zero)
 
 
 class _NumpyQuadratic:
@@ -333,15 +309,23 @@ class _NumpyL1:
 
     def __init__(self, lam, weights, nonneg):
         self.lam, self.weights, self.nonneg = lam, weights, nonneg
+        self._step = None
 
     def value(self, w):
         return float(self.lam * (self.weights * np.abs(w)).sum())
 
     def prox(self, w, step):
-        out = np.sign(w) * np.maximum(np.abs(w) - step * self.lam * self.weights, 0.0)
-        if self.nonneg is not None:
-            out = np.where(self.nonneg, np.maximum(out, 0.0), out)
-        return out
+        # One clip: w - clip(w, lo, hi) is the soft threshold sign(w) max(|w| - t, 0)
+        # bit for bit, and its projection on w >= 0 where lo is -inf. The bounds
+        # change only with the step.
+        if step != self._step:
+            thr = step * self.lam * self.weights
+            self._hi = thr
+            self._lo = (
+                -thr if self.nonneg is None else np.where(self.nonneg, -np.inf, -thr)
+            )
+            self._step = step
+        return w - np.minimum(np.maximum(w, self._lo), self._hi)
 
     def subdiff_distance(self, w, grad):
         lw = self.lam * self.weights
@@ -538,6 +522,25 @@ def fista_batch(
     # Problems without coordinates are done before the first iteration.
     out.step[:] = np.where(sizes > 0, st, 0.0)
     live = np.flatnonzero(sizes > 0)
+    warm = live[np.any(out.coef[live] != 0, axis=1)]
+    if warm.size:
+        # Warm starts that already have the support and signs of the minimiser
+        # (as the stages after the first usually do) end before iterating.
+        nn_warm = None if nonneg is None else np.asarray(nonneg, dtype=bool)[warm]
+        x, optimal, xdist = _polish(
+            gram if gram.ndim == 2 else stacked[warm],
+            np.where(mask, rhs, 0.0)[warm],
+            lam * np.where(mask, weights, 0.0)[warm],
+            None if nn_warm is None else nn_warm & mask[warm],
+            out.coef[warm],
+            fmask[warm],
+            tol,
+        )
+        hit = warm[optimal]
+        out.coef[hit] = x[optimal]
+        out.stop_crit[hit] = xdist[optimal]
+        out.step_reductions[hit] = reductions[hit]
+        live = np.setdiff1d(live, hit)
     if live.size == 0:
         return out
     with np.errstate(over="ignore", invalid="ignore"):
@@ -614,7 +617,17 @@ def _batch_loop(
     stop = np.full(len(rows), math.inf)
     last_pattern = np.zeros(w.shape, dtype=np.int8)
     col_step = step[:, None]
-    thr = (step * lam)[:, None] * wts
+    # The proximal step as one clip: w = z - clip(z, lo, hi) is the soft threshold
+    # sign(z) max(|z| - thr, 0) (bit for bit), projected on w >= 0 where lo is
+    # -inf, and 0 off the problem's coordinates where both bounds are infinite.
+    off = fmask == 0
+    nn_or_off = off if nn is None else off | nn
+
+    def bounds(step):
+        thr = (step * lam)[:, None] * wts
+        return np.where(nn_or_off, -np.inf, -thr), np.where(off, np.inf, thr)
+
+    lo, hi = bounds(step)
 
     def finish(sel, it, converged):
         o = rows[sel]
@@ -628,10 +641,7 @@ def _batch_loop(
     for it in range(1, max_iter + 1):
         v = w + momentum[k][:, None] * (w - w_prev)
         z = v - col_step * (times_gram(v) - b)
-        w_new = np.sign(z) * np.maximum(np.abs(z) - thr, 0.0)
-        if nn is not None:
-            w_new = np.where(nn, np.maximum(w_new, 0.0), w_new)
-        w_new *= fmask
+        w_new = z - np.minimum(np.maximum(z, lo), hi)
         if restart:
             uphill = np.einsum("ri,ri->r", v - w_new, w_new - w) > 0
             k = np.where(uphill, 1, k + 1)
@@ -656,7 +666,7 @@ def _batch_loop(
                 )
             step = np.where(reset, step * 0.5, step)
             col_step = step[:, None]
-            thr = (step * lam)[:, None] * wts
+            lo, hi = bounds(step)
             guard = guard + reset
             red = red + reset
             w = np.where(reset[:, None], best_w, w)
@@ -693,6 +703,22 @@ def _batch_loop(
                 w[hit] = x[optimal]
                 stop[hit] = xdist[optimal]
                 done[hit] = True
+        if it in ACTIVE_SET_AT and len(rows) <= ACTIVE_SET_ROWS:
+            for i in np.flatnonzero(~done & ~reset):
+                on = fmask[i] > 0
+                x, ok, xdist = _active_set(
+                    (g if shared else g[i])[np.ix_(on, on)],
+                    b[i, on],
+                    lw[i, on],
+                    None if nn is None else nn[i, on],
+                    w[i, on],
+                    tol,
+                )
+                if ok:
+                    w[i] = 0.0
+                    w[i, on] = x
+                    stop[i] = xdist
+                    done[i] = True
         if it == max_iter:
             finish(np.arange(len(rows)), it, done)
             return
@@ -714,7 +740,8 @@ def _batch_loop(
             best_w, best_obj, k = best_w[keep], best_obj[keep], k[keep]
             rises, guard, stop = rises[keep], guard[keep], stop[keep]
             last_pattern = last_pattern[keep]
-            col_step, thr = col_step[keep], thr[keep]
+            col_step, lo, hi = col_step[keep], lo[keep], hi[keep]
+            off, nn_or_off = off[keep], nn_or_off[keep]
             if len(rows) == 1:  # one problem left: fista's own loop, cheaper
                 state = dict(
                     g=g, b=b, c=c, wts=wts, fmask=fmask, nn=nn, lam=lam, w=w,

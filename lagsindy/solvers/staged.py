@@ -40,6 +40,9 @@ class StagedResult:
     converged: bool
     cost: float
     step_reductions: int = 0
+    # The first stage's FISTA solution before thresholding (problem variables over
+    # every feature): a warm start for a path from a smaller lam (continuation).
+    first_stage: torch.Tensor | None = None
 
 
 def staged_fista(
@@ -125,6 +128,7 @@ def staged_fista(
     converged = True
     cur_lam = float(lam)
     cost = datafit.relative_residual(w_full)
+    first_stage = None
     for s in range(max_stages):
         sub = datafit.restrict(support)
         sup_idx = torch.as_tensor(support, device=device)
@@ -143,6 +147,9 @@ def staged_fista(
         reductions += res.step_reductions
         converged = converged and res.converged
         w_sub = res.coef
+        if s == 0:
+            first_stage = template.clone()
+            first_stage[torch.as_tensor(support, device=device)] = w_sub
         mags = w_sub.abs()
         largest = float(mags.max()) if mags.numel() else 0.0
         if largest > 0:  # an all-zero stage (lam too high) removes nothing
@@ -184,7 +191,7 @@ def staged_fista(
         )
         cost = datafit.relative_residual(w_full)
     return StagedResult(
-        w_full, support, stages, total_iter, converged, cost, reductions
+        w_full, support, stages, total_iter, converged, cost, reductions, first_stage
     )
 
 
@@ -319,46 +326,46 @@ solver_tol, debias
     else:
         gram, index = np.asarray(shared[0]), [np.asarray(i) for i in shared[1]]
     m = gram.shape[-1]
+    # Every problem lives in the coordinates of ``gram`` (its features at
+    # ``index[r]``, zeros elsewhere), so a stage's thresholds, supports and costs
+    # are array operations over all the problems at once.
     rhs = np.zeros((n_prob, m))
     w_np = np.zeros((n_prob, m))
+    thr = np.zeros((n_prob, m))
+    on = np.zeros((n_prob, m), dtype=bool)  # the current supports
+    w_all = np.zeros((n_prob, m))  # the current (thresholded) solutions
     nn_np = None
     weights = [torch.as_tensor(w, dtype=dtype) for w in penalty_weights]
     nonneg = [None] * n_prob if nonneg is None else list(nonneg)
     nn_t = [None if x is None else torch.as_tensor(x, dtype=torch.bool) for x in nonneg]
-    for r, (d, idx) in enumerate(zip(datafits, index)):
-        rhs[r, idx] = arr(d.rhs)
-        w_np[r, idx] = arr(weights[r])
-        if nn_t[r] is not None:
-            if nn_np is None:
-                nn_np = np.zeros((n_prob, m), dtype=bool)
-            nn_np[r, idx] = arr(nn_t[r])
-    const = np.array([d.const for d in datafits])
     thresholds = [
         torch.as_tensor(t, dtype=dtype).expand(d.n_features).clone()
         for t, d in zip(threshold, datafits)
     ]
-    supports = [np.arange(d.n_features) for d in datafits]
-    w_full = (
-        [d.zeros() for d in datafits]
-        if w0 is None
-        else [torch.as_tensor(w, dtype=dtype).clone() for w in w0]
-    )
+    for r, (d, idx) in enumerate(zip(datafits, index)):
+        rhs[r, idx] = arr(d.rhs)
+        w_np[r, idx] = arr(weights[r])
+        thr[r, idx] = arr(thresholds[r])
+        on[r, idx] = True
+        if w0 is not None:
+            w_all[r, idx] = arr(torch.as_tensor(w0[r], dtype=dtype))
+        if nn_t[r] is not None:
+            if nn_np is None:
+                nn_np = np.zeros((n_prob, m), dtype=bool)
+            nn_np[r, idx] = arr(nn_t[r])
+    penalised = w_np > 0
+    const = np.array([d.const for d in datafits])
     stages = [[] for _ in range(n_prob)]
-    total_iter = [0] * n_prob
-    reductions = [0] * n_prob
-    converged = [True] * n_prob
-    costs = [d.relative_residual(w) for d, w in zip(datafits, w_full)]
-    running = list(range(n_prob))
+    total_iter = np.zeros(n_prob, dtype=np.int64)
+    reductions = np.zeros(n_prob, dtype=np.int64)
+    converged = np.ones(n_prob, dtype=bool)
+    costs = _relative_residuals(gram, index, rhs, const, w_all, shared is not None)
+    first_stage = [None] * n_prob
+    rows = rows0 = np.arange(n_prob)
     cur_lam = float(lam)
     for s in range(max_stages):
-        if not running:
+        if rows.size == 0:
             break
-        rows = np.array(running)
-        mask = np.zeros((len(rows), m), dtype=bool)
-        w0 = np.zeros((len(rows), m))
-        for i, r in enumerate(running):
-            mask[i, index[r][supports[r]]] = True
-            w0[i, index[r]] = arr(w_full[r])
         step = None if alpha is None else float(alpha) * step_growth**s
         res = fista_batch(
             gram if shared is not None else gram[rows],
@@ -366,35 +373,38 @@ solver_tol, debias
             const[rows],
             cur_lam,
             w_np[rows],
-            w0,
-            mask,
+            w_all[rows],
+            on[rows],
             None if nn_np is None else nn_np[rows],
-            step=None if step is None else np.full(len(rows), step),
+            step=None if step is None else np.full(rows.size, step),
             max_iter=max_iter,
             tol=solver_tol,
         )
-        still = []
-        for i, r in enumerate(running):
-            support = supports[r]
-            total_iter[r] += int(res.n_iter[i])
-            reductions[r] += int(res.step_reductions[i])
-            converged[r] = converged[r] and bool(res.converged[i])
-            w_sub = torch.as_tensor(res.coef[i, index[r][support]], dtype=dtype)
-            mags = w_sub.abs()
-            largest = float(mags.max()) if mags.numel() else 0.0
-            sup_t = torch.as_tensor(support)
-            if largest > 0:  # an all-zero stage (lam too high) removes nothing
-                penalised = weights[r][sup_t] > 0
-                small = mags < thresholds[r][sup_t] * max(largest, reference)
-                keep = ~(small & penalised)
-            else:
-                keep = torch.ones_like(mags, dtype=torch.bool)
-            w_sub = torch.where(keep, w_sub, torch.zeros_like(w_sub))
-            w_new = datafits[r].zeros()
-            w_new[sup_t] = w_sub
-            w_full[r] = w_new
-            costs[r] = datafits[r].relative_residual(w_new)
-            new_support = support[keep.numpy()]
+        coef = np.where(on[rows], res.coef, 0.0)
+        if s == 0:
+            for i, r in enumerate(rows):
+                first_stage[r] = torch.as_tensor(coef[i, index[r]], dtype=dtype)
+        # The hard threshold of staged_fista, relative to the largest coefficient
+        # (or ``reference``); an all-zero stage (lam too high) removes nothing.
+        mags = np.abs(coef)
+        largest = mags.max(1)
+        small = mags < thr[rows] * np.maximum(largest, reference)[:, None]
+        keep = on[rows] & ~(small & penalised[rows] & (largest > 0)[:, None])
+        coef = np.where(keep, coef, 0.0)
+        on[rows], w_all[rows] = keep, coef
+        stage_costs = _relative_residuals(
+            gram if shared is not None else gram[rows],
+            [index[r] for r in rows],
+            rhs[rows],
+            const[rows],
+            coef,
+            shared is not None,
+        )
+        total_iter[rows] += res.n_iter
+        reductions[rows] += res.step_reductions
+        converged[rows] &= res.converged
+        for i, r in enumerate(rows):
+            costs[r] = stage_costs[i]
             stages[r].append(
                 Stage(
                     cur_lam,
@@ -402,28 +412,116 @@ solver_tol, debias
                     int(res.n_iter[i]),
                     bool(res.converged[i]),
                     float(res.stop_crit[i]),
-                    w_new.numpy().copy(),
-                    new_support.copy(),
-                    costs[r],
+                    coef[i, index[r]],
+                    np.flatnonzero(keep[i, index[r]]),
+                    stage_costs[i],
                 )
             )
-            supports[r] = new_support
-            nonzero = float(w_sub.abs().max()) > 0 if w_sub.numel() else False
-            if not (costs[r] <= tol and nonzero):
-                still.append(r)
-        running = still
+        done = (np.array(stage_costs) <= tol) & np.any(coef != 0, axis=1)
+        rows = rows[~done]
         cur_lam /= lam_decay
+    supports = [np.flatnonzero(on[r, index[r]]) for r in range(n_prob)]
+    w_full = [torch.as_tensor(w_all[r, index[r]], dtype=dtype) for r in range(n_prob)]
+    total_iter, reductions = total_iter.tolist(), reductions.tolist()
+    converged = converged.tolist()
+    if debias:
+        # The refit of the problems without sign constraints, all at once; those
+        # with non-negative features go through _debias one by one (below).
+        plain = np.array([nn_t[r] is None or not bool(nn_t[r].any()) for r in rows0])
+        plain &= on.any(1)
+        sel = np.flatnonzero(plain)
+        if sel.size:
+            w_ls, on[sel] = _debias_batch(
+                gram if shared is not None else gram[sel],
+                on[sel],
+                rhs[sel],
+                penalised[sel],
+                thr[sel],
+                reference,
+            )
+            fitted = _relative_residuals(
+                gram if shared is not None else gram[sel],
+                [index[r] for r in sel],
+                rhs[sel],
+                const[sel],
+                w_ls,
+                shared is not None,
+            )
+            for i, r in enumerate(sel):
+                supports[r] = np.flatnonzero(on[r, index[r]])
+                w_full[r] = torch.as_tensor(w_ls[i, index[r]], dtype=dtype)
+                costs[r] = fitted[i]
     results = []
     for r in range(n_prob):
         w, support, cost = w_full[r], supports[r], costs[r]
-        if debias and len(support):
+        if debias and len(support) and not plain[r]:
             w, support = _debias(
                 datafits[r], support, weights[r], thresholds[r], reference, w, nn_t[r]
             )
             cost = datafits[r].relative_residual(w)
         results.append(
             StagedResult(
-                w, support, stages[r], total_iter[r], converged[r], cost, reductions[r]
+                w,
+                support,
+                stages[r],
+                total_iter[r],
+                converged[r],
+                cost,
+                reductions[r],
+                first_stage[r],
             )
         )
     return results
+
+
+def _debias_batch(gram, on, rhs, penalised, thr, reference, rtol=1e-13):
+    """:func:`_debias` of several problems without sign constraints, at once.
+
+    Each row's support ``on`` is refitted by the minimum-norm least squares of
+    ``GramQuadratic.least_squares`` (eigenvalues up to ``rtol`` times the largest
+    dropped) on its block of ``gram`` (shared, or one per row), padded with zeros
+    to the batch's coordinates: the padding adds zero eigenvalues, which are
+    dropped, so the kept eigenvectors lie on the support. Penalised coefficients
+    below ``thr`` times the largest (or ``reference``) are removed and the rest
+    refitted, until nothing is removed or everything would be.
+
+    Returns
+    -------
+    w : ndarray of shape (R, m)
+    on : ndarray of bool, shape (R, m)
+        The refitted supports.
+    """
+    on = on.copy()
+    w = np.zeros(on.shape)
+    rows = np.arange(on.shape[0])
+    while rows.size:
+        both = on[rows][:, :, None] & on[rows][:, None, :]
+        g = gram if gram.ndim == 2 else gram[rows]
+        evals, evecs = np.linalg.eigh(np.where(both, g, 0.0))
+        keep = evals > rtol * np.maximum(evals[:, -1:], 1e-300)
+        inv = np.where(keep, 1.0 / np.where(keep, evals, 1.0), 0.0)
+        proj = np.einsum("rji,rj->ri", evecs, np.where(on[rows], rhs[rows], 0.0))
+        fit = np.einsum("rij,rj->ri", evecs, inv * proj)
+        fit = np.where(on[rows], fit, 0.0)
+        w[rows] = fit
+        mags = np.abs(fit)
+        peak = np.maximum(mags.max(1), reference)[:, None]
+        drop = on[rows] & (mags < thr[rows] * peak) & penalised[rows]
+        n_drop, n_on = drop.sum(1), on[rows].sum(1)
+        again = (n_drop > 0) & (n_drop < n_on)
+        on[rows[again]] &= ~drop[again]
+        rows = rows[again]
+    return w, on
+
+
+def _relative_residuals(gram, index, rhs, const, w, shared):
+    """``GramQuadratic.relative_residual`` of every row of ``w`` (batch coordinates).
+
+    ``gram`` is the shared matrix (``shared``) or one matrix per row; ``w`` and
+    ``rhs`` are zero off each row's coordinates ``index[r]``.
+    """
+    gw = w @ gram if shared else np.matmul(gram, w[:, :, None])[:, :, 0]
+    value = 0.5 * np.einsum("ri,ri->r", w, gw) - np.einsum("ri,ri->r", rhs, w)
+    value = value + 0.5 * const
+    out = np.where(const > 0, 2.0 * value / np.where(const > 0, const, 1.0), 0.0)
+    return [max(0.0, float(c)) for c in out]
