@@ -421,7 +421,11 @@ def proximal_gradient(
 # ------------------------------------------------------------------ batched FISTA
 @dataclass
 class BatchResult:
-    """Outcome of :func:`fista_batch`: one entry (row) per problem."""
+    """Outcome of :func:`fista_batch`: one entry (row) per problem.
+
+    ``step`` is nan for a problem whose warm start was already optimal (it ended
+    before iterating, ``n_iter`` 0) and 0 for one without coordinates.
+    """
 
     coef: np.ndarray
     n_iter: np.ndarray
@@ -506,26 +510,12 @@ def fista_batch(
         return out
     sizes = mask.sum(1)
     stacked = gram * fmask[:, :, None] * fmask[:, None, :]
-    lip = np.clip(np.linalg.eigvalsh(stacked)[:, -1], 0.0, None)
-    lip = np.where(sizes > 0, lip, 0.0)
-    reductions = np.zeros(n_prob, dtype=np.int64)
-    if step is None:
-        st = np.where(lip > 0, 1.0 / np.where(lip > 0, lip, 1.0), 1.0)
-    else:
-        # A step above 2/L is halved below it at once, as in fista.
-        st = np.asarray(step, dtype=float) * np.ones(n_prob)
-        excess = np.log2(st) + np.log2(np.where(lip > 0, lip, 1.0)) - 1.0
-        halve = (lip > 0) & (excess > 0)
-        n_halvings = np.where(halve, np.ceil(np.where(halve, excess, 0.0)), 0.0)
-        st = st / 2.0**n_halvings
-        reductions += n_halvings.astype(np.int64)
-    # Problems without coordinates are done before the first iteration.
-    out.step[:] = np.where(sizes > 0, st, 0.0)
     live = np.flatnonzero(sizes > 0)
     warm = live[np.any(out.coef[live] != 0, axis=1)]
     if warm.size:
         # Warm starts that already have the support and signs of the minimiser
-        # (as the stages after the first usually do) end before iterating.
+        # (as the stages after the first usually do) end before iterating, with
+        # no step taken (step nan).
         nn_warm = None if nonneg is None else np.asarray(nonneg, dtype=bool)[warm]
         x, optimal, xdist = _polish(
             gram if gram.ndim == 2 else stacked[warm],
@@ -539,8 +529,26 @@ def fista_batch(
         hit = warm[optimal]
         out.coef[hit] = x[optimal]
         out.stop_crit[hit] = xdist[optimal]
-        out.step_reductions[hit] = reductions[hit]
+        out.step[hit] = np.nan
         live = np.setdiff1d(live, hit)
+    if live.size == 0:
+        return out
+    # The Lipschitz constants of the problems that iterate (one batched
+    # eigenvalue call: a few ms for 40 problems of 40 coordinates).
+    lip = np.zeros(n_prob)
+    lip[live] = np.clip(np.linalg.eigvalsh(stacked[live])[:, -1], 0.0, None)
+    reductions = np.zeros(n_prob, dtype=np.int64)
+    if step is None:
+        st = np.where(lip > 0, 1.0 / np.where(lip > 0, lip, 1.0), 1.0)
+    else:
+        # A step above 2/L is halved below it at once, as in fista.
+        st = np.asarray(step, dtype=float) * np.ones(n_prob)
+        excess = np.log2(st) + np.log2(np.where(lip > 0, lip, 1.0)) - 1.0
+        halve = (lip > 0) & (excess > 0)
+        n_halvings = np.where(halve, np.ceil(np.where(halve, excess, 0.0)), 0.0)
+        st = st / 2.0**n_halvings
+        reductions += n_halvings.astype(np.int64)
+    out.step[live] = st[live]
     if live.size == 0:
         return out
     with np.errstate(over="ignore", invalid="ignore"):
