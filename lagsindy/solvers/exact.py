@@ -143,6 +143,10 @@ def _active_set(gram, b, lw, nn, x, tol, max_steps=None):
                 return x, False, worst
             points = x[None] + ts[:, None] * d[None]
             points = np.where(cross[None] == ts[:, None], 0.0, points)
+            # and the jump to the target with every coordinate whose sign it
+            # flips set to zero (many leave at once when the iterate is dense)
+            jump = np.where(~free & (np.sign(target) != signs), 0.0, target)
+            points = np.vstack([points, jump])
             if nn is not None:
                 points = np.where(nn, np.maximum(points, 0.0), points)
             values = objective(points)
