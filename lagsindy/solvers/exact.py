@@ -83,7 +83,9 @@ def _active_set(gram, b, lw, nn, x, tol, max_steps=None):
     (the non-zero coordinates, and those without penalty) with the signs of
     ``x``, the minimiser is one linear solve; the step to it stops at the best
     point where a coordinate changes sign (the objective is evaluated at each),
-    which then leaves the set. When the active coordinates are optimal, the zero
+    which then leaves the set, or jumps to the minimiser with every coordinate
+    whose sign it flips set to zero, if that is lower (from a dense iterate many
+    coordinates leave in one step). When the active coordinates are optimal, the zero
     coordinate that violates the optimality conditions most joins with the sign
     that lowers the objective. Every step lowers the objective, so no support is
     visited twice. Where FISTA wanders among supports on nearly collinear columns
