@@ -272,6 +272,18 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
     _parameter_constraints: dict = _PARAMETER_CONSTRAINTS
 
+    @classmethod
+    def _get_param_names(cls):
+        # scikit-learn reads the names from ``inspect.signature(__init__)`` on every
+        # ``get_params`` (0.3-0.5 ms); a fit, ``clone`` and the parameter validation
+        # call it many times (``diagnose``: about 80). The names of a class do not
+        # change: read them once per class (a subclass reads its own).
+        names = cls.__dict__.get("_param_names")
+        if names is None:
+            names = super()._get_param_names()
+            cls._param_names = names
+        return list(names)
+
     def __init__(
         self,
         library=None,

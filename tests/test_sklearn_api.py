@@ -297,3 +297,23 @@ def test_refit_with_other_data_replaces_everything(data):
     fresh = LagrangianSINDy(single_pendulum().paper_library()).fit(data.X, data.tau)
     np.testing.assert_array_equal(est.coef_, fresh.coef_)
     np.testing.assert_array_equal(est.predict(data.X), fresh.predict(data.X))
+
+
+def test_parameter_names_are_read_once_per_class():
+    import inspect
+
+    from lagsindy import LagrangianSINDy
+
+    sig = inspect.signature(LagrangianSINDy.__init__)
+    want = sorted(p for p in sig.parameters if p != "self")
+    assert LagrangianSINDy._get_param_names() == want
+    assert LagrangianSINDy._get_param_names() == want  # the cached names
+
+    class WithExtra(LagrangianSINDy):
+        def __init__(self, library=None, *, lam=1e-3, extra=1):
+            super().__init__(library, lam=lam)
+            self.extra = extra
+
+    assert WithExtra._get_param_names() == ["extra", "lam", "library"]
+    assert WithExtra(extra=3).get_params()["extra"] == 3
+    assert LagrangianSINDy._get_param_names() == want  # not the subclass's
