@@ -5,6 +5,7 @@ import importlib
 import numpy as np
 import pytest
 import torch
+from _lasso_problems import solve_stacked, wandering_lasso
 
 from lagsindy.solvers import L1, GramQuadratic, fista, staged_fista
 from lagsindy.solvers.exact import _active_set
@@ -14,29 +15,6 @@ from lagsindy.solvers.fista import fista_batch
 fista_module = importlib.import_module("lagsindy.solvers.fista")
 
 
-def _wandering_lasso(seed=1, p=30, n_on=15, collinear=1e-2):
-    """An L1 problem with a known minimiser on which FISTA wanders among supports.
-
-    Fifteen pairs of nearly collinear columns (condition number ~1e5) and half the
-    coordinates in the support: FISTA's iterates change support for hundreds of
-    iterations. The minimiser ``x`` is built in: ``b`` puts the gradient at
-    ``-lam sign(x)`` on the support and strictly inside ``(-lam, lam)`` off it.
-    """
-    rng = np.random.default_rng(seed)
-    A = rng.standard_normal((300, p))
-    for j in range(0, p - 1, 2):
-        A[:, j + 1] = A[:, j] + collinear * A[:, j + 1]
-    G = A.T @ A / 300
-    lam = 1e-3
-    x = np.zeros(p)
-    on = rng.choice(p, n_on, replace=False)
-    x[on] = rng.choice([-1.0, 1.0], n_on) * rng.uniform(0.2, 1.0, n_on)
-    b = G @ x + lam * np.sign(x)
-    off = x == 0
-    b[off] = (G @ x)[off] - lam * rng.uniform(-0.9, 0.9, off.sum())
-    return G, b, lam, x
-
-
 def _kkt(G, b, lam, w, nn=None):
     from lagsindy.solvers.exact import _kkt_distance
 
@@ -44,7 +22,7 @@ def _kkt(G, b, lam, w, nn=None):
 
 
 def test_active_set_search_finds_the_known_minimiser_from_zero():
-    G, b, lam, x = _wandering_lasso()
+    G, b, lam, x = wandering_lasso()
     got, ok, dist = _active_set(
         G, b, np.full(x.size, lam), None, np.zeros_like(x), 1e-10
     )
@@ -55,7 +33,7 @@ def test_active_set_search_finds_the_known_minimiser_from_zero():
 def test_active_set_search_drops_many_coordinates_at_once():
     """From a dense start whose full-set solve flips the signs off the support,
     the jump that zeroes every flipped coordinate saves steps."""
-    G, b, lam, x = _wandering_lasso()
+    G, b, lam, x = wandering_lasso()
     lw = np.full(x.size, lam)
     off = x == 0
     signs = np.where(off, 1.0, np.sign(x))
@@ -68,7 +46,7 @@ def test_active_set_search_drops_many_coordinates_at_once():
 
 
 def test_active_set_search_keeps_non_negative_coordinates():
-    G, b, lam, x = _wandering_lasso()
+    G, b, lam, x = wandering_lasso()
     nn = x > 0  # the positive coordinates of the minimiser, and no others
     start = np.where(nn, -0.5, 0.3)  # infeasible where non-negative: projected first
     got, ok, _ = _active_set(G, b, np.full(x.size, lam), nn, start, 1e-10)
@@ -78,7 +56,7 @@ def test_active_set_search_keeps_non_negative_coordinates():
 
 
 def test_active_set_search_reports_failure_instead_of_a_wrong_answer():
-    G, b, lam, x = _wandering_lasso()
+    G, b, lam, x = wandering_lasso()
     got, ok, dist = _active_set(
         G, b, np.full(x.size, lam), None, np.zeros_like(x), 1e-10, max_steps=3
     )
@@ -88,7 +66,7 @@ def test_active_set_search_reports_failure_instead_of_a_wrong_answer():
 
 
 def test_fista_ends_by_the_active_set_search_where_it_wanders():
-    G, b, lam, x = _wandering_lasso()
+    G, b, lam, x = wandering_lasso()
     datafit = GramQuadratic(torch.tensor(G), torch.tensor(b), 0.0)
     res = fista(datafit, L1(lam), tol=1e-8, max_iter=20_000)
     assert res.converged
@@ -100,7 +78,7 @@ def test_fista_ends_by_the_active_set_search_where_it_wanders():
 
 def test_fista_without_the_search_wanders(monkeypatch):
     """The previous test's problem is one where the search matters."""
-    G, b, lam, x = _wandering_lasso()
+    G, b, lam, x = wandering_lasso()
     monkeypatch.setattr(fista_module, "ACTIVE_SET_AT", frozenset())
     datafit = GramQuadratic(torch.tensor(G), torch.tensor(b), 0.0)
     res = fista(datafit, L1(lam), tol=1e-8, max_iter=20_000)
@@ -109,12 +87,8 @@ def test_fista_without_the_search_wanders(monkeypatch):
 
 
 def test_fista_batch_ends_its_last_problems_by_the_search():
-    problems = [_wandering_lasso(seed=s) for s in (1, 2, 3)]
-    G = np.stack([g for g, _, _, _ in problems])
-    b = np.stack([b_ for _, b_, _, _ in problems])
-    lam = problems[0][2]
-    ones = np.ones_like(b)
-    res = fista_batch(G, b, np.zeros(3), lam, ones, np.zeros_like(b), ones > 0)
+    problems = [wandering_lasso(seed=s) for s in (1, 2, 3)]
+    res = solve_stacked(problems)
     assert res.converged.all()
     for r, (_, _, _, x) in enumerate(problems):
         np.testing.assert_allclose(res.coef[r], x, rtol=0, atol=1e-10)
@@ -123,7 +97,7 @@ def test_fista_batch_ends_its_last_problems_by_the_search():
 
 
 def test_a_warm_start_on_the_minimisers_support_needs_no_iteration():
-    G, b, lam, x = _wandering_lasso()
+    G, b, lam, x = wandering_lasso()
     datafit = GramQuadratic(torch.tensor(G), torch.tensor(b), 0.0)
     near = torch.tensor(x * (1 + 0.2 * np.cos(np.arange(x.size))))  # same signs
     res = fista(datafit, L1(lam), near, tol=1e-8)
@@ -144,7 +118,7 @@ def test_a_warm_start_on_the_minimisers_support_needs_no_iteration():
 
 
 def test_staged_stages_after_the_first_need_no_iteration_on_a_steady_support():
-    G, b, lam, x = _wandering_lasso()
+    G, b, lam, x = wandering_lasso()
     datafit = GramQuadratic(torch.tensor(G), torch.tensor(b), float(b @ b))
     res = staged_fista(datafit, lam=lam, threshold=1e-6, tol=0.0, max_stages=3)
     assert [st.n_iter for st in res.stages][1:] == [0, 0]

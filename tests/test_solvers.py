@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 import torch
+from _lasso_problems import known_lasso, solve_stacked
 from sklearn.linear_model import Lasso
 
 from lagsindy.solvers import (
@@ -241,26 +242,10 @@ def test_acceleration_datafit_analytic_gradient_equals_autograd(d):
 
 
 # ------------------------------------------------------------ exact finish (polish)
-def _known_lasso(p=8, collinear=1e-2, seed=0):
-    """An ill-conditioned L1 problem built around a known sparse minimiser."""
-    rng = np.random.default_rng(seed)
-    A = rng.standard_normal((200, p))
-    A[:, 1] = A[:, 0] + collinear * rng.standard_normal(200)  # nearly collinear
-    G = A.T @ A / 200
-    lam = 0.05
-    x = np.zeros(p)
-    x[[0, 1, 4]] = [1.5, -0.7, 0.3]
-    grad_off = 0.5 * lam * np.cos(np.arange(p))  # |grad| < lam off the support
-    b = G @ x + lam * np.sign(x)
-    off = x == 0
-    b[off] = (G @ x)[off] - grad_off[off]
-    return G, b, lam, x
-
-
 def test_polish_returns_the_minimiser_of_the_right_pattern_only():
     from lagsindy.solvers.fista import _polish
 
-    G, b, lam, x = _known_lasso()
+    G, b, lam, x = known_lasso()
     lw = np.full((1, x.size), lam)
     ones = np.ones((1, x.size))
     near = x * (1 + 0.1 * np.cos(np.arange(x.size)))  # same support and signs
@@ -280,7 +265,7 @@ def test_polish_returns_the_minimiser_of_the_right_pattern_only():
 def test_fista_ends_on_the_exact_minimiser_of_a_steady_support():
     from lagsindy.solvers.fista import _fista_loop
 
-    G, b, lam, x = _known_lasso()
+    G, b, lam, x = known_lasso()
     datafit = GramQuadratic(torch.tensor(G), torch.tensor(b), 0.0)
     res = fista(datafit, L1(lam), tol=1e-8)
     assert res.converged
@@ -299,14 +284,8 @@ def test_fista_ends_on_the_exact_minimiser_of_a_steady_support():
 
 
 def test_fista_batch_ends_on_the_exact_minimisers():
-    from lagsindy.solvers.fista import fista_batch
-
-    problems = [_known_lasso(seed=s) for s in range(3)]
-    G = np.stack([g for g, _, _, _ in problems])
-    b = np.stack([b_ for _, b_, _, _ in problems])
-    lam = problems[0][2]
-    ones = np.ones_like(b)
-    res = fista_batch(G, b, np.zeros(3), lam, ones, np.zeros_like(b), ones > 0)
+    problems = [known_lasso(seed=s) for s in range(3)]
+    res = solve_stacked(problems)
     assert res.converged.all()
     for r, (_, _, _, x) in enumerate(problems):
         np.testing.assert_allclose(res.coef[r], x, rtol=0, atol=1e-10)

@@ -198,19 +198,10 @@ def _fista_loop(
         if np.any(w != 0):
             # A warm start (the previous stage's thresholded solution) often has
             # the support and signs of the minimiser already: try it first.
-            x, optimal, xdist = _polish(
-                datafit.gram,
-                datafit.rhs[None],
-                (penalty.lam * penalty.weights)[None],
-                None if penalty.nonneg is None else penalty.nonneg[None],
-                w[None],
-                np.ones((1, w.shape[0])),
-                tol,
-            )
-            if optimal[0]:
-                return SolverResult(
-                    x[0], 0, True, float(xdist[0]), step, history, reductions
-                )
+            found = _polish_one(datafit, penalty, w, tol)
+            if found is not None:
+                x, dist = found
+                return SolverResult(x, 0, True, dist, step, history, reductions)
     for it in range(first, max_iter + 1):
         n_iter = it
         beta = (k - 2) / (k + 1) if k > 1 else 0.0
@@ -250,18 +241,11 @@ def _fista_loop(
             if polish:
                 pattern = np.sign(w).astype(np.int8)
                 if np.array_equal(pattern, last_pattern):
-                    x, optimal, xdist = _polish(
-                        datafit.gram,
-                        datafit.rhs[None],
-                        (penalty.lam * penalty.weights)[None],
-                        None if penalty.nonneg is None else penalty.nonneg[None],
-                        w[None],
-                        np.ones((1, w.shape[0])),
-                        tol,
-                    )
-                    if optimal[0]:
+                    found = _polish_one(datafit, penalty, w, tol)
+                    if found is not None:
+                        x, dist = found
                         return SolverResult(
-                            x[0], it, True, float(xdist[0]), step, history, reductions
+                            x, it, True, dist, step, history, reductions
                         )
                 last_pattern = pattern
                 if it in ACTIVE_SET_AT:
@@ -278,6 +262,20 @@ def _fista_loop(
                             x, it, True, xdist, step, history, reductions
                         )
     return SolverResult(w, n_iter, False, stop, step, history, reductions)
+
+
+def _polish_one(datafit, penalty, w, tol):
+    """:func:`_polish` of one NumPy problem at ``w``: ``(x, dist)`` where optimal."""
+    x, optimal, xdist = _polish(
+        datafit.gram,
+        datafit.rhs[None],
+        (penalty.lam * penalty.weights)[None],
+        None if penalty.nonneg is None else penalty.nonneg[None],
+        w[None],
+        np.ones((1, w.shape[0])),
+        tol,
+    )
+    return (x[0], float(xdist[0])) if optimal[0] else None
 
 
 def _copy(x):

@@ -359,7 +359,14 @@ solver_tol, debias
     total_iter = np.zeros(n_prob, dtype=np.int64)
     reductions = np.zeros(n_prob, dtype=np.int64)
     converged = np.ones(n_prob, dtype=bool)
-    costs = _relative_residuals(gram, index, rhs, const, w_all, shared is not None)
+
+    def residuals(sel, w):
+        """Relative residuals of the problems ``sel`` at ``w`` (one row each)."""
+        g = gram if shared is not None else gram[sel]
+        idx = [index[r] for r in sel]
+        return _relative_residuals(g, idx, rhs[sel], const[sel], w, shared is not None)
+
+    costs = residuals(np.arange(n_prob), w_all)
     first_stage = [None] * n_prob
     rows = rows0 = np.arange(n_prob)
     cur_lam = float(lam)
@@ -392,14 +399,7 @@ solver_tol, debias
         keep = on[rows] & ~(small & penalised[rows] & (largest > 0)[:, None])
         coef = np.where(keep, coef, 0.0)
         on[rows], w_all[rows] = keep, coef
-        stage_costs = _relative_residuals(
-            gram if shared is not None else gram[rows],
-            [index[r] for r in rows],
-            rhs[rows],
-            const[rows],
-            coef,
-            shared is not None,
-        )
+        stage_costs = residuals(rows, coef)
         total_iter[rows] += res.n_iter
         reductions[rows] += res.step_reductions
         converged[rows] &= res.converged
@@ -439,14 +439,7 @@ solver_tol, debias
                 thr[sel],
                 reference,
             )
-            fitted = _relative_residuals(
-                gram if shared is not None else gram[sel],
-                [index[r] for r in sel],
-                rhs[sel],
-                const[sel],
-                w_ls,
-                shared is not None,
-            )
+            fitted = residuals(sel, w_ls)
             for i, r in enumerate(sel):
                 supports[r] = np.flatnonzero(on[r, index[r]])
                 w_full[r] = torch.as_tensor(w_ls[i, index[r]], dtype=dtype)
