@@ -9,6 +9,7 @@ acceleration symbol ``theta_ddot``. All symbols are real.
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from collections.abc import Callable, Iterable, Sequence
@@ -394,6 +395,18 @@ def _evaluate(expr, env: dict, like: torch.Tensor):
     return func(arg)
 
 
+@functools.lru_cache(maxsize=256)
+def _cse(exprs: tuple):
+    """``sympy.cse`` of ``exprs``, once per set of expressions.
+
+    The same force and term expressions are compiled again by every operator that
+    holds them (``diagnose`` builds several: fold statistics, refits, the delay
+    search), and the elimination costs milliseconds per expression set. Sympy
+    expressions are immutable and hash by value, so the result can be shared.
+    """
+    return sp.cse(list(exprs), optimizations=None)
+
+
 def compile_torch(exprs: Sequence[sp.Expr], inputs: Sequence[Sequence[sp.Symbol]]):
     """Compile sympy expressions into one torch function of per-sample vectors.
 
@@ -412,8 +425,7 @@ def compile_torch(exprs: Sequence[sp.Expr], inputs: Sequence[Sequence[sp.Symbol]
         ``(len(group),)``; it composes with ``torch.func`` transforms (vmap, jacfwd,
         jvp). Common subexpressions are evaluated once.
     """
-    exprs = [sp.sympify(e) for e in exprs]
-    replacements, reduced = sp.cse(exprs, optimizations=None)
+    replacements, reduced = _cse(tuple(sp.sympify(e) for e in exprs))
     groups = [list(g) for g in inputs]
 
     def function(*vectors: torch.Tensor) -> torch.Tensor:

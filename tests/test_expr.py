@@ -107,3 +107,22 @@ def test_compile_torch_matches_sympy():
         subs = {**dict(zip(q, qv)), **dict(zip(qd, qdv))}
         want = np.array([float(e.subs(subs)) for e in exprs])
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+def test_compiled_expressions_share_one_elimination():
+    """``compile_torch`` runs sympy's CSE once per expression set (cached by value);
+    the functions it returns still evaluate their own inputs."""
+    from lagsindy._expr import _cse, compile_torch, symbols_for
+
+    q, qd, _ = symbols_for(["x"])
+    exprs = [sp.tanh(qd[0] / sp.Float(0.01)) * sp.cos(q[0]), sp.cos(q[0]) ** 2]
+    _cse.cache_clear()
+    f = compile_torch(exprs, (q, qd))
+    g = compile_torch([e.func(*e.args) for e in exprs], (q, qd))  # rebuilt, equal
+    info = _cse.cache_info()
+    assert (info.misses, info.hits) == (1, 1)
+    a = torch.tensor([0.3], dtype=torch.float64)
+    b = torch.tensor([0.02], dtype=torch.float64)
+    want = [np.tanh(2.0) * np.cos(0.3), np.cos(0.3) ** 2]
+    np.testing.assert_allclose(f(a, b).numpy(), want, rtol=1e-15)
+    np.testing.assert_allclose(g(a, b).numpy(), want, rtol=1e-15)
