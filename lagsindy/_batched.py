@@ -350,8 +350,7 @@ class _Kernel:
         rows = self.monomials(base, work)
         if out is None:
             out = base.new_empty((self.n_out, base.shape[1]))
-        # beta=0: out's previous content is ignored (not even its NaNs propagate).
-        return torch.addmm(out, matrix, rows, beta=0, out=out)
+        return _sparse_mm_into(out, matrix, rows)
 
     def evaluate_blocks(self, base: torch.Tensor, outs: Sequence, work=None):
         """:meth:`evaluate` into ``outs``: one tensor per equal block of outputs.
@@ -361,7 +360,21 @@ class _Kernel:
         """
         rows = self.monomials(base, work)
         for matrix, out in zip(self.blocks(base, len(outs)), outs):
-            torch.addmm(out, matrix, rows, beta=0, out=out)
+            _sparse_mm_into(out, matrix, rows)
+
+
+def _sparse_mm_into(out, matrix, rows):
+    """``out = matrix @ rows`` for a sparse ``matrix``, whatever ``out`` held.
+
+    ``torch.addmm`` with ``beta=0`` ignores ``out``'s content (not even its NaNs
+    propagate), except when the sparse matrix has no stored entry: then it leaves
+    ``out`` untouched (torch 2.13), and a buffer from ``new_empty`` kept whatever
+    memory held. A kernel without entries (every term's derivative is zero, as the
+    mixed derivatives of a single pendulum's terms) must give zeros.
+    """
+    if matrix._nnz() == 0:
+        return out.zero_()
+    return torch.addmm(out, matrix, rows, beta=0, out=out)
 
 
 @functools.lru_cache(maxsize=128)

@@ -187,3 +187,23 @@ def test_force_values_and_jacobians_without_vmap_match_torch_func():
     np.testing.assert_allclose(
         op.force_jacobians(q, qd).numpy(), want.numpy(), rtol=1e-14, atol=1e-14
     )
+
+
+def test_a_kernel_without_entries_writes_zeros():
+    """torch's sparse addmm leaves ``out`` untouched for a matrix without entries:
+    the single pendulum's mixed derivatives (all zero) came out of uninitialized
+    memory, now and then NaN (a case II fit failed in some processes only)."""
+    from lagsindy.systems import single_pendulum
+
+    lib = single_pendulum().paper_library().build()
+    fn = compile_terms(lib.terms_, lib.coordinates_)
+    kernel = fn.plan["cross"]
+    assert kernel.tensors(torch.zeros(1, dtype=torch.float64))[3]._nnz() == 0
+    q, qd, _ = random_states(1, 50, seed=3)
+    base = fn._base(q.T, qd.T, None)
+    out = torch.full((kernel.n_out, 50), float("nan"), dtype=torch.float64)
+    kernel.evaluate(base, out=out)
+    assert torch.equal(out, torch.zeros_like(out))
+    blocks = [torch.full((kernel.n_out, 50), float("nan"), dtype=torch.float64)]
+    kernel.evaluate_blocks(base, blocks)
+    assert torch.equal(blocks[0], torch.zeros_like(blocks[0]))
