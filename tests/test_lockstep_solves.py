@@ -1,6 +1,5 @@
 """Batched (lockstep) FISTA and staged solves equal the one-problem solvers."""
 
-
 import numpy as np
 import pytest
 import torch
@@ -162,3 +161,27 @@ def test_solve_many_equals_solve(case_iii_problem):
                 np.testing.assert_array_equal(a.support, b.support)
         restarted += res is not res1
     assert restarted > 0  # some candidates need the second start on these data
+
+
+def test_staged_fista_batch_keeps_a_small_unpenalised_feature():
+    """The hard threshold spares unpenalised (known) features, as staged_fista."""
+    rng = np.random.default_rng(5)
+    p, n = 8, 400
+    A = rng.standard_normal((n, p))
+    y = A[:, :3] @ np.array([0.01, 1.0, -0.8]) + 0.001 * rng.standard_normal(n)
+    datafits = [
+        GramQuadratic(torch.tensor(A.T @ A / n), torch.tensor(A.T @ y / n), y @ y / n)
+    ] * 2
+    weights = [torch.ones(p, dtype=torch.float64) for _ in range(2)]
+    weights[0][0] = 0.0  # feature 0 known in the first problem only
+    thresholds = [torch.full((p,), 0.1, dtype=torch.float64)] * 2
+    settings = dict(lam=1e-3, reference=0.0, tol=1e-6, solver_tol=1e-9)
+    got = staged_fista_batch(
+        datafits, penalty_weights=weights, threshold=thresholds, **settings
+    )
+    for d, w, t, res in zip(datafits, weights, thresholds, got):
+        want = staged_fista(d, penalty_weights=w, threshold=t, **settings)
+        np.testing.assert_array_equal(res.support, want.support)
+        np.testing.assert_allclose(res.coef.numpy(), want.coef.numpy(), atol=1e-12)
+    # 0.01 is below a tenth of the largest: kept only where it is not penalised
+    assert 0 in got[0].support and 0 not in got[1].support

@@ -118,7 +118,8 @@ def _active_set(gram, b, lw, nn, x, tol, max_steps=None):
     f = objective(x[None])[0]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         for _ in range(max_steps):
-            dist = _kkt_distance(x, gram @ x - b, lw, nn)
+            grad = gram @ x - b
+            dist = _kkt_distance(x, grad, lw, nn)
             worst = float(dist.max()) if p else 0.0
             if worst <= tol:
                 return x, True, worst
@@ -127,8 +128,7 @@ def _active_set(gram, b, lw, nn, x, tol, max_steps=None):
             if not np.any(dist[on] > tol):  # optimal on the active set: grow it
                 i = int(np.where(on, -1.0, dist).argmax())
                 on[i] = True
-                grad_i = float(gram[i] @ x - b[i])
-                signs[i] = 1.0 if nn is not None and nn[i] else -np.sign(grad_i)
+                signs[i] = 1.0 if nn is not None and nn[i] else -np.sign(grad[i])
             act = np.flatnonzero(on)
             rhs = b[act] - lw[act] * signs[act]
             # LAPACK's gesv directly (as np.linalg.solve, without its overhead,

@@ -326,11 +326,7 @@ class _NumpyL1:
         return w - np.minimum(np.maximum(w, self._lo), self._hi)
 
     def subdiff_distance(self, w, grad):
-        lw = self.lam * self.weights
-        at_zero = np.maximum(np.abs(grad) - lw, 0.0)
-        if self.nonneg is not None:
-            at_zero = np.where(self.nonneg, np.maximum(-grad - lw, 0.0), at_zero)
-        dist = np.where(w != 0, np.abs(grad + lw * np.sign(w)), at_zero)
+        dist = _kkt_distance(w, grad, self.lam * self.weights, self.nonneg)
         return float(dist.max()) if dist.size else 0.0
 
 

@@ -363,12 +363,11 @@ solver_tol, debias
     def residuals(sel, w):
         """Relative residuals of the problems ``sel`` at ``w`` (one row each)."""
         g = gram if shared is not None else gram[sel]
-        idx = [index[r] for r in sel]
-        return _relative_residuals(g, idx, rhs[sel], const[sel], w, shared is not None)
+        return _relative_residuals(g, rhs[sel], const[sel], w)
 
     costs = residuals(np.arange(n_prob), w_all)
     first_stage = [None] * n_prob
-    rows = rows0 = np.arange(n_prob)
+    rows = np.arange(n_prob)
     cur_lam = float(lam)
     for s in range(max_stages):
         if rows.size == 0:
@@ -427,7 +426,7 @@ solver_tol, debias
     if debias:
         # The refit of the problems without sign constraints, all at once; those
         # with non-negative features go through _debias one by one (below).
-        plain = np.array([nn_t[r] is None or not bool(nn_t[r].any()) for r in rows0])
+        plain = np.array([x is None or not bool(x.any()) for x in nn_t])
         plain &= on.any(1)
         sel = np.flatnonzero(plain)
         if sel.size:
@@ -507,13 +506,13 @@ def _debias_batch(gram, on, rhs, penalised, thr, reference, rtol=1e-13):
     return w, on
 
 
-def _relative_residuals(gram, index, rhs, const, w, shared):
+def _relative_residuals(gram, rhs, const, w):
     """``GramQuadratic.relative_residual`` of every row of ``w`` (batch coordinates).
 
-    ``gram`` is the shared matrix (``shared``) or one matrix per row; ``w`` and
-    ``rhs`` are zero off each row's coordinates ``index[r]``.
+    ``gram`` is one matrix shared by the rows, shape (m, m), or one per row,
+    (R, m, m); ``w`` and ``rhs`` are zero off each row's coordinates.
     """
-    gw = w @ gram if shared else np.matmul(gram, w[:, :, None])[:, :, 0]
+    gw = w @ gram if gram.ndim == 2 else np.matmul(gram, w[:, :, None])[:, :, 0]
     value = 0.5 * np.einsum("ri,ri->r", w, gw) - np.einsum("ri,ri->r", rhs, w)
     value = value + 0.5 * const
     out = np.where(const > 0, 2.0 * value / np.where(const > 0, const, 1.0), 0.0)
