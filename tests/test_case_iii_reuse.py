@@ -96,6 +96,11 @@ def test_pinv_solve_equals_torch_pinv(n):
     torch.testing.assert_close(got[100:220], want[100:220], rtol=1e-12, atol=0)
     # a sign flip or a missing 1/lambda in one eigen-direction shows at O(1)
     assert float(err[220:300].max()) < 1e-9
+    # A batch of well-conditioned matrices only (n = 2: Cramer's rule throughout)
+    alone = pinv_solve(m[220:300], b[220:300])
+    err = (alone - want[220:300]).abs().amax(-1) / size[220:300]
+    assert float((err / (cond[220:300] * 2.2e-16)).max()) < 50
+    torch.testing.assert_close(alone, got[220:300], rtol=0, atol=0)
 
 
 def test_r2_scores_equal_sklearn():

@@ -16,8 +16,10 @@ import torch
 
 from .._torch import to_numpy
 from ..formulation.operator import EulerLagrangeOperator
+from ..formulation.scaling import fixed_term_bounds
 from ..solvers import GramQuadratic
 from . import Problem, Solution
+from .sparse import PATH_FLOOR
 
 # Rows used to rank the candidate fixed terms of case III (a random subsample).
 SELECTION_ROWS = 4000
@@ -25,6 +27,12 @@ SELECTION_TOP = 12
 # Candidate models within this factor of the best unexplained acceleration variance
 # count as ties, resolved towards the sparsest.
 SELECTION_TIE = 1.1
+# The ranking first solves the candidates whose residual bound is within this
+# factor of the SELECTION_TOP-th smallest bound (then any other that can still
+# reach the shortlist).
+RANK_FIRST = 1.5
+# ... and every candidate at once when that is most of them anyway.
+RANK_ALL = 2 / 3
 
 
 def fit_fixed(problem: Problem) -> Solution:
@@ -84,22 +92,7 @@ def fit_fixed(problem: Problem) -> Solution:
         # In the search over every term, one start ranks the candidates (their
         # solves batched); the shortlist is re-solved with every start below.
         # Warnings of candidates that lose are noise; the winner's are re-raised.
-        jobs = [
-            (
-                np.array([k for k in np.flatnonzero(identifiable) if k != r]),
-                r,
-                -1.0,
-                bool(traces[r] > 0),
-                None,
-            )
-            for r in candidates
-        ]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            solved = p.solver.solve_many(p.balanced, jobs, penalty, 1.0, starts=1)
-        for r, (coef, result) in zip(candidates, solved):
-            coef[r] = 1.0
-            fits.append(("term", r, coef, result))
+        fits.extend(_rank(p, candidates, traces))
     if single:
         kind, r, coef, result = fits[0]
         return Solution(coef, result, r, kind)
@@ -152,6 +145,72 @@ def fit_fixed(problem: Problem) -> Solution:
     return Solution(coef, result, r, kind)
 
 
+def _rank(p: Problem, candidates, traces) -> list:
+    """One-start solves of the fixed-term candidates that can reach the shortlist.
+
+    Only the :data:`SELECTION_TOP` candidates of smallest relative residual go on
+    to the shortlist. Each candidate's residual is bounded from below by the dense
+    least-squares fit of its column (:func:`fixed_term_bounds`, all at once), so the
+    candidates are solved in order of their bounds: first those whose bound is
+    near the shortlist's smallest, then any other whose bound is below the
+    :data:`SELECTION_TOP`-th residual found (with a margin above rounding). A
+    candidate left out cannot be in the shortlist, so the shortlist is the one that
+    solving every candidate gives; on data where the bounds say little (a noise
+    correction that leaves the Gram matrix singular) every candidate is solved.
+
+    Returns
+    -------
+    list of ("term", r, coef, result)
+        For the candidates solved, in the order of ``candidates``.
+    """
+    free_all = np.flatnonzero(p.identifiable)
+    jobs = {
+        r: (free_all[free_all != r], r, -1.0, bool(traces[r] > 0), None)
+        for r in candidates
+    }
+    solved = {}
+
+    def run(batch):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out = p.solver.solve_many(
+                p.balanced, [jobs[r] for r in batch], p.penalty, 1.0, starts=1
+            )
+        solved.update(zip(batch, out))
+
+    if len(candidates) <= SELECTION_TOP:
+        run(list(candidates))
+    else:
+        g, _ = p.balanced.block(free_all)
+        bound = dict(zip(free_all.tolist(), fixed_term_bounds(g).tolist()))
+        ordered = sorted(candidates, key=lambda r: bound[r])
+        near = bound[ordered[SELECTION_TOP - 1]] * RANK_FIRST + PATH_FLOOR
+        first = [r for r in candidates if bound[r] <= near]
+        # Bounds that leave out few candidates (e.g. zero after a noise correction)
+        # are not worth a second batch.
+        run(first if len(first) <= RANK_ALL * len(candidates) else list(candidates))
+        costs = sorted(res.cost for _, res in solved.values())
+        cut = np.inf  # fewer solved than the shortlist holds: every other may enter
+        if len(costs) >= SELECTION_TOP:
+            cut = costs[SELECTION_TOP - 1] * (1 + 1e-6) + PATH_FLOOR
+        rest = [r for r in candidates if r not in solved and bound[r] <= cut]
+        if rest:
+            run(rest)
+        if p.solver.verbose:
+            print(
+                f"[lagsindy] fixed-term ranking: {len(solved)} of {len(candidates)} "
+                "candidates solved (the others' least-squares bounds exceed the "
+                f"{SELECTION_TOP}th best residual, {cut:.3g})"
+            )
+    fits = []
+    for r in candidates:
+        if r in solved:
+            coef, result = solved[r]
+            coef[r] = 1.0
+            fits.append(("term", r, coef, result))
+    return fits
+
+
 def mass_traces(p: Problem) -> np.ndarray:
     """Mean over (a subsample of) the data of tr(M_k) for every feature.
 
@@ -174,7 +233,10 @@ def _mass_traces(p: Problem, rows) -> np.ndarray:
     )
     mass = op.mass_matrices(Xs[:, :d], Xs[:, d : 2 * d])
     traces = np.zeros(p.n_features)
-    traces[: op.n_terms] = to_numpy(torch.diagonal(mass, dim1=2, dim2=3).sum(2).mean(0))
+    # The mean over the rows first: a reduction over the diagonal's strided
+    # entries of every row took most of this function's time.
+    mean = mass.mean(0)
+    traces[: op.n_terms] = to_numpy(torch.diagonal(mean, dim1=1, dim2=2).sum(1))
     return traces
 
 
@@ -320,8 +382,10 @@ def pinv_solve(mat, rhs):
     dropped; the lower triangle is used), applied to ``rhs``. For ``n = 1`` and
     ``n = 2`` the eigen-decomposition is in closed form (the 2 x 2 one as LAPACK's
     ``dlaev2``: the smaller eigenvalue from the determinant, without cancellation),
-    element-wise over the batch instead of one LAPACK call per matrix; the result
-    equals ``torch.linalg.pinv``'s up to rounding. Larger matrices use
+    element-wise over the batch instead of one LAPACK call per matrix; 2 x 2
+    matrices whose condition number is certainly below 1e8 are solved by Cramer's
+    rule. The result equals ``torch.linalg.pinv``'s up to rounding (within a small
+    multiple of the condition number times the machine epsilon). Larger matrices use
     :func:`torch.linalg.pinv`.
 
     Parameters
@@ -344,13 +408,35 @@ def pinv_solve(mat, rhs):
     if n != 2:
         return (torch.linalg.pinv(mat, hermitian=True) @ rhs.unsqueeze(-1)).squeeze(-1)
     a, b, c = mat[..., 0, 0], mat[..., 1, 0], mat[..., 1, 1]
+    r0, r1 = rhs[..., 0], rhs[..., 1]
+    # Well-conditioned matrices (most, for a model with a mass matrix) by Cramer's
+    # rule, which the pseudo-inverse equals there up to rounding: the smaller
+    # eigenvalue is at least |det| / (|a| + |c| + 2|b|), so a condition number
+    # below 1e8 is certain. The others by the eigen-decomposition below.
+    det = a * c - b * b
+    norm = a.abs() + c.abs() + 2 * b.abs()
+    easy = det.abs() > 1e-8 * norm * norm
+    if bool(easy.all()):
+        return torch.stack([c * r0 - b * r1, a * r1 - b * r0], dim=-1) / det.unsqueeze(
+            -1
+        )
+    out = torch.empty_like(rhs)
+    safe = torch.where(easy, det, 1.0).unsqueeze(-1)
+    out[easy] = (torch.stack([c * r0 - b * r1, a * r1 - b * r0], dim=-1) / safe)[easy]
+    hard = ~easy
+    out[hard] = _pinv_solve2(a[hard], b[hard], c[hard], r0[hard], r1[hard])
+    return out
+
+
+def _pinv_solve2(a, b, c, r0, r1):
+    """:func:`pinv_solve` of ``[[a, b], [b, c]]`` by the eigen-decomposition."""
+    eps = torch.finfo(a.dtype).eps
     rt1, rt2, cs, sn = _eig2(a, b, c)
     big = rt1.abs()
     tol = 2 * eps * big
     inv1 = torch.where(big > tol, 1.0 / torch.where(big > tol, rt1, 1.0), 0.0)
     keep2 = rt2.abs() > tol
     inv2 = torch.where(keep2, 1.0 / torch.where(keep2, rt2, 1.0), 0.0)
-    r0, r1 = rhs[..., 0], rhs[..., 1]
     p1 = (cs * r0 + sn * r1) * inv1  # along (cs, sn), the eigenvalue rt1
     p2 = (cs * r1 - sn * r0) * inv2  # along (-sn, cs), the eigenvalue rt2
     return torch.stack([cs * p1 - sn * p2, sn * p1 + cs * p2], dim=-1)

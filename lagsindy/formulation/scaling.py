@@ -184,6 +184,50 @@ def dense_residual(datafit: GramQuadratic) -> float:
     return max(0.0, 1.0 - explained / datafit.const)
 
 
+def fixed_term_bounds(gram) -> np.ndarray:
+    r"""Lower bounds of every column's relative residual when the others fit it.
+
+    For each ``r``, :math:`\min_{x:\,x_r = 1} x^\top G x / G_{rr}`: the relative
+    residual of the unpenalised least-squares fit of column ``r`` by all the other
+    columns of ``gram`` (the Schur complement of :math:`G_{rr}`). No sparse or
+    sign-constrained fit of that column by a subset of the others can do better, so
+    the value bounds from below the cost of case III with ``r`` as the fixed term.
+
+    All the columns at once, from one eigen-decomposition: the Schur complement is
+    :math:`1 / (G^{-1})_{rr} = 1 / \sum_i V_{ri}^2 / \lambda_i`. Each eigenvalue is
+    lowered by ``delta``, a multiple of the decomposition's rounding error, so that
+    rounding cannot raise a bound; eigenvalues at that level (a null combination of
+    the columns, as the Lagrangian itself on passive data) are set to ``delta``, so
+    a column that such a combination explains gets a bound at rounding level.
+    Compare with a margin above rounding.
+
+    Parameters
+    ----------
+    gram : Tensor or ndarray of shape (m, m)
+        A symmetric positive semi-definite Gram matrix with a positive diagonal.
+
+    Returns
+    -------
+    ndarray of shape (m,)
+    """
+    g = np.asarray(to_numpy(gram) if torch.is_tensor(gram) else gram, dtype=float)
+    g = (g + g.T) / 2
+    m = g.shape[0]
+    if m == 0:
+        return np.zeros(0)
+    if m == 1:
+        return np.ones(1)
+    # The bounds do not depend on the columns' scales: decompose the matrix with a
+    # unit diagonal, whose rounding is the smallest.
+    d = np.sqrt(np.diagonal(g))
+    g = g / np.outer(d, d)
+    vals, vecs = np.linalg.eigh(g)
+    delta = 64 * m * np.finfo(float).eps * max(float(np.abs(vals).max()), 1e-300)
+    lowered = np.maximum(vals - delta, delta)
+    inv_diag = (vecs * vecs / lowered) @ np.ones(m)
+    return np.clip(1.0 / inv_diag, 0.0, 1.0)
+
+
 def warn_if_not_identifiable(balanced, free, names, *, allowed, stacklevel=3):
     """Warn when the data leave more than ``allowed`` exact null combinations of terms.
 
