@@ -38,6 +38,7 @@ import sympy as sp
 from sklearn.base import BaseEstimator
 
 from ._expr import check_coordinate_names, symbols_for
+from ._params import cache_param_names
 
 KINDS = ("viscous", "relative", "drag", "coulomb", "bias")
 # Kinds whose force opposes the motion for a positive coefficient: a negative one
@@ -145,6 +146,7 @@ def make_term(
     return ForceTerm(name, kind, coords, forces, rayleigh)
 
 
+@cache_param_names
 class DissipationLibrary(BaseEstimator):
     """Candidate non-conservative forces, fitted together with the Lagrangian.
 

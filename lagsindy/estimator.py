@@ -23,6 +23,7 @@ from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
+from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .cases import Problem, SparseSolve, solve_case
 from .formulation import feature_operator, gram_statistics
@@ -661,22 +662,8 @@ def _check_known_terms(est, library, diss, case):
             raise ValueError(f"unpenalized={term!r}: {exc}") from None
 
 
-def _param_names(cls) -> list:
-    """The parameter names of ``cls``, read once per class (its ``_get_param_names``).
-
-    scikit-learn reads them from ``inspect.signature(__init__)`` on every
-    ``get_params`` (0.3-0.5 ms); a fit, ``clone`` and the parameter validation call
-    it many times (``diagnose``: about 80). A subclass reads its own.
-    """
-    names = cls.__dict__.get("_param_names")
-    if names is None:
-        names = BaseEstimator._get_param_names.__func__(cls)
-        cls._param_names = names
-    return list(names)
-
-
 # (set outside the class body, which the architecture test keeps short)
-LagrangianSINDy._get_param_names = classmethod(_param_names)
+cache_param_names(LagrangianSINDy)
 
 
 def _tensors(Xa, tau, device, dtype):

@@ -25,6 +25,7 @@ from sklearn.base import BaseEstimator
 
 from ._batched import compile_terms
 from ._expr import canonical, check_coordinate_names, symbols_for
+from ._params import cache_param_names
 
 _KINDS = ("polynomial", "separated", "chain")
 TRIVIAL_REASON = "trivial: its Euler-Lagrange expression is identically zero"
@@ -87,6 +88,7 @@ def _monomials(base: Sequence[sp.Expr], degree: int) -> list[sp.Expr]:
     return out
 
 
+@cache_param_names
 class CandidateLibrary(BaseEstimator):
     """A library of candidate Lagrangian terms over named coordinates.
 

@@ -57,6 +57,7 @@ from sklearn.base import BaseEstimator, MetaEstimatorMixin, RegressorMixin, clon
 from sklearn.utils import check_random_state
 from sklearn.utils.validation import check_is_fitted
 
+from ._params import cache_param_names
 from ._resampling import (  # noqa: F401 (the private names tests reach through here)
     _batch_supported,
     _batched_resamples,
@@ -480,6 +481,7 @@ def _n_workers(n_jobs):
 
 
 # --------------------------------------------------------------------------- bagging
+@cache_param_names
 class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEstimator):
     """Library bagging (Ensemble-SINDy) for large candidate libraries.
 

@@ -317,3 +317,34 @@ def test_parameter_names_are_read_once_per_class():
     assert WithExtra._get_param_names() == ["extra", "lam", "library"]
     assert WithExtra(extra=3).get_params()["extra"] == 3
     assert LagrangianSINDy._get_param_names() == want  # not the subclass's
+
+
+def test_every_estimator_reads_its_parameter_names_once(monkeypatch):
+    """The libraries, the transformer and the bagging estimator cache them too."""
+    import inspect
+
+    from lagsindy import CandidateLibrary, LagrangianSINDy
+    from lagsindy.differentiation.transformer import Derivatives
+    from lagsindy.dissipation import DissipationLibrary
+    from lagsindy.uncertainty import LibraryBaggingLagrangianSINDy
+
+    classes = [
+        CandidateLibrary,
+        DissipationLibrary,
+        Derivatives,
+        LibraryBaggingLagrangianSINDy,
+        LagrangianSINDy,
+    ]
+    want = {}
+    for cls in classes:
+        sig = inspect.signature(cls.__init__)
+        want[cls] = sorted(p for p in sig.parameters if p != "self")
+        assert cls._get_param_names() == want[cls]
+
+    def no_signature(*args, **kwargs):
+        raise AssertionError("inspect.signature called again")
+
+    monkeypatch.setattr(inspect, "signature", no_signature)
+    for cls in classes:
+        assert cls._get_param_names() == want[cls]
+        assert sorted(cls().get_params(deep=False)) == want[cls]

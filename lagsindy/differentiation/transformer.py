@@ -11,12 +11,14 @@ from sklearn.utils._param_validation import Interval, StrOptions
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from .._expr import ACCELERATION_SUFFIX, VELOCITY_SUFFIX, state_names
+from .._params import cache_param_names
 from .core import METHODS, derivatives
 from .methods import _check_savgol_params
 from .records import _GAP_FACTOR, _angle_mask
 
 
 # ----------------------------------------------------------------- transformer
+@cache_param_names
 class Derivatives(TransformerMixin, BaseEstimator):
     """Estimate velocities and accelerations: positions to ``[q, q_dot, q_ddot]``.
 
