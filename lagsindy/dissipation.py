@@ -302,6 +302,12 @@ def assemble(terms, coefficients, coordinates):
     return rayleigh, forces
 
 
+# reduce_forces' outcome by its inputs (``diagnose`` refits the same library and
+# dissipation candidates several times; each reduction builds an operator).
+_REDUCED: dict = {}
+_REDUCED_SIZE = 32
+
+
 def reduce_forces(lagrangian_terms, force_terms, coordinates, *, tol: float = 1e-7):
     """Drop force candidates whose regression column duplicates earlier columns.
 
@@ -315,12 +321,31 @@ def reduce_forces(lagrangian_terms, force_terms, coordinates, *, tol: float = 1e
     kept : list of ForceTerm
     removed : list of (name, reason)
     """
+    if not force_terms:
+        return [], []
+    # The outcome depends on the expressions only (the columns are compared at
+    # fixed random states): kept as the indices of the removed candidates.
+    key = (
+        tuple(coordinates),
+        tuple(lagrangian_terms),
+        tuple(tuple(t.forces) for t in force_terms),
+        float(tol),
+    )
+    if key not in _REDUCED:
+        if len(_REDUCED) >= _REDUCED_SIZE:
+            _REDUCED.pop(next(iter(_REDUCED)))
+        _REDUCED[key] = _reduce_forces(lagrangian_terms, force_terms, coordinates, tol)
+    removed = _REDUCED[key]
+    kept = [t for j, t in enumerate(force_terms) if j not in removed]
+    return kept, [(force_terms[j].name, removed[j]) for j in sorted(removed)]
+
+
+def _reduce_forces(lagrangian_terms, force_terms, coordinates, tol) -> dict:
+    """:func:`reduce_forces` computed: {index of a removed candidate: reason}."""
     import torch
 
     from .euler_lagrange import EulerLagrangeOperator
 
-    if not force_terms:
-        return [], []
     n_dof = len(coordinates)
     rng = np.random.default_rng(0)
     n_points = int(np.ceil(3 * (len(lagrangian_terms) + len(force_terms)) / n_dof)) + 24
@@ -343,22 +368,18 @@ def reduce_forces(lagrangian_terms, force_terms, coordinates, *, tol: float = 1e
         r = c - basis @ (basis.T @ c)
         if np.linalg.norm(r) > 1e-9 * max(np.linalg.norm(c), 1e-300):
             basis = np.concatenate([basis, (r / np.linalg.norm(r))[:, None]], axis=1)
-    kept, removed = [], []
-    for j, term in enumerate(force_terms):
+    removed = {}
+    for j in range(len(force_terms)):
         c = cols[:, n_l + j]
         norm = np.linalg.norm(c)
         unit = c / norm if norm > 0 else c
         r = unit - basis @ (basis.T @ unit)
         r = r - basis @ (basis.T @ r)
         if norm == 0 or np.linalg.norm(r) < tol:
-            removed.append(
-                (
-                    term.name,
-                    "its regression column duplicates Lagrangian or earlier "
-                    "dissipation columns (e.g. a constant force equals a linear potential)",
-                )
+            removed[j] = (
+                "its regression column duplicates Lagrangian or earlier "
+                "dissipation columns (e.g. a constant force equals a linear potential)"
             )
             continue
         basis = np.concatenate([basis, (r / np.linalg.norm(r))[:, None]], axis=1)
-        kept.append(term)
-    return kept, removed
+    return removed

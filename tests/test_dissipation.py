@@ -68,6 +68,27 @@ def test_constant_force_duplicating_a_linear_potential_is_removed():
     assert removed[0][0] == "bias(x)" and "linear potential" in removed[0][1]
 
 
+def test_reduction_is_reused_for_the_same_candidates(monkeypatch):
+    from lagsindy import dissipation, euler_lagrange
+
+    lagrangian = CandidateLibrary.polynomial(["x"], degree=2).terms_  # contains x
+    forces = DissipationLibrary(["viscous", "bias"], coordinates=["x"]).build().terms_
+    first = reduce_forces(lagrangian, forces, ["x"])
+
+    def no_operator(*args, **kwargs):
+        raise AssertionError("the reduction ran again")
+
+    monkeypatch.setattr(euler_lagrange, "EulerLagrangeOperator", no_operator)
+    assert reduce_forces(lagrangian, forces, ["x"]) == first
+    # Other Lagrangian terms (no linear potential) are another reduction: the bias
+    # force then stays.
+    monkeypatch.undo()
+    without_x = [t for t in lagrangian if str(t) != "x"]
+    kept, removed = reduce_forces(without_x, forces, ["x"])
+    assert [t.name for t in kept] == ["viscous(x)", "bias(x)"] and removed == []
+    assert len(dissipation._REDUCED) <= dissipation._REDUCED_SIZE
+
+
 @pytest.mark.parametrize(
     "system, effect, value",
     [
