@@ -220,3 +220,19 @@ def test_shifts_for_many_delays_equal_one_shift_each(delayed):
                 ref[rows, j] = np.interp(t[rows] - d, t[rows], tau[rows, j])
         np.testing.assert_array_equal(many[k], ref)
         np.testing.assert_array_equal(shift_input(tau, t, d, groups), ref)
+
+
+def test_least_squares_equals_lstsq_and_falls_back_on_rank_deficiency():
+    from lagsindy.delay import _least_squares
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((500, 5))
+    B = rng.standard_normal((500, 7))
+    want = np.linalg.lstsq(A, B, rcond=None)[0]
+    # measured: equal to 4e-16 (by QR)
+    np.testing.assert_allclose(_least_squares(A, B), want, rtol=1e-12, atol=1e-14)
+    A[:, 4] = 2.0 * A[:, 1]  # rank deficient: the minimum-norm solution, as lstsq
+    want = np.linalg.lstsq(A, B, rcond=None)[0]
+    got = _least_squares(A, B)
+    assert np.all(np.isfinite(got))
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
