@@ -127,3 +127,23 @@ def test_ranking_keeps_the_shortlist_of_every_candidate(
         assert sum(batches) < n
     else:  # a noise correction: most bounds 0, every candidate in one batch
         assert batches == [n]
+
+
+def test_batched_dense_residuals_equal_one_at_a_time():
+    """The shortlist's path bounds, batched by size, are dense_residual's values."""
+    import torch
+
+    from lagsindy.formulation.scaling import dense_residual, dense_residuals
+    from lagsindy.solvers import GramQuadratic
+
+    g = torch.Generator().manual_seed(0)
+    problems = []
+    for n in (5, 5, 7, 5, 0, 7):
+        a = torch.randn(50, n, dtype=torch.float64, generator=g)
+        if n == 7:
+            a[:, 6] = a[:, 0] + a[:, 1]  # a null combination (dropped eigenvalue)
+        y = torch.randn(50, dtype=torch.float64, generator=g)
+        problems.append(GramQuadratic(a.T @ a, a.T @ y, float(y @ y)))
+    want = [dense_residual(d) for d in problems]
+    assert dense_residuals(problems) == want  # bit for bit (measured)
+    assert len(set(want)) == len(want) and want[4] == 0.0

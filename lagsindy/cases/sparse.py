@@ -16,7 +16,7 @@ import torch
 from sklearn.utils import check_random_state
 
 from .._torch import to_numpy
-from ..formulation.scaling import dense_residual
+from ..formulation.scaling import dense_residual, dense_residuals
 from ..solvers import GramQuadratic, staged_fista
 from ..solvers.staged import staged_fista_batch
 
@@ -335,8 +335,12 @@ class SparseSolve:
                 paths[j].append(res)
                 if one_start or self.lam_decay <= 1:
                     continue
-                if bounds[j] is None:
-                    bounds[j] = dense_residual(prepared[j][1])
+                if bounds[j] is None:  # every open problem's, at once
+                    todo = [i for i in open_ if bounds[i] is None]
+                    for i, v in zip(
+                        todo, dense_residuals([prepared[i][1] for i in todo])
+                    ):
+                        bounds[i] = v
                 if res.cost > (1 + PATH_TIE) * bounds[j] + PATH_FLOOR:
                     still.append(j)
             open_ = still

@@ -184,6 +184,27 @@ def dense_residual(datafit: GramQuadratic) -> float:
     return max(0.0, 1.0 - explained / datafit.const)
 
 
+def dense_residuals(datafits) -> list:
+    """:func:`dense_residual` of several problems, their eigen-decompositions batched
+    where they have the same size (the same values: LAPACK runs on each matrix)."""
+    out = [None] * len(datafits)
+    by_size = {}
+    for j, d in enumerate(datafits):
+        if d.const <= 0 or d.n_features == 0:
+            out[j] = 0.0
+        else:
+            by_size.setdefault(d.n_features, []).append(j)
+    for idx in by_size.values():
+        vals, vecs = torch.linalg.eigh(torch.stack([datafits[j].gram for j in idx]))
+        for k, j in enumerate(idx):
+            d = datafits[j]
+            keep = vals[k] > NULL_RCOND * float(vals[k, -1].clamp(min=0))
+            proj = vecs[k][:, keep].T @ d.rhs
+            explained = float((proj * proj / vals[k][keep]).sum())
+            out[j] = max(0.0, 1.0 - explained / d.const)
+    return out
+
+
 def fixed_term_bounds(gram) -> np.ndarray:
     r"""Lower bounds of every column's relative residual when the others fit it.
 

@@ -503,7 +503,6 @@ def fista_batch(
     if n_prob == 0:
         return out
     sizes = mask.sum(1)
-    stacked = gram * fmask[:, :, None] * fmask[:, None, :]
     live = np.flatnonzero(sizes > 0)
     warm = live[np.any(out.coef[live] != 0, axis=1)]
     if warm.size:
@@ -512,7 +511,7 @@ def fista_batch(
         # no step taken (step nan).
         nn_warm = None if nonneg is None else np.asarray(nonneg, dtype=bool)[warm]
         x, optimal, xdist = _polish(
-            gram if gram.ndim == 2 else stacked[warm],
+            gram if gram.ndim == 2 else _masked(gram[warm], fmask[warm]),
             np.where(mask, rhs, 0.0)[warm],
             lam * np.where(mask, weights, 0.0)[warm],
             None if nn_warm is None else nn_warm & mask[warm],
@@ -524,11 +523,16 @@ def fista_batch(
         out.coef[hit] = x[optimal]
         out.stop_crit[hit] = xdist[optimal]
         out.step[hit] = np.nan
-        live = np.setdiff1d(live, hit)
+        solved = np.zeros(n_prob, dtype=bool)
+        solved[hit] = True
+        live = live[~solved[live]]
     if live.size == 0:
         return out
     # The Lipschitz constants of the problems that iterate (one batched
-    # eigenvalue call: a few ms for 40 problems of 40 coordinates).
+    # eigenvalue call: a few ms for 40 problems of 40 coordinates), of each
+    # problem's Gram matrix with zeros off its coordinates (only now: the stages
+    # whose warm starts all end above do not need it).
+    stacked = _masked(gram, fmask)
     lip = np.zeros(n_prob)
     lip[live] = np.clip(np.linalg.eigvalsh(stacked[live])[:, -1], 0.0, None)
     reductions = np.zeros(n_prob, dtype=np.int64)
@@ -565,6 +569,11 @@ def fista_batch(
             max_step_reductions,
         )
     return out
+
+
+def _masked(gram, fmask):
+    """``gram`` (one matrix, or one per row) with zeros off each row's ``fmask``."""
+    return gram * fmask[:, :, None] * fmask[:, None, :]
 
 
 def _batch_loop(
