@@ -63,13 +63,20 @@ def case_iii_problem():
         noise=0.05,
         random_state=0,
     )
+    return first_problem(
+        LagrangianSINDy(system.paper_library(), random_state=0), data.X
+    )
+
+
+def first_problem(est, X, y=None, groups=None):
+    """The first case Problem ``est.fit(X, y, groups=groups)`` solves (quietly)."""
     seen = []
     original = estimator.solve_case
     try:
         estimator.solve_case = lambda case, p: seen.append(p) or original(case, p)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            LagrangianSINDy(system.paper_library(), random_state=0).fit(data.X)
+            est.fit(X, y, groups=groups)
     finally:
         estimator.solve_case = original
     return seen[0]
