@@ -196,7 +196,7 @@ def _rank(p: Problem, candidates, traces) -> list:
         rest = [r for r in candidates if r not in solved and bound[r] <= cut]
         if rest:
             run(rest)
-        if p.solver.verbose:
+        if p.solver.verbose and len(solved) < len(candidates):
             print(
                 f"[lagsindy] fixed-term ranking: {len(solved)} of {len(candidates)} "
                 "candidates solved (the others' least-squares bounds exceed the "
@@ -416,13 +416,10 @@ def pinv_solve(mat, rhs):
     det = a * c - b * b
     norm = a.abs() + c.abs() + 2 * b.abs()
     easy = det.abs() > 1e-8 * norm * norm
-    if bool(easy.all()):
-        return torch.stack([c * r0 - b * r1, a * r1 - b * r0], dim=-1) / det.unsqueeze(
-            -1
-        )
-    out = torch.empty_like(rhs)
     safe = torch.where(easy, det, 1.0).unsqueeze(-1)
-    out[easy] = (torch.stack([c * r0 - b * r1, a * r1 - b * r0], dim=-1) / safe)[easy]
+    out = torch.stack([c * r0 - b * r1, a * r1 - b * r0], dim=-1) / safe
+    if bool(easy.all()):
+        return out
     hard = ~easy
     out[hard] = _pinv_solve2(a[hard], b[hard], c[hard], r0[hard], r1[hard])
     return out

@@ -178,6 +178,11 @@ def dense_residual(datafit: GramQuadratic) -> float:
     if datafit.const <= 0 or datafit.n_features == 0:
         return 0.0
     vals, vecs = torch.linalg.eigh(datafit.gram)
+    return _unexplained(vals, vecs, datafit)
+
+
+def _unexplained(vals, vecs, datafit) -> float:
+    """:func:`dense_residual` from the eigen-decomposition of ``datafit.gram``."""
     keep = vals > NULL_RCOND * float(vals[-1].clamp(min=0))
     proj = vecs[:, keep].T @ datafit.rhs
     explained = float((proj * proj / vals[keep]).sum())
@@ -197,11 +202,7 @@ def dense_residuals(datafits) -> list:
     for idx in by_size.values():
         vals, vecs = torch.linalg.eigh(torch.stack([datafits[j].gram for j in idx]))
         for k, j in enumerate(idx):
-            d = datafits[j]
-            keep = vals[k] > NULL_RCOND * float(vals[k, -1].clamp(min=0))
-            proj = vecs[k][:, keep].T @ d.rhs
-            explained = float((proj * proj / vals[k][keep]).sum())
-            out[j] = max(0.0, 1.0 - explained / d.const)
+            out[j] = _unexplained(vals[k], vecs[k], datafits[j])
     return out
 
 

@@ -547,8 +547,6 @@ def fista_batch(
         st = st / 2.0**n_halvings
         reductions += n_halvings.astype(np.int64)
     out.step[live] = st[live]
-    if live.size == 0:
-        return out
     with np.errstate(over="ignore", invalid="ignore"):
         _batch_loop(
             out,
