@@ -613,6 +613,17 @@ class TermKernels:
 
         return self._per_term("mass", (n, n), q, qd, general)
 
+    def mass_matrices_t(self, q, qd, general_components):
+        """:meth:`mass_matrices` in the layout (p, d, d, n) (samples last).
+
+        The kernel's own layout: without general terms no copy is made, and a
+        combination of the terms' mass matrices is one matrix product.
+        """
+        n, s = self.n_dof, q.shape[0]
+        if self.plan is not None and not self.general.size:
+            return self._batched("mass", q, qd).reshape(self.n_terms, n, n, s)
+        return self.mass_matrices(q, qd, general_components).permute(1, 2, 3, 0)
+
     def gradients(self, q, qd, general_gradients):
         """``[d phi / dq, d phi / dqd]`` per sample, shape (n, p, 2 d)."""
         return self._per_term("grad", (2 * self.n_dof,), q, qd, general_gradients)

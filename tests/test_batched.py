@@ -77,6 +77,10 @@ def test_batched_components_and_gradients_match_torch_func(kind, names, angles, 
         lagrangian_components(plain, q, qd)[0].numpy(),
         "mass matrices",
     )
+    # samples last: the same values (bit for bit: one kernel, no arithmetic)
+    assert torch.equal(
+        op.mass_matrices_t(q, qd), op.mass_matrices(q, qd).permute(1, 2, 3, 0)
+    )
 
 
 def test_mixed_terms_split_between_batched_and_general_paths():
@@ -113,6 +117,11 @@ def test_mixed_terms_split_between_batched_and_general_paths():
     want = np.einsum("sip,siq->ipq", a, a)
     g = op.gram(X, y).numpy()
     np.testing.assert_allclose(g, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
+    # the samples-last layouts, general terms included
+    assert torch.equal(op.columns_t(X), op.columns(X).permute(1, 2, 0))
+    assert torch.equal(
+        op.mass_matrices_t(q, qd), op.mass_matrices(q, qd).permute(1, 2, 3, 0)
+    )
 
 
 def test_kernels_are_callable_per_sample_and_pickle():

@@ -1,5 +1,6 @@
 """Case III search: reused first starts and one-operator scoring change nothing."""
 
+import dataclasses
 
 import numpy as np
 import pytest
@@ -31,7 +32,10 @@ def test_shortlist_scores_equal_one_operator_per_model(case_iii_problem):
         coef[r] = 1.0
         coefs.append(coef)
     Xs = p.Xt[:500]
-    got = acceleration_r2s(p, coefs + [np.zeros(p.n_features)], Xs)
+    broken = coefs[0].copy()
+    broken[np.flatnonzero(broken)[0]] = np.nan  # its accelerations are not finite
+    got = acceleration_r2s(p, coefs + [np.zeros(p.n_features), broken], Xs)
+    assert got.pop() == -np.inf
     want = [_r2_one_operator(p, c, Xs) for c in coefs]
     assert got[-1] == -np.inf
     # measured: equal to 1e-15; the supports differ, so a mix-up shows at 1e-2
@@ -158,3 +162,12 @@ def test_mass_traces_are_computed_once_per_fit(monkeypatch, case_iii_problem):
     assert est.formulation_ == "weak"
     assert len(solves) >= 2  # two windows were solved (the second checks the first)
     assert len(calls) == 1
+
+
+def test_evenly_spaced_subsample_rows(case_iii_problem):
+    solver = dataclasses.replace(case_iii_problem.solver, random_state=None)
+    for n, size in [(10, 20), (4001, 4000), (4003, 4000), (123457, 4000), (7, 3)]:
+        rows = solver.subsample_rows(n, size)
+        want = np.unique(np.linspace(0, n - 1, size).round().astype(np.int64))
+        np.testing.assert_array_equal(rows, np.arange(n) if n <= size else want)
+        assert rows.size == min(n, size)  # no repeats were there to drop

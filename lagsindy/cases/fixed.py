@@ -231,11 +231,12 @@ def _mass_traces(p: Problem, rows) -> np.ndarray:
     op = EulerLagrangeOperator(
         p.coordinates, p.terms, dtype=p.Xt.dtype, device=p.Xt.device
     )
-    mass = op.mass_matrices(Xs[:, :d], Xs[:, d : 2 * d])
+    # (terms, dof, dof, rows): the kernels' layout, without a copy
+    mass = op.mass_matrices_t(Xs[:, :d], Xs[:, d : 2 * d])
     traces = np.zeros(p.n_features)
     # The mean over the rows first: a reduction over the diagonal's strided
     # entries of every row took most of this function's time.
-    mean = mass.mean(0)
+    mean = mass.mean(-1)
     traces[: op.n_terms] = to_numpy(torch.diagonal(mean, dim1=1, dim2=2).sum(1))
     return traces
 
@@ -354,8 +355,10 @@ def acceleration_r2s(p: Problem, coefs, Xt) -> list:
     op = p.feature_operator(union, Xt.device, Xt.dtype)
     n = p.n_dof
     q, qd, qdd = Xt[:, :n], Xt[:, n : 2 * n], Xt[:, 2 * n : 3 * n]
-    theta = op.columns(Xt)  # (rows, n_dof, features of the union)
-    mass = op.mass_matrices(q, qd)  # (rows, terms of the union, n_dof, n_dof)
+    # Samples last (the kernels' own layout): the models' combinations are plain
+    # matrix products, without copies.
+    theta = op.columns_t(Xt)  # (n_dof, features of the union, rows)
+    mass = op.mass_matrices_t(q, qd)  # (terms of the union, n_dof, n_dof, rows)
     # Each scored model's coefficients over the union (zero off its support).
     c = torch.zeros((len(scored), len(union)), dtype=Xt.dtype, device=Xt.device)
     for i, j in enumerate(scored):
@@ -363,13 +366,20 @@ def acceleration_r2s(p: Problem, coefs, Xt) -> list:
         c[i, torch.as_tensor(pos, device=Xt.device)] = torch.as_tensor(
             coefs[j][supports[j]], dtype=Xt.dtype, device=Xt.device
         )
-    mc = torch.einsum("skij,mk->msij", mass, c[:, : op.n_terms])
-    bias = torch.einsum("sif,mf->msi", theta, c) - torch.einsum("msij,sj->msi", mc, qdd)
-    pred = to_numpy(pinv_solve(mc, -bias))  # (models, rows, n_dof)
+    m, k = len(scored), op.n_terms
+    # (models, i, j, rows)
+    mc = (c[:, :k] @ mass.reshape(k, n * n * Xt.shape[0])).reshape(m, n, n, -1)
+    qdd_t = qdd.T
+    inertial = sum(mc[:, :, j] * qdd_t[j] for j in range(n))  # (models, i, rows)
+    bias = torch.matmul(c, theta).transpose(0, 1) - inertial
+    pred = pinv_solve(mc.permute(0, 3, 1, 2), -bias.transpose(1, 2))  # (m, rows, n)
+    # Squared errors summed in torch; a prediction that is not finite leaves its
+    # sum not finite, and the model scores -inf.
+    numerator = to_numpy(((qdd[None] - pred) ** 2).sum(1))  # (models, n_dof)
+    values = _r2_from_sums(numerator, _total_squares(to_numpy(qdd)))
     scores = [-np.inf] * len(coefs)
-    values = r2_scores(to_numpy(qdd), pred)
     for i, j in enumerate(scored):
-        if np.all(np.isfinite(pred[i])):
+        if np.all(np.isfinite(numerator[i])):
             scores[j] = float(values[i])
     return scores
 
@@ -497,7 +507,17 @@ def r2_scores(true, pred):
         zero variance, the outputs' scores are averaged with equal weights.
     """
     numerator = ((true[None] - pred) ** 2).sum(axis=1)  # (models, outputs)
-    denominator = ((true - np.average(true, axis=0)) ** 2).sum(axis=0)
+    return _r2_from_sums(numerator, _total_squares(true))
+
+
+def _total_squares(true):
+    """Per output, the squared deviations of ``true`` from their mean, summed."""
+    return ((true - np.average(true, axis=0)) ** 2).sum(axis=0)
+
+
+def _r2_from_sums(numerator, denominator):
+    """:func:`r2_scores` from the summed squared errors (models, outputs) and
+    :func:`_total_squares` of the true values."""
     nonzero_den = denominator != 0
     nonzero_num = numerator != 0
     valid = nonzero_den[None] & nonzero_num

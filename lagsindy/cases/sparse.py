@@ -89,7 +89,9 @@ class SparseSolve:
         if n <= size:
             return np.arange(n)
         if self.random_state is None:
-            return np.unique(np.linspace(0, n - 1, size).round().astype(np.int64))
+            # Points more than 1 apart (n > size) round to distinct integers, in
+            # order: no np.unique needed (it took 0.8 ms).
+            return np.linspace(0, n - 1, size).round().astype(np.int64)
         rng = check_random_state(self.random_state)
         return np.sort(rng.choice(n, size=size, replace=False))
 

@@ -323,6 +323,16 @@ class EulerLagrangeOperator:
             return q.new_zeros((q.shape[0], 0, self.n_dof, self.n_dof))
         return self._fn.mass_matrices(q, qd, _general_components(self.chunk_size))
 
+    def mass_matrices_t(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
+        """:meth:`mass_matrices` in the layout (n_terms, n_dof, n_dof, n_samples)."""
+        if isinstance(self._fn, TermKernels):
+            return self._fn.mass_matrices_t(q, qd, _general_components(self.chunk_size))
+        return self.mass_matrices(q, qd).permute(1, 2, 3, 0)
+
+    def columns_t(self, X: torch.Tensor) -> torch.Tensor:
+        """:meth:`columns` in the layout (n_dof, n_columns, n_samples)."""
+        return self._columns_t(X)
+
     def gram(self, X: torch.Tensor, y: torch.Tensor | None = None, extra=None):
         """Per-dof Gram statistics of ``A = [Theta | extra | y]``, accumulated in chunks.
 

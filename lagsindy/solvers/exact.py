@@ -12,6 +12,8 @@ converges to.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.linalg import get_lapack_funcs
 
@@ -108,6 +110,7 @@ def _active_set(gram, b, lw, nn, x, tol, max_steps=None):
     max_steps = 2 * p + 10 if max_steps is None else max_steps
     x = x if nn is None else np.where(nn, np.maximum(x, 0.0), x)
     free = lw == 0 if nn is None else (lw == 0) & ~nn
+    penalised = ~free
 
     gesv = get_lapack_funcs("gesv", (gram,))
 
@@ -116,52 +119,63 @@ def _active_set(gram, b, lw, nn, x, tol, max_steps=None):
         return 0.5 * quad - points @ b + np.abs(points) @ lw
 
     f = objective(x[None])[0]
+    # (method calls and whole-vector products where the first version indexed:
+    # a step is some 50 small NumPy calls, whose overhead is its cost)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         for _ in range(max_steps):
             grad = gram @ x - b
-            dist = _kkt_distance(x, grad, lw, nn)
-            worst = float(dist.max()) if p else 0.0
-            if worst <= tol:
-                return x, True, worst
-            on = (x != 0) | free
+            nz = x != 0
             signs = np.sign(x)
-            if not np.any(dist[on] > tol):  # optimal on the active set: grow it
+            dist = _kkt_signed(grad, lw, nn, nz, signs)
+            worst = dist.max() if p else 0.0
+            if worst <= tol:
+                return x, True, float(worst)
+            on = nz | free
+            if not (dist[on] > tol).any():  # optimal on the active set: grow it
                 i = int(np.where(on, -1.0, dist).argmax())
                 on[i] = True
                 signs[i] = 1.0 if nn is not None and nn[i] else -np.sign(grad[i])
-            act = np.flatnonzero(on)
-            rhs = b[act] - lw[act] * signs[act]
+            act = on.nonzero()[0]
             # LAPACK's gesv directly (as np.linalg.solve, without its overhead,
             # which dominated a step)
-            *_, sub, info = gesv(gram.take(act, 0).take(act, 1), rhs)
-            if info != 0 or not np.isfinite(sub.sum()):  # singular: keep iterating
-                return x, False, worst
+            sub_gram = gram.take(act, 0).take(act, 1)
+            *_, sub, info = gesv(sub_gram, (b - lw * signs)[act])
+            if info != 0 or not math.isfinite(sub.sum()):  # singular: keep iterating
+                return x, False, float(worst)
             target = np.zeros(p, dtype=x.dtype)
             target[act] = sub
             d = target - x
             # Points where a coordinate of x reaches zero on the way to the target.
             flips = np.sign(target) != signs
-            cross = np.where((x != 0) & flips, x / -d, np.inf)
+            cross = np.where(nz & flips, x / -d, np.inf)
             ts = np.sort(cross[(cross > 0) & (cross < 1)])
             ts = np.concatenate((ts, [1.0]))
             if nn is not None:  # a non-negative coordinate may not pass zero
                 limit = float(np.where(nn & (d < 0), x / -d, np.inf).min())
                 ts = ts[ts <= limit] if limit > 0 else ts[:0]
             if ts.size == 0:
-                return x, False, worst
+                return x, False, float(worst)
             points = np.empty((ts.size + 1, p), dtype=x.dtype)
             points[:-1] = x + ts[:, None] * d
             points[:-1][cross == ts[:, None]] = 0.0
             # and the jump to the target with every coordinate whose sign it
             # flips set to zero (many leave at once when the iterate is dense)
-            points[-1] = np.where(~free & flips, 0.0, target)
+            points[-1] = np.where(penalised & flips, 0.0, target)
             if nn is not None:
                 points = np.where(nn, np.maximum(points, 0.0), points)
             values = objective(points)
             j = int(values.argmin())
             if not values[j] < f:
-                return x, False, worst
+                return x, False, float(worst)
             x, f = points[j], values[j]
     dist = _kkt_distance(x, gram @ x - b, lw, nn)
     worst = float(dist.max()) if p else 0.0
     return x, worst <= tol, worst
+
+
+def _kkt_signed(grad, lw, nn, nz, signs):
+    """:func:`_kkt_distance` given ``nz = w != 0`` and ``signs = np.sign(w)``."""
+    at_zero = np.maximum(np.abs(grad) - lw, 0.0)
+    if nn is not None:
+        at_zero = np.where(nn, np.maximum(-grad - lw, 0.0), at_zero)
+    return np.where(nz, np.abs(grad + lw * signs), at_zero)
