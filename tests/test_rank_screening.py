@@ -141,3 +141,28 @@ def test_batched_dense_residuals_equal_one_at_a_time():
     want = [dense_residual(d) for d in problems]
     assert dense_residuals(problems) == want  # bit for bit (measured)
     assert len(set(want)) == len(want) and want[4] == 0.0
+
+
+def test_problems_cut_from_one_block_equal_problem_bit_for_bit():
+    import torch
+
+    from lagsindy.formulation.scaling import BalancedGram
+
+    rng = np.random.default_rng(4)
+    a = rng.standard_normal((2, 200, 9)) * rng.uniform(0.1, 10.0, 9)
+    a[:, :, 4] = 0.0  # a zero column: its scale is 1
+    gram = torch.as_tensor(np.einsum("dsi,dsj->dij", a, a))
+    balanced = BalancedGram(gram, 200, 9)
+    jobs = [([0, 1, 2, 3, 5, 6], 7, -1.0), ([1, 4, 8], 0, 1.0), ([2, 3], 6, -1.0)]
+    pairs, union, block = balanced.problems(jobs)
+    np.testing.assert_array_equal(union, [0, 1, 2, 3, 4, 5, 6, 8])
+    assert torch.equal(block, balanced.block(union)[0])
+    w = torch.as_tensor(rng.standard_normal(6))
+    for (free, target, sign), (datafit, to_coef) in zip(jobs, pairs):
+        want, want_coef = balanced.problem(free, target, sign)
+        assert torch.equal(datafit.gram, want.gram)
+        assert torch.equal(datafit.rhs, want.rhs)
+        assert datafit.const == want.const
+        assert torch.equal(to_coef(w[: len(free)]), want_coef(w[: len(free)]))
+    with pytest.raises(ValueError, match="identically zero"):
+        balanced.problems([([0, 1], 4, 1.0)])

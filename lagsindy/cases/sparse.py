@@ -259,8 +259,8 @@ class SparseSolve:
         """
         starts = LAM_STARTS if starts is None else starts
         prepared = []
-        for free, target, sign, constrain, first in jobs:
-            datafit, to_coef = balanced.problem(free, target, sign)
+        pairs, union, block = balanced.problems([job[:3] for job in jobs])
+        for (free, _, _, constrain, first), (datafit, to_coef) in zip(jobs, pairs):
             weights = torch.as_tensor(
                 penalty[free], dtype=datafit.rhs.dtype, device=datafit.rhs.device
             )
@@ -292,20 +292,31 @@ class SparseSolve:
                 )
         if batched:
             solved = self._batch(
-                balanced, [prepared[j] for j in batched], reference, starts
+                balanced,
+                [prepared[j] for j in batched],
+                reference,
+                starts,
+                (union, block),
             )
             for j, out in zip(batched, solved):
                 results[j] = out
         return results
 
-    def _batch(self, balanced, prepared, reference, starts):
-        """The staged solves (every start) of ``prepared`` problems of ``balanced``."""
+    def _batch(self, balanced, prepared, reference, starts, shared):
+        """The staged solves (every start) of ``prepared`` problems of ``balanced``.
+
+        ``shared``: ``(union, block)``, a superset of the problems' columns and its
+        scaled Gram block (:meth:`BalancedGram.problems`).
+        """
         n_features = balanced.n_features
         n = len(prepared)
         # Every problem's Gram matrix is a block of one scaled Gram matrix: the
         # batched iterations multiply by that matrix once for all of them.
         union = np.unique(np.concatenate([job[0] for job in prepared]))
-        common = to_numpy(balanced.block(union)[0])
+        common = to_numpy(shared[1])
+        if union.size < shared[0].size:
+            keep = np.searchsorted(shared[0], union)
+            common = common[np.ix_(keep, keep)]
         index = [np.searchsorted(union, job[0]) for job in prepared]
         paths = [[] for _ in range(n)]
         open_ = list(range(n))

@@ -158,6 +158,44 @@ class BalancedGram:
 
         return datafit, to_coef
 
+    def problems(self, jobs):
+        """:meth:`problem` of several ``(free, target, sign)``, bit for bit.
+
+        Every block is cut from one scaled block of the union of the ``free``
+        columns (a block's entries are element-wise the same), not scaled anew.
+
+        Returns
+        -------
+        pairs : list of (GramQuadratic, callable)
+            As :meth:`problem` returns, in the order of ``jobs``.
+        union : ndarray of int
+            The sorted union of the ``free`` columns.
+        block : Tensor of shape (len(union), len(union))
+            ``block(union)[0]``.
+        """
+        device = self.gram.device
+        frees = [np.asarray(free, dtype=np.int64) for free, _, _ in jobs]
+        union = np.unique(np.concatenate(frees)) if frees else np.zeros(0, np.int64)
+        g_all, s_all = self.block(union)
+        # target_scale of every column at once (element-wise: the same values)
+        y_scales = torch.sqrt(torch.clamp(torch.diagonal(self.gram), min=0)).tolist()
+        pairs = []
+        for f, (_, target, sign) in zip(frees, jobs):
+            y_scale = y_scales[target]
+            if y_scale <= 0:
+                raise ValueError("the target is identically zero on the data")
+            pos = torch.as_tensor(np.searchsorted(union, f), device=device)
+            s_safe = s_all[pos]
+            g = g_all[pos][:, pos]
+            column = self.gram[torch.as_tensor(f, device=device), target]
+            b = sign * column / (s_safe * y_scale)
+
+            def to_coef(w, s_safe=s_safe, y_scale=y_scale):
+                return w * y_scale / s_safe
+
+            pairs.append((GramQuadratic(g, b, 1.0), to_coef))
+        return pairs, union, g_all
+
 
 # Eigenvalue ratio of the scaled Gram matrix below which a combination of terms is
 # treated as having no effect on the data.
