@@ -430,7 +430,7 @@ def pinv_solve(mat, rhs):
     out = torch.stack([c * r0 - b * r1, a * r1 - b * r0], dim=-1) / safe
     if bool(easy.all()):
         return out
-    hard = ~easy
+    hard = (~easy).nonzero(as_tuple=True)  # one search, five gathers
     out[hard] = _pinv_solve2(a[hard], b[hard], c[hard], r0[hard], r1[hard])
     return out
 
