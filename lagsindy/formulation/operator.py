@@ -83,8 +83,7 @@ def _quiet_forward_ad():
 
 def _chunks(n: int, size: int):
     size = max(1, int(size))
-    for start in range(0, n, size):
-        yield slice(start, min(n, start + size))
+    return (slice(start, min(n, start + size)) for start in range(0, n, size))
 
 
 def _columns_one(fn: TermFunction):
@@ -329,10 +328,6 @@ class EulerLagrangeOperator:
             return self._fn.mass_matrices_t(q, qd, _general_components(self.chunk_size))
         return self.mass_matrices(q, qd).permute(1, 2, 3, 0)
 
-    def columns_t(self, X: torch.Tensor) -> torch.Tensor:
-        """:meth:`columns` in the layout (n_dof, n_columns, n_samples)."""
-        return self._columns_t(X)
-
     def gram(self, X: torch.Tensor, y: torch.Tensor | None = None, extra=None):
         """Per-dof Gram statistics of ``A = [Theta | extra | y]``, accumulated in chunks.
 
@@ -380,9 +375,9 @@ class EulerLagrangeOperator:
         return max(GRAM_MIN_CHUNK, min(int(self.chunk_size), step))
 
     def _columns_into(self, X: torch.Tensor, out: torch.Tensor, work: dict):
-        """:meth:`_columns_t` written into ``out`` (n_dof, n_columns, n_samples)."""
+        """:meth:`columns_t` written into ``out`` (n_dof, n_columns, n_samples)."""
         if not isinstance(self._fn, TermKernels) or self._fn.plan is None:
-            out.copy_(self._columns_t(X))
+            out.copy_(self.columns_t(X))
             return out
         q, qd, qdd = self._split(X)
         p = self.n_terms
@@ -393,7 +388,7 @@ class EulerLagrangeOperator:
             out[:, p:] = -self.force_values(q, qd).permute(1, 2, 0)
         return out
 
-    def _columns_t(self, X: torch.Tensor) -> torch.Tensor:
+    def columns_t(self, X: torch.Tensor) -> torch.Tensor:
         """:meth:`columns` in the layout (n_dof, n_columns, n_samples)."""
         q, qd, qdd = self._split(X)
         if not isinstance(self._fn, TermKernels) and self._fn is not None:

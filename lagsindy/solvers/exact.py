@@ -127,8 +127,8 @@ def _active_set(gram, b, lw, nn, x, tol, max_steps=None):
         return 0.5 * quad - points @ b + np.abs(points) @ lw
 
     f = objective(x[None])[0]
-    # (method calls and whole-vector products where the first version indexed:
-    # a step is some 50 small NumPy calls, whose overhead is its cost)
+    # A step is some 45 small NumPy calls whose overhead is its cost: method calls
+    # and whole-vector products rather than index-then-compute.
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         for _ in range(max_steps):
             grad = gram @ x - b
