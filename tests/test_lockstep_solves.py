@@ -163,6 +163,28 @@ def test_solve_many_equals_solve(case_iii_problem):
     assert restarted > 0  # some candidates need the second start on these data
 
 
+def test_solve_many_batches_several_cpu_problems(monkeypatch, case_iii_problem):
+    """Several double-precision CPU problems go through the lockstep solver (one
+    call per start), a single one through solve."""
+    from lagsindy.cases import sparse
+
+    p = case_iii_problem
+    calls = []
+
+    def counted(datafits, **kwargs):
+        calls.append(len(datafits))
+        return staged_fista_batch(datafits, **kwargs)
+
+    monkeypatch.setattr(sparse, "staged_fista_batch", counted)
+    free = np.flatnonzero(p.identifiable)
+    jobs = [(free[free != r], r, -1.0, True, None) for r in free[:3]]
+    p.solver.solve_many(p.balanced, jobs, p.penalty, 1.0, starts=1)
+    assert calls == [3]
+    calls.clear()
+    p.solver.solve_many(p.balanced, jobs[:1], p.penalty, 1.0, starts=1)
+    assert calls == []
+
+
 def test_staged_fista_batch_keeps_a_small_unpenalised_feature():
     """The hard threshold spares unpenalised (known) features, as staged_fista."""
     rng = np.random.default_rng(5)

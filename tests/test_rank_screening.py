@@ -159,10 +159,14 @@ def test_problems_cut_from_one_block_equal_problem_bit_for_bit():
     assert torch.equal(block, balanced.block(union)[0])
     w = torch.as_tensor(rng.standard_normal(6))
     for (free, target, sign), (datafit, to_coef) in zip(jobs, pairs):
-        want, want_coef = balanced.problem(free, target, sign)
-        assert torch.equal(datafit.gram, want.gram)
-        assert torch.equal(datafit.rhs, want.rhs)
-        assert datafit.const == want.const
-        assert torch.equal(to_coef(w[: len(free)]), want_coef(w[: len(free)]))
+        # each job scaled on its own: the same values bit for bit
+        g, s = balanced.block(free)
+        y = balanced.target_scale(target)
+        assert torch.equal(datafit.gram, g)
+        assert torch.equal(datafit.rhs, sign * balanced.gram[free, target] / (s * y))
+        assert datafit.const == 1.0
+        assert torch.equal(to_coef(w[: len(free)]), w[: len(free)] * y / s)
+        alone = balanced.problem(free, target, sign)[0]
+        assert torch.equal(alone.gram, g) and torch.equal(alone.rhs, datafit.rhs)
     with pytest.raises(ValueError, match="identically zero"):
         balanced.problems([([0, 1], 4, 1.0)])

@@ -258,29 +258,12 @@ class SparseSolve:
             As :meth:`solve` returns, in the order of ``jobs``.
         """
         starts = LAM_STARTS if starts is None else starts
-        prepared = []
-        pairs, union, block = balanced.problems([job[:3] for job in jobs])
-        for (free, _, _, constrain, first), (datafit, to_coef) in zip(jobs, pairs):
-            weights = torch.as_tensor(
-                penalty[free], dtype=datafit.rhs.dtype, device=datafit.rhs.device
-            )
-            nonneg = self.nonneg(free, weights.device) if constrain else None
-            prepared.append(
-                (np.asarray(free), datafit, to_coef, weights, nonneg, first)
-            )
-        results = [None] * len(jobs)
-        batched = []
-        for j, (free, datafit, *_rest) in enumerate(prepared):
-            cpu64 = (
-                datafit.rhs.device.type == "cpu" and datafit.rhs.dtype == torch.float64
-            )
-            if cpu64 and len(jobs) > 1:
-                batched.append(j)
-            else:
-                free_, target, sign, constrain, first = jobs[j]
-                results[j] = self.solve(
+        gram = balanced.gram
+        if len(jobs) <= 1 or gram.device.type != "cpu" or gram.dtype != torch.float64:
+            return [
+                self.solve(
                     balanced,
-                    free_,
+                    free,
                     target,
                     sign,
                     penalty,
@@ -290,33 +273,29 @@ class SparseSolve:
                     constrain=constrain,
                     first=first,
                 )
-        if batched:
-            solved = self._batch(
-                balanced,
-                [prepared[j] for j in batched],
-                reference,
-                starts,
-                (union, block),
+                for free, target, sign, constrain, first in jobs
+            ]
+        prepared = []
+        pairs, union, block = balanced.problems([job[:3] for job in jobs])
+        for (free, _, _, constrain, first), (datafit, to_coef) in zip(jobs, pairs):
+            weights = torch.as_tensor(penalty[free], dtype=gram.dtype)
+            nonneg = self.nonneg(free, weights.device) if constrain else None
+            prepared.append(
+                (np.asarray(free), datafit, to_coef, weights, nonneg, first)
             )
-            for j, out in zip(batched, solved):
-                results[j] = out
-        return results
+        return self._batch(balanced, prepared, reference, starts, union, block)
 
-    def _batch(self, balanced, prepared, reference, starts, shared):
+    def _batch(self, balanced, prepared, reference, starts, union, block):
         """The staged solves (every start) of ``prepared`` problems of ``balanced``.
 
-        ``shared``: ``(union, block)``, a superset of the problems' columns and its
-        scaled Gram block (:meth:`BalancedGram.problems`).
+        ``union`` holds the problems' columns and ``block`` its scaled Gram block
+        (:meth:`BalancedGram.problems`).
         """
         n_features = balanced.n_features
         n = len(prepared)
         # Every problem's Gram matrix is a block of one scaled Gram matrix: the
         # batched iterations multiply by that matrix once for all of them.
-        union = np.unique(np.concatenate([job[0] for job in prepared]))
-        common = to_numpy(shared[1])
-        if union.size < shared[0].size:
-            keep = np.searchsorted(shared[0], union)
-            common = common[np.ix_(keep, keep)]
+        common = to_numpy(block)
         index = [np.searchsorted(union, job[0]) for job in prepared]
         paths = [[] for _ in range(n)]
         open_ = list(range(n))

@@ -145,24 +145,14 @@ class BalancedGram:
         to_coef : callable
             Maps ``w`` to coefficients of the unscaled columns.
         """
-        free_t = torch.as_tensor(free, dtype=torch.long, device=self.gram.device)
-        y_scale = self.target_scale(target)
-        if y_scale <= 0:
-            raise ValueError("the target is identically zero on the data")
-        g, s_safe = self.block(free)
-        b = sign * self.gram[free_t, target] / (s_safe * y_scale)
-        datafit = GramQuadratic(g, b, 1.0)
-
-        def to_coef(w):
-            return w * y_scale / s_safe
-
-        return datafit, to_coef
+        return self.problems([(free, target, sign)])[0][0]
 
     def problems(self, jobs):
-        """:meth:`problem` of several ``(free, target, sign)``, bit for bit.
+        """:meth:`problem` of several ``(free, target, sign)``.
 
-        Every block is cut from one scaled block of the union of the ``free``
-        columns (a block's entries are element-wise the same), not scaled anew.
+        Every block is cut from one scaled block (:meth:`block`) of the union of
+        the ``free`` columns: its entries are element-wise those of each job's own
+        block, so the result does not depend on which jobs go together.
 
         Returns
         -------
