@@ -8,7 +8,7 @@ import torch
 from _lasso_problems import solve_stacked, wandering_lasso
 
 from lagsindy.solvers import L1, GramQuadratic, fista, staged_fista
-from lagsindy.solvers.exact import _active_set
+from lagsindy.solvers.exact import _active_set, _active_set_batch, _kkt_distance
 from lagsindy.solvers.fista import fista_batch
 
 # the module (``lagsindy.solvers.fista`` is also the name of the function)
@@ -45,9 +45,9 @@ def test_active_set_search_drops_many_coordinates_at_once():
     np.testing.assert_allclose(got, x, rtol=0, atol=1e-10)
 
 
-def _steps_to_finish(G, b, lw, start):
+def _steps_to_finish(G, b, lw, start, nn=None):
     for k in range(1, 100):
-        x, ok, _ = _active_set(G, b, lw, None, start, 1e-10, max_steps=k)
+        x, ok, _ = _active_set(G, b, lw, nn, start, 1e-10, max_steps=k)
         if ok:
             return k, x
     raise AssertionError("the search did not finish")
@@ -94,6 +94,141 @@ def test_active_set_search_reports_failure_instead_of_a_wrong_answer():
     # three steps add at most three of the fifteen coordinates: not optimal, said so
     assert not ok and dist > 1e-10
     assert dist == pytest.approx(_kkt(G, b, lam, got))
+
+
+def _clamp_problem(seed):
+    """Nearly collinear pairs of columns, a dense start (as in the test above)."""
+    rng = np.random.default_rng(seed)
+    a = rng.standard_normal((200, 30))
+    a[:, 10:20] = a[:, :10] + 0.05 * rng.standard_normal((200, 10))
+    G = a.T @ a / 200
+    w = np.zeros(30)
+    w[[0, 3, 7, 12, 25]] = [1.0, -2.0, 0.5, 1.5, -1.0]
+    b = G @ w + 0.01 * rng.standard_normal(30)
+    return G, b, np.full(30, 0.05), 0.3 * rng.standard_normal(30)
+
+
+def test_batched_search_gives_each_rows_own_search():
+    """Rows of their own matrices, one with non-negative coordinates, one with a
+    step budget that runs out: each row's outcome is _active_set's."""
+    problems = [_clamp_problem(s) for s in (0, 1, 2)]
+    G, b, lam, x = wandering_lasso()
+    problems.append((G, b, np.full(30, lam), np.where(x > 0, -0.5, 0.3)))
+    nn = np.zeros((4, 30), dtype=bool)
+    nn[3] = x > 0
+    gram = np.stack([p[0] for p in problems])
+    rhs, lw, start = (np.stack([p[k] for p in problems]) for k in (1, 2, 3))
+    got, ok, dist = _active_set_batch(
+        gram, rhs, lw, nn, start, np.ones_like(rhs), 1e-10
+    )
+    assert ok.all()
+    for r, (G_r, b_r, lw_r, start_r) in enumerate(problems):
+        want, ok_r, _ = _active_set(G_r, b_r, lw_r, nn[r] if r == 3 else None,
+                                    start_r, 1e-10)  # fmt: skip
+        assert ok_r
+        assert np.array_equal(got[r] != 0, want != 0)
+        np.testing.assert_allclose(got[r], want, rtol=0, atol=1e-14)  # measured 0
+        assert dist[r] <= 1e-10
+    assert np.all(got[3][nn[3]] >= 0)
+    np.testing.assert_allclose(got[3], x, rtol=0, atol=1e-10)
+
+
+def test_batched_search_where_non_negativity_binds():
+    """Non-negative coordinates whose unconstrained minimiser is negative (and, in
+    one row, unpenalised ones): each row's constrained minimiser, as one by one."""
+    G, b, lam, x = wandering_lasso()
+    nn, lw, start = [], [], []
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        nn.append(rng.random(30) < 0.7)
+        lw.append(np.full(30, lam))
+        start.append(rng.uniform(-0.5, 1.0, 30))
+    lw[1][[0, 5, 9]] = 0.0
+    nn, lw, start = np.array(nn), np.array(lw), np.array(start)
+    rhs = np.tile(b, (3, 1))
+    got, ok, dist = _active_set_batch(G, rhs, lw, nn, start, np.ones_like(rhs), 1e-10)
+    assert ok.all()
+    for r in range(3):
+        want, ok_r, _ = _active_set(G, b, lw[r], nn[r], start[r], 1e-10)
+        assert ok_r
+        np.testing.assert_allclose(got[r], want, rtol=0, atol=1e-14)  # measured 0
+        assert np.all(got[r][nn[r]] >= 0)
+        # the constraint binds: 5, 4 and 5 coordinates held at zero
+        assert np.sum((got[r] == 0) & nn[r] & (x < 0)) >= 4
+        kkt = _kkt_distance(got[r], G @ got[r] - b, lw[r], nn[r]).max()
+        assert kkt <= 1e-10 and dist[r] == pytest.approx(kkt)  # measured 7e-16
+    # and in as many steps (the non-negative coordinates stop the segments)
+    needed = [_steps_to_finish(G, b, lw[r], start[r], nn[r])[0] for r in range(3)]
+    assert needed == [20, 20, 19]  # measured
+    for k in range(min(needed) - 1, max(needed) + 1):
+        _, ok, _ = _active_set_batch(G, rhs, lw, nn, start, np.ones_like(rhs), 1e-10, k)
+        assert ok.tolist() == [n <= k for n in needed]
+
+
+@pytest.mark.parametrize("clamp", [True, False])
+def test_batched_search_takes_the_steps_of_the_one_row_search(monkeypatch, clamp):
+    """In lockstep, each row finishes in as many steps as _active_set alone (with
+    and without the clamped points): one step fewer leaves it unfinished."""
+    exact = importlib.import_module("lagsindy.solvers.exact")
+    monkeypatch.setattr(exact, "CLAMP_POINTS", clamp)
+    problems = [_clamp_problem(s) for s in (0, 1, 2)]
+    gram = np.stack([p[0] for p in problems])
+    rhs, lw, start = (np.stack([p[k] for p in problems]) for k in (1, 2, 3))
+    needed = [_steps_to_finish(*p)[0] for p in problems]
+    # measured: 8, 10, 11 with the clamped points; 19, 15, 17 without
+    assert needed == ([8, 10, 11] if clamp else [19, 15, 17])
+    ones = np.ones_like(rhs)
+    for k in sorted(set(needed)):
+        _, ok, _ = _active_set_batch(gram, rhs, lw, None, start, ones, 1e-10, k)
+        assert ok.tolist() == [n <= k for n in needed]
+        _, ok, _ = _active_set_batch(gram, rhs, lw, None, start, ones, 1e-10, k - 1)
+        assert ok.tolist() == [n <= k - 1 for n in needed]
+
+
+def test_batched_search_on_blocks_of_one_matrix_with_a_failing_row():
+    """A shared matrix and each row's coordinates (fmask): the rows' minimisers on
+    their blocks; a row that runs out of steps or meets a singular block says so
+    and does not stop the others."""
+    G, b, lam, x = wandering_lasso()
+    rng = np.random.default_rng(3)
+    masks = np.ones((4, 30))
+    masks[1, rng.choice(30, 6, replace=False)] = 0
+    masks[2, ::3] = 0
+    singular = G.copy()  # column 5 repeated as column 4: a singular block
+    singular[4], singular[:, 4] = G[5], G[:, 5]
+    singular[4, 4] = G[5, 5]
+    gram = np.stack([G, G, G, singular])
+    rhs = b * masks
+    lw = lam * masks
+    start = 0.3 * np.cos(np.arange(30)) * masks
+    got, ok, dist = _active_set_batch(gram, rhs, lw, None, start, masks, 1e-10)
+    for r in range(3):
+        on = masks[r] > 0
+        want, ok_r, _ = _active_set(G[np.ix_(on, on)], b[on], lw[r, on], None,
+                                    start[r, on], 1e-10)  # fmt: skip
+        assert ok[r] and ok_r
+        np.testing.assert_allclose(got[r, on], want, rtol=0, atol=1e-13)  # measured 0
+        assert np.all(got[r, ~on] == 0)
+    np.testing.assert_allclose(got[0], x, rtol=0, atol=1e-10)
+    want, ok_3, dist_3 = _active_set(singular, b, lw[3], None, start[3], 1e-10)
+    assert not ok[3] and not ok_3  # the repeated column makes the full block singular
+    assert dist[3] == pytest.approx(dist_3)
+    # the same shared matrix without a batch dimension
+    shared, ok_s, _ = _active_set_batch(G, rhs[:3], lw[:3], None, start[:3],
+                                        masks[:3], 1e-10)  # fmt: skip
+    assert ok_s.all()
+    np.testing.assert_allclose(shared, got[:3], rtol=0, atol=1e-13)
+
+
+def test_fista_batch_runs_the_search_on_many_problems():
+    """Fourteen problems (more than the search once ran on, one at a time) all end
+    by the batched search at the first try."""
+    problems = [wandering_lasso(seed=s) for s in range(1, 15)]
+    res = solve_stacked(problems)
+    assert res.converged.all()
+    for r, (_, _, _, x) in enumerate(problems):
+        np.testing.assert_allclose(res.coef[r], x, rtol=0, atol=1e-10)
+    assert res.n_iter.max() == 50  # measured: 50 each
 
 
 def test_fista_ends_by_the_active_set_search_where_it_wanders():

@@ -9,14 +9,13 @@ import numpy as np
 import torch
 
 from .datafits import GramQuadratic
-from .exact import _active_set, _kkt_distance, _polish
+from .exact import _active_set, _active_set_batch, _kkt_distance, _polish
 from .penalties import L1
 
 # Iterations at which a run on NumPy arrays that is still going tries to finish by
-# an active-set search from its iterate (see _active_set); in a batch only while at
-# most ACTIVE_SET_ROWS problems are left (the search is one problem at a time).
+# an active-set search from its iterate (see _active_set; a batch searches for all
+# its running problems at once, _active_set_batch).
 ACTIVE_SET_AT = frozenset(50 * 2**k for k in range(12))
-ACTIVE_SET_ROWS = 12
 
 _REQUIRED = {
     "datafit": (
@@ -712,22 +711,22 @@ def _batch_loop(
                 w[hit] = x[optimal]
                 stop[hit] = xdist[optimal]
                 done[hit] = True
-        if it in ACTIVE_SET_AT and len(rows) <= ACTIVE_SET_ROWS:
-            for i in np.flatnonzero(~done & ~reset):
-                on = fmask[i] > 0
-                x, ok, xdist = _active_set(
-                    (g if shared else g[i])[np.ix_(on, on)],
-                    b[i, on],
-                    lw[i, on],
-                    None if nn is None else nn[i, on],
-                    w[i, on],
+        if it in ACTIVE_SET_AT:
+            sel = np.flatnonzero(~done & ~reset)
+            if sel.size:
+                x, ok, xdist = _active_set_batch(
+                    g if shared else g[sel],
+                    b[sel],
+                    lw[sel],
+                    None if nn is None else nn[sel],
+                    w[sel],
+                    fmask[sel],
                     tol,
                 )
-                if ok:
-                    w[i] = 0.0
-                    w[i, on] = x
-                    stop[i] = xdist
-                    done[i] = True
+                hit = sel[ok]
+                w[hit] = x[ok]
+                stop[hit] = xdist[ok]
+                done[hit] = True
         if it == max_iter:
             finish(np.arange(len(rows)), it, done)
             return
