@@ -360,12 +360,9 @@ def acceleration_r2s(p: Problem, coefs, Xt) -> list:
     theta = op.columns_t(Xt)  # (n_dof, features of the union, rows)
     mass = op.mass_matrices_t(q, qd)  # (terms of the union, n_dof, n_dof, rows)
     # Each scored model's coefficients over the union (zero off its support).
-    c = torch.zeros((len(scored), len(union)), dtype=Xt.dtype, device=Xt.device)
-    for i, j in enumerate(scored):
-        pos = np.searchsorted(union, supports[j])
-        c[i, torch.as_tensor(pos, device=Xt.device)] = torch.as_tensor(
-            coefs[j][supports[j]], dtype=Xt.dtype, device=Xt.device
-        )
+    c = torch.as_tensor(
+        np.stack([coefs[j] for j in scored])[:, union], dtype=Xt.dtype, device=Xt.device
+    )
     m, k = len(scored), op.n_terms
     # (models, i, j, rows)
     mc = (c[:, :k] @ mass.reshape(k, n * n * Xt.shape[0])).reshape(m, n, n, -1)

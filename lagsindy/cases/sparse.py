@@ -187,9 +187,7 @@ class SparseSolve:
                     f"least-squares bound {bound:.3g}: restarting the path from "
                     f"lam={lam / self.lam_decay:.3g}"
                 )
-        best = min(r.cost for r in results)
-        near = [r for r in results if r.cost <= (1 + PATH_TIE) * best + 1e-12]
-        return min(near, key=lambda r: int((r.coef != 0).sum()))
+        return _sparsest_near_best(results)
 
     def solve(
         self,
@@ -340,9 +338,7 @@ class SparseSolve:
                 break
         out = []
         for (free, datafit, to_coef, _, _, first), path in zip(prepared, paths):
-            best = min(r.cost for r in path)
-            near = [r for r in path if r.cost <= (1 + PATH_TIE) * best + 1e-12]
-            result = min(near, key=lambda r: int((r.coef != 0).sum()))
+            result = path[0] if len(path) == 1 else _sparsest_near_best(path)
             coef = np.zeros(n_features)
             coef[free] = to_numpy(to_coef(result.coef))
             if result is not first:  # ``first``'s records were mapped by its own solve
@@ -352,14 +348,24 @@ class SparseSolve:
         return out
 
 
+def _sparsest_near_best(paths):
+    """The sparsest of the paths whose residual is within PATH_TIE of the best (the
+    earlier start among equally sparse ones)."""
+    best = min(r.cost for r in paths)
+    near = [r for r in paths if r.cost <= (1 + PATH_TIE) * best + 1e-12]
+    return min(near, key=lambda r: int((r.coef != 0).sum()))
+
+
 def remap_stages(stages, free, scale, n_features):
     """Stage records in coefficient units over all ``n_features`` features.
 
     ``free`` are the features of the solved problem and ``scale`` converts its
     variables to coefficients (``coef = w * scale``).
     """
-    for st in stages:
-        full = np.zeros(n_features)
-        full[free] = st.coef * scale
-        st.coef = full
+    if not stages:
+        return
+    full = np.zeros((len(stages), n_features))
+    full[:, free] = np.stack([st.coef for st in stages]) * scale
+    for st, row in zip(stages, full):
+        st.coef = row
         st.support = free[st.support]

@@ -169,21 +169,37 @@ class BalancedGram:
         g_all, s_all = self.block(union)
         # target_scale of every column at once (element-wise: the same values)
         y_scales = torch.sqrt(torch.clamp(torch.diagonal(self.gram), min=0)).tolist()
-        pairs = []
-        for f, (_, target, sign) in zip(frees, jobs):
-            y_scale = y_scales[target]
-            if y_scale <= 0:
-                raise ValueError("the target is identically zero on the data")
-            pos = torch.as_tensor(np.searchsorted(union, f), device=device)
+        if any(y_scales[target] <= 0 for _, target, _ in jobs):
+            raise ValueError("the target is identically zero on the data")
+        pairs = [None] * len(jobs)
+        by_size = {}
+        for j, f in enumerate(frees):
+            by_size.setdefault(f.size, []).append(j)
+        # The jobs with as many columns at once: their blocks, scales and targets'
+        # columns are gathers, the right-hand sides element-wise (the same values).
+        for group in by_size.values():
+            pos = torch.as_tensor(
+                np.stack([np.searchsorted(union, frees[j]) for j in group]),
+                device=device,
+            )
+            cols = torch.as_tensor(np.stack([frees[j] for j in group]), device=device)
+            targets = torch.as_tensor([jobs[j][1] for j in group], device=device)
+            signs, y_scale = (
+                torch.as_tensor(v, dtype=g_all.dtype, device=device)[:, None]
+                for v in (
+                    [float(jobs[j][2]) for j in group],
+                    [y_scales[jobs[j][1]] for j in group],
+                )
+            )
             s_safe = s_all[pos]
-            g = g_all[pos][:, pos]
-            column = self.gram[torch.as_tensor(f, device=device), target]
-            b = sign * column / (s_safe * y_scale)
+            grams = g_all[pos[:, :, None], pos[:, None, :]]
+            rhs = signs * self.gram[cols, targets[:, None]] / (s_safe * y_scale)
+            for i, j in enumerate(group):
 
-            def to_coef(w, s_safe=s_safe, y_scale=y_scale):
-                return w * y_scale / s_safe
+                def to_coef(w, s_safe=s_safe[i], y_scale=y_scales[jobs[j][1]]):
+                    return w * y_scale / s_safe
 
-            pairs.append((GramQuadratic(g, b, 1.0), to_coef))
+                pairs[j] = (GramQuadratic(grams[i], rhs[i], 1.0), to_coef)
         return pairs, union, g_all
 
 

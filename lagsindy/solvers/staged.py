@@ -360,6 +360,15 @@ solver_tol, debias
     reductions = np.zeros(n_prob, dtype=np.int64)
     converged = np.ones(n_prob, dtype=bool)
 
+    # Every problem's own coordinates, gathered at once when they are as many.
+    stacked_index = np.stack(index) if len({idx.size for idx in index}) == 1 else None
+
+    def own_coordinates(values, sel):
+        """Rows of ``values`` (one per problem in ``sel``) on their own coordinates."""
+        if stacked_index is not None:
+            return np.take_along_axis(values, stacked_index[sel], axis=1)
+        return [v[index[r]] for v, r in zip(values, sel)]
+
     def residuals(sel, w):
         """Relative residuals of the problems ``sel`` at ``w`` (one row each)."""
         g = gram if shared is not None else gram[sel]
@@ -388,8 +397,8 @@ solver_tol, debias
         )
         coef = np.where(on[rows], res.coef, 0.0)
         if s == 0:
-            for i, r in enumerate(rows):
-                first_stage[r] = torch.as_tensor(coef[i, index[r]], dtype=dtype)
+            for r, own in zip(rows, own_coordinates(coef, rows)):
+                first_stage[r] = torch.as_tensor(own, dtype=dtype)
         # The hard threshold of staged_fista, relative to the largest coefficient
         # (or ``reference``); an all-zero stage (lam too high) removes nothing.
         mags = np.abs(coef)
@@ -402,25 +411,36 @@ solver_tol, debias
         total_iter[rows] += res.n_iter
         reductions[rows] += res.step_reductions
         converged[rows] &= res.converged
-        for i, r in enumerate(rows):
-            costs[r] = stage_costs[i]
+        records = zip(
+            rows,
+            res.step.tolist(),
+            res.n_iter.tolist(),
+            res.converged.tolist(),
+            res.stop_crit.tolist(),
+            own_coordinates(coef, rows),
+            own_coordinates(keep, rows),
+            stage_costs,
+        )
+        for r, step_r, n_iter, conv, crit, coef_r, keep_r, cost in records:
+            costs[r] = cost
             stages[r].append(
                 Stage(
                     cur_lam,
-                    float(res.step[i]),
-                    int(res.n_iter[i]),
-                    bool(res.converged[i]),
-                    float(res.stop_crit[i]),
-                    coef[i, index[r]],
-                    np.flatnonzero(keep[i, index[r]]),
-                    stage_costs[i],
+                    step_r,
+                    n_iter,
+                    conv,
+                    crit,
+                    coef_r,
+                    keep_r.nonzero()[0],
+                    cost,
                 )
             )
         done = (np.array(stage_costs) <= tol) & np.any(coef != 0, axis=1)
         rows = rows[~done]
         cur_lam /= lam_decay
-    supports = [np.flatnonzero(on[r, index[r]]) for r in range(n_prob)]
-    w_full = [torch.as_tensor(w_all[r, index[r]], dtype=dtype) for r in range(n_prob)]
+    everyone = np.arange(n_prob)
+    supports = [k.nonzero()[0] for k in own_coordinates(on, everyone)]
+    w_full = [torch.as_tensor(w, dtype=dtype) for w in own_coordinates(w_all, everyone)]
     total_iter, reductions = total_iter.tolist(), reductions.tolist()
     converged = converged.tolist()
     if debias:
@@ -439,10 +459,13 @@ solver_tol, debias
                 reference,
             )
             fitted = residuals(sel, w_ls)
-            for i, r in enumerate(sel):
-                supports[r] = np.flatnonzero(on[r, index[r]])
-                w_full[r] = torch.as_tensor(w_ls[i, index[r]], dtype=dtype)
-                costs[r] = fitted[i]
+            refits = zip(
+                sel, own_coordinates(on[sel], sel), own_coordinates(w_ls, sel), fitted
+            )
+            for r, on_r, w_r, cost in refits:
+                supports[r] = on_r.nonzero()[0]
+                w_full[r] = torch.as_tensor(w_r, dtype=dtype)
+                costs[r] = cost
     results = []
     for r in range(n_prob):
         w, support, cost = w_full[r], supports[r], costs[r]
