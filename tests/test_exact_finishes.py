@@ -53,10 +53,8 @@ def _steps_to_finish(G, b, lw, start, nn=None):
     raise AssertionError("the search did not finish")
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_clamped_points_let_several_coordinates_leave_in_one_step(monkeypatch, seed):
-    """Nearly collinear pairs of columns and a dense start: with the points where
-    every coordinate that passed zero is set to zero, fewer steps, same minimiser."""
+def _clamp_problem(seed):
+    """Nearly collinear pairs of columns and a dense start: G, b, weights, start."""
     rng = np.random.default_rng(seed)
     a = rng.standard_normal((200, 30))
     a[:, 10:20] = a[:, :10] + 0.05 * rng.standard_normal((200, 10))
@@ -64,8 +62,14 @@ def test_clamped_points_let_several_coordinates_leave_in_one_step(monkeypatch, s
     w = np.zeros(30)
     w[[0, 3, 7, 12, 25]] = [1.0, -2.0, 0.5, 1.5, -1.0]
     b = G @ w + 0.01 * rng.standard_normal(30)
-    lw = np.full(30, 0.05)
-    start = 0.3 * rng.standard_normal(30)
+    return G, b, np.full(30, 0.05), 0.3 * rng.standard_normal(30)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_clamped_points_let_several_coordinates_leave_in_one_step(monkeypatch, seed):
+    """Nearly collinear pairs of columns and a dense start: with the points where
+    every coordinate that passed zero is set to zero, fewer steps, same minimiser."""
+    G, b, lw, start = _clamp_problem(seed)
     exact = importlib.import_module("lagsindy.solvers.exact")
     with_clamp, x = _steps_to_finish(G, b, lw, start)
     monkeypatch.setattr(exact, "CLAMP_POINTS", False)
@@ -94,18 +98,6 @@ def test_active_set_search_reports_failure_instead_of_a_wrong_answer():
     # three steps add at most three of the fifteen coordinates: not optimal, said so
     assert not ok and dist > 1e-10
     assert dist == pytest.approx(_kkt(G, b, lam, got))
-
-
-def _clamp_problem(seed):
-    """Nearly collinear pairs of columns, a dense start (as in the test above)."""
-    rng = np.random.default_rng(seed)
-    a = rng.standard_normal((200, 30))
-    a[:, 10:20] = a[:, :10] + 0.05 * rng.standard_normal((200, 10))
-    G = a.T @ a / 200
-    w = np.zeros(30)
-    w[[0, 3, 7, 12, 25]] = [1.0, -2.0, 0.5, 1.5, -1.0]
-    b = G @ w + 0.01 * rng.standard_normal(30)
-    return G, b, np.full(30, 0.05), 0.3 * rng.standard_normal(30)
 
 
 def test_batched_search_gives_each_rows_own_search():

@@ -637,6 +637,23 @@ def _batch_loop(
 
     lo, hi = bounds(step)
 
+    def exact_finish(search, sel):
+        """End the rows ``sel`` that ``search`` (:func:`_polish` or
+        :func:`_active_set_batch`) solves to the KKT tolerance."""
+        x, ok, xdist = search(
+            g if shared else g[sel],
+            b[sel],
+            lw[sel],
+            None if nn is None else nn[sel],
+            w[sel],
+            fmask[sel],
+            tol,
+        )
+        hit = sel[ok]
+        w[hit] = x[ok]
+        stop[hit] = xdist[ok]
+        done[hit] = True
+
     def finish(sel, it, converged):
         o = rows[sel]
         out.coef[o] = w[sel]
@@ -696,37 +713,9 @@ def _batch_loop(
         steady = ~done & ~reset & np.all(pattern == last_pattern, axis=1)
         last_pattern = pattern
         if np.any(steady):
-            sel = np.flatnonzero(steady)
-            x, optimal, xdist = _polish(
-                g if shared else g[sel],
-                b[sel],
-                lw[sel],
-                None if nn is None else nn[sel],
-                w[sel],
-                fmask[sel],
-                tol,
-            )
-            if np.any(optimal):
-                hit = sel[optimal]
-                w[hit] = x[optimal]
-                stop[hit] = xdist[optimal]
-                done[hit] = True
-        if it in ACTIVE_SET_AT:
-            sel = np.flatnonzero(~done & ~reset)
-            if sel.size:
-                x, ok, xdist = _active_set_batch(
-                    g if shared else g[sel],
-                    b[sel],
-                    lw[sel],
-                    None if nn is None else nn[sel],
-                    w[sel],
-                    fmask[sel],
-                    tol,
-                )
-                hit = sel[ok]
-                w[hit] = x[ok]
-                stop[hit] = xdist[ok]
-                done[hit] = True
+            exact_finish(_polish, np.flatnonzero(steady))
+        if it in ACTIVE_SET_AT and np.any(~done & ~reset):
+            exact_finish(_active_set_batch, np.flatnonzero(~done & ~reset))
         if it == max_iter:
             finish(np.arange(len(rows)), it, done)
             return
