@@ -153,7 +153,14 @@ def test_problems_cut_from_one_block_equal_problem_bit_for_bit():
     a[:, :, 4] = 0.0  # a zero column: its scale is 1
     gram = torch.as_tensor(np.einsum("dsi,dsj->dij", a, a))
     balanced = BalancedGram(gram, 200, 9)
-    jobs = [([0, 1, 2, 3, 5, 6], 7, -1.0), ([1, 4, 8], 0, 1.0), ([2, 3], 6, -1.0)]
+    # two jobs of three columns (gathered together; one unsorted), and a single
+    # problem on its own columns (no gather) in the loop below
+    jobs = [
+        ([0, 1, 2, 3, 5, 6], 7, -1.0),
+        ([1, 4, 8], 0, 1.0),
+        ([2, 3], 6, -1.0),
+        ([6, 2, 3], 1, 1.0),
+    ]
     pairs, union, block = balanced.problems(jobs)
     np.testing.assert_array_equal(union, [0, 1, 2, 3, 4, 5, 6, 8])
     assert torch.equal(block, balanced.block(union)[0])

@@ -178,6 +178,18 @@ class BalancedGram:
         # The jobs with as many columns at once: their blocks, scales and targets'
         # columns are gathers, the right-hand sides element-wise (the same values).
         for group in by_size.values():
+            if len(group) == 1 and np.array_equal(frees[group[0]], union):
+                # one job on the whole union (every single solve): no gathers
+                j = group[0]
+                _, target, sign = jobs[j]
+                y_scale = y_scales[target]
+                column = self.gram[torch.as_tensor(frees[j], device=device), target]
+                rhs = sign * column / (s_all * y_scale)
+                pairs[j] = (
+                    GramQuadratic(g_all, rhs, 1.0),
+                    lambda w, s=s_all, y=y_scale: w * y / s,
+                )
+                continue
             pos = torch.as_tensor(
                 np.stack([np.searchsorted(union, frees[j]) for j in group]),
                 device=device,
