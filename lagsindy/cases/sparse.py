@@ -338,7 +338,7 @@ class SparseSolve:
                 break
         out = []
         for (free, datafit, to_coef, _, _, first), path in zip(prepared, paths):
-            result = path[0] if len(path) == 1 else _sparsest_near_best(path)
+            result = _sparsest_near_best(path)
             coef = np.zeros(n_features)
             coef[free] = to_numpy(to_coef(result.coef))
             if result is not first:  # ``first``'s records were mapped by its own solve
@@ -351,6 +351,8 @@ class SparseSolve:
 def _sparsest_near_best(paths):
     """The sparsest of the paths whose residual is within PATH_TIE of the best (the
     earlier start among equally sparse ones)."""
+    if len(paths) == 1:  # most solves: no support to count
+        return paths[0]
     best = min(r.cost for r in paths)
     near = [r for r in paths if r.cost <= (1 + PATH_TIE) * best + 1e-12]
     return min(near, key=lambda r: int((r.coef != 0).sum()))

@@ -185,10 +185,7 @@ class BalancedGram:
                 y_scale = y_scales[target]
                 column = self.gram[torch.as_tensor(frees[j], device=device), target]
                 rhs = sign * column / (s_all * y_scale)
-                pairs[j] = (
-                    GramQuadratic(g_all, rhs, 1.0),
-                    lambda w, s=s_all, y=y_scale: w * y / s,
-                )
+                pairs[j] = (GramQuadratic(g_all, rhs, 1.0), _unscaler(s_all, y_scale))
                 continue
             pos = torch.as_tensor(
                 np.stack([np.searchsorted(union, frees[j]) for j in group]),
@@ -207,12 +204,18 @@ class BalancedGram:
             grams = g_all[pos[:, :, None], pos[:, None, :]]
             rhs = signs * self.gram[cols, targets[:, None]] / (s_safe * y_scale)
             for i, j in enumerate(group):
-
-                def to_coef(w, s_safe=s_safe[i], y_scale=y_scales[jobs[j][1]]):
-                    return w * y_scale / s_safe
-
+                to_coef = _unscaler(s_safe[i], y_scales[jobs[j][1]])
                 pairs[j] = (GramQuadratic(grams[i], rhs[i], 1.0), to_coef)
         return pairs, union, g_all
+
+
+def _unscaler(s_safe, y_scale):
+    """``to_coef`` of a problem: its scaled variables ``w`` in coefficient units."""
+
+    def to_coef(w):
+        return w * y_scale / s_safe
+
+    return to_coef
 
 
 # Eigenvalue ratio of the scaled Gram matrix below which a combination of terms is

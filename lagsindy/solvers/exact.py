@@ -235,7 +235,7 @@ def _active_set_batch(gram, b, lw, nn, x, fmask, tol, max_steps=None):
     n_rows, m = x.shape
     shared = gram.ndim == 2
     mask = fmask > 0
-    x = np.where(nn, np.maximum(x, 0.0), x) if nn is not None else x.copy()
+    x = np.where(nn, np.maximum(x, 0.0), x) if nn is not None else x
     free = (lw == 0) & mask if nn is None else (lw == 0) & mask & ~nn
     steps = 2 * mask.sum(1) + 10 if max_steps is None else np.full(n_rows, max_steps)
     st = {  # the rows still searching, compacted as rows finish
