@@ -220,7 +220,8 @@ def estimate_delay(
         once (at delay 0), then, with its support fixed, the model's forces are
         linear in the coefficients, so each candidate and fold is an ordinary least
         squares on the support's force columns (all candidates cost less than one
-        sparse fit); the estimator is refitted at the estimated delay and the search
+        sparse fit; the fit at delay 0 uses every row, since no shift runs out of
+        data there); the estimator is refitted at the estimated delay and the search
         repeated until the support no longer changes or the estimate stays where the
         last fit was made (within a hundredth of a sampling interval; at most 3
         fits). The sparse penalty only chooses the support, so with the right
@@ -253,6 +254,35 @@ def estimate_delay(
     >>> d = estimate_delay(est, X, tau, t, groups=groups)  # doctest: +SKIP
     >>> est.fit(X, shift_input(tau, t, d.delay, groups), groups=groups)  # doctest: +SKIP
     """
+    return _estimate_delay(
+        estimator,
+        X,
+        tau,
+        t,
+        groups=groups,
+        max_delay=max_delay,
+        n_splits=n_splits,
+        method=method,
+        verbose=verbose,
+    )
+
+
+def _estimate_delay(
+    estimator,
+    X,
+    tau,
+    t,
+    *,
+    groups,
+    max_delay,
+    n_splits,
+    method,
+    verbose,
+    fitted_at_zero=None,
+):
+    """:func:`estimate_delay`; ``fitted_at_zero``: ``estimator`` already fitted on
+    every row of ``X`` and the unshifted ``tau`` (with ``groups``), used as the
+    support search's first fit instead of fitting it again."""
     import warnings
 
     import pandas as pd
@@ -311,8 +341,8 @@ def estimate_delay(
     if method == "support":
         result = _support_search(
             estimator,
+            X,
             Xk,
-            frame,
             tau2,
             t,
             groups,
@@ -321,6 +351,7 @@ def estimate_delay(
             candidates,
             scale,
             verbose,
+            fitted_at_zero,
         )
         if result is not None:
             scores, fold_delays, delay, at_edge = result
@@ -411,10 +442,25 @@ SAME_DELAY = 1e-2
 
 
 def _support_search(
-    estimator, Xk, frame, tau2, t, groups, rows, folds, candidates, scale, verbose
+    estimator,
+    X,
+    Xk,
+    tau2,
+    t,
+    groups,
+    rows,
+    folds,
+    candidates,
+    scale,
+    verbose,
+    fitted_at_zero=None,
 ):
     """Least squares on a fixed support for every candidate; refit at the estimate
-    until the support is stable. Returns None when the columns cannot be read."""
+    until the support is stable. Returns None when the columns cannot be read.
+
+    The first fit, at delay 0, sees every row of ``X`` (``fitted_at_zero`` when
+    given); the refits at other delays see the rows ``Xk`` that every candidate's
+    shift covers. The scores are always on ``Xk``."""
     import warnings
 
     n_dof = tau2.shape[1]
@@ -428,11 +474,18 @@ def _support_search(
             # the input it saw (to a hundredth of a sample's change) and keep its
             # support, so the search has converged.
             break
+        first = fitted_at is None
         fitted_at = delay
-        est = clone(estimator)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            est.fit(Xk, shift_input(tau2, t, delay, groups)[rows], groups=gk)
+        if first and fitted_at_zero is not None:
+            est = fitted_at_zero
+        else:
+            est = clone(estimator)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                if first:  # delay 0: the recorded input, no row runs out of data
+                    est.fit(X, tau2, groups=groups)
+                else:
+                    est.fit(Xk, shift_input(tau2, t, delay, groups)[rows], groups=gk)
         new_support = tuple(np.flatnonzero(np.asarray(est.coef_)))
         A = _force_columns(est, Xk)
         if A is None:
@@ -506,3 +559,59 @@ def _one_blas_thread():
     if not _CONTROLLER:
         _CONTROLLER.append(ThreadpoolController())
     return _CONTROLLER[0].limit(limits=1, user_api="blas")
+
+
+def _diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
+    """Estimate an input delay; ``(DelayEstimate, shifted tau)`` or None.
+
+    For :func:`lagsindy.diagnose`: :func:`estimate_delay` (held-out force
+    prediction over folds of trajectories, up to 10 sampling intervals either way)
+    with the (unfitted) configuration ``est``; ``fitted_at_zero``, when given, is
+    ``est`` already fitted on every row and the recorded input (the search's first
+    fit). Kept only when the estimate is at least a tenth of a sampling interval and
+    twice its standard error; diagnose then accepts it only if the model refitted
+    on the shifted input improves its held-out criterion.
+    """
+    import warnings
+
+    from .formulation.operator import reuse_weak_columns
+
+    n = len(tau)
+    t = np.zeros(n)
+    labels = np.zeros(n, dtype=np.int64)
+    for k, seg in enumerate(segments):
+        t[seg] = np.arange(len(seg)) * dt
+        labels[seg] = k
+    groups = labels if len(segments) >= 2 else None
+    base = clone(est).set_params(verbose=0)
+    if getattr(est, "window_", None) is not None:
+        base.set_params(window=est.window_)  # the window est's fit chose
+    try:
+        # Its refits differ only in the shifted input: with the weak form they
+        # reuse the first one's feature integrals (the Gram matrices agree with
+        # fits afresh to rounding; the search reads the refits' supports).
+        with warnings.catch_warnings(), reuse_weak_columns():
+            warnings.simplefilter("ignore")
+            estimate = _estimate_delay(
+                base,
+                X,
+                tau,
+                t,
+                groups=groups,
+                max_delay=None,
+                n_splits=3,
+                method="support",
+                verbose=0,
+                fitted_at_zero=fitted_at_zero,
+            )
+            shifted = shift_input(tau, t, estimate.delay, groups)
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        if verbose:
+            print(f"[lagsindy] no input delay estimate: {exc}")
+        return None
+    if verbose:
+        print(f"[lagsindy] {estimate}")
+    size = abs(estimate.delay)
+    if size < 0.1 * dt or (np.isfinite(estimate.std) and size <= 2 * estimate.std):
+        return None
+    return estimate, shifted

@@ -104,6 +104,49 @@ def test_support_search_refits_only_while_the_estimate_moves(delayed, lag, monke
     assert len(fits) == (2 if lag else 1)
 
 
+def test_support_search_fits_delay_zero_on_every_row(delayed, monkeypatch):
+    # The fit at delay 0 sees the recorded input on every row (no shift runs out
+    # of data there); the refit at the estimate only the rows every shift covers.
+    system, X, tau, t, groups = delayed
+    rows = []
+    original = LagrangianSINDy.fit
+
+    def counted(self, X_, *args, **kwargs):
+        rows.append(len(X_))
+        return original(self, X_, *args, **kwargs)
+
+    monkeypatch.setattr(LagrangianSINDy, "fit", counted)
+    estimate_delay(make(system), X, tau, t, groups=groups, max_delay=0.048)
+    # shifts of up to 6 samples (48 ms at 8 ms) drop the first and last 7 rows of
+    # each of the 4 trajectories (the rows within 48 ms of an end, 48 ms included)
+    assert rows == [len(X), len(X) - 4 * 2 * 7]
+
+
+def test_support_search_takes_a_given_first_fit(delayed, monkeypatch):
+    # A fit given for delay 0 (diagnose's joint fit) replaces the first fit: the
+    # estimate is the same, one fit fewer is made.
+    import lagsindy.delay as delay_module
+
+    system, X, tau, t, groups = delayed
+    first = make(system).fit(X, tau, groups=groups)
+    kw = dict(groups=groups, max_delay=0.048, n_splits=2, method="support", verbose=0)
+    own = delay_module._estimate_delay(make(system), X, tau, t, **kw)
+    fits = []
+    original = LagrangianSINDy.fit
+
+    def counted(self, *args, **kwargs):
+        fits.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(LagrangianSINDy, "fit", counted)
+    given = delay_module._estimate_delay(
+        make(system), X, tau, t, fitted_at_zero=first, **kw
+    )
+    assert len(fits) == 1  # the refit at the estimate only (2 without the given fit)
+    assert given.delay == own.delay
+    np.testing.assert_array_equal(given.scores, own.scores)
+
+
 def test_delay_needs_held_out_trajectories(delayed):
     system, X, tau, t, groups = delayed
     one = groups == groups[0]

@@ -358,3 +358,40 @@ def test_input_delay_is_an_effect(delay, noise):
     assert coef["viscous(theta)"] == pytest.approx(0.05, rel=0.02)  # measured 0.02 %
     truth = {"theta_dot**2": 0.1, "cos(theta)": 0.8 * 9.81 * 0.5}
     assert _lagrangian_error(report.final, truth) < 0.02  # measured 0.03 %
+
+
+@pytest.mark.parametrize("delay", [0.03, 0.0], ids=["30ms", "none"])
+def test_diagnose_never_fits_the_same_model_twice(delay, monkeypatch):
+    """The input delay search's first fit (every row, the recorded input, the
+    dissipative catalogue as candidates) is the joint revision's fit: diagnose
+    makes it once. No refit repeats another one's configuration and data."""
+    import hashlib
+
+    from lagsindy.delay import shift_input
+
+    system = single_pendulum(mass=0.8, length=0.5).with_damping(viscous={"theta": 0.05})
+    data = make_dataset(
+        system, n_trajectories=10, duration=3.0, excitation="sincos", random_state=0
+    )
+    recorded = shift_input(data.tau, data.t, -delay, data.groups)
+    est = LagrangianSINDy(system.paper_library(), formulation="strong", dt=0.01)
+    est.fit(data.X, recorded, groups=data.groups)
+    seen = []
+    original = LagrangianSINDy.fit
+
+    def fingerprinted(self, X, tau=None, **kwargs):
+        params = sorted((k, repr(v)) for k, v in self.get_params(deep=True).items())
+        arrays = [np.ascontiguousarray(X)] + ([] if tau is None else [np.asarray(tau)])
+        digest = hashlib.sha1(b"".join(a.tobytes() for a in arrays)).hexdigest()
+        seen.append((repr(params), digest))
+        return original(self, X, tau, **kwargs)
+
+    monkeypatch.setattr(LagrangianSINDy, "fit", fingerprinted)
+    report = diagnose(est, data.X, recorded, groups=data.groups)
+    assert ("delay" in report.effects) == bool(delay)
+    assert len(seen) == len(set(seen))
+    # measured: 2 fits without a delay (3 before the joint fit was shared: the
+    # delay search fitted the same configuration on its own), 5 with one (the
+    # delay search's refit at the estimate, the trial and the joint revision on the
+    # shifted input, ...)
+    assert len(seen) == (5 if delay else 2)

@@ -10,12 +10,11 @@ import warnings
 import numpy as np
 import pandas as pd
 import torch
-from sklearn.base import clone
 from sklearn.utils.validation import check_is_fitted
 
 from .._torch import to_tensor
 from .._validation import validate_state, validate_tau
-from ..formulation.operator import reuse_weak_columns
+from ..delay import _diagnose_delay
 from .catalogue import (
     _DISSIPATIVE,
     _NONNEGATIVE,
@@ -330,6 +329,7 @@ class _Search:
         self.tau_recorded = tau_a
         self.scorer_rec, self.scorer_s_rec = self.scorer, self.scorer_s
         self.delay = None  # (Candidate, DelayEstimate) once accepted
+        self._fits = {}  # refits by their effects, gains and candidates (fit_with)
 
     # ------------------------------------------------------------------ helpers
     def _gain_columns(self, tau_t):
@@ -378,15 +378,30 @@ class _Search:
         return value, per_fold
 
     def fit_with(self, effs, gns, penalized=()):
-        return _fit_model(
-            self.est,
-            self.Xf,
-            _adjusted_tau(self.tau_a, gns),
-            self.groups,
-            effects=effs,
-            penalized=penalized,
-            eps=self.eps,
+        """The estimator refitted with known ``effs``, input gains ``gns`` and the
+        ``penalized`` candidates, on the current input.
+
+        Refits are deterministic, so one asked for again (the input delay search's
+        fit at delay 0 is the joint revision's fit) is the model already fitted.
+        """
+        key = (
+            tuple(e.name for e in effs),
+            tuple(sorted(gns.items())),
+            tuple(c.name for c in penalized),
         )
+        tau, model = self._fits.get(key, (None, None))
+        if model is None or tau is not self.tau_a:
+            model = _fit_model(
+                self.est,
+                self.Xf,
+                _adjusted_tau(self.tau_a, gns),
+                self.groups,
+                effects=effs,
+                penalized=penalized,
+                eps=self.eps,
+            )
+            self._fits[key] = (self.tau_a, model)
+        return model
 
     def nonneg_ok(self, model, effs):
         names_ = {e.name for e in effs if e.kind in _NONNEGATIVE}
@@ -419,8 +434,18 @@ class _Search:
         joint_config = _fit_model(
             est, None, None, None, penalized=self.diss, eps=self.eps, fit=False
         )
-        found = _input_delay(
-            joint_config, self.Xf, self.tau_a, self.segments, float(self.dt), verbose
+        try:  # the joint revision's fit: the delay search's first fit too
+            joint = self.fit_with([], {}, penalized=self.diss)
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+            joint = None  # the delay search fits (and fails) on its own
+        found = _diagnose_delay(
+            joint_config,
+            self.Xf,
+            self.tau_a,
+            self.segments,
+            float(self.dt),
+            verbose,
+            fitted_at_zero=joint,
         )
         if found is None:
             return
@@ -829,47 +854,6 @@ class _Search:
                 "residual_after": residual_after,
             },
         )
-
-
-def _input_delay(est, X, tau, segments, dt, verbose):
-    """Estimate an input delay; ``(DelayEstimate, shifted tau)`` or None.
-
-    :func:`lagsindy.delay.estimate_delay` (held-out force prediction over folds of
-    trajectories, up to 10 sampling intervals either way) with the (unfitted)
-    configuration ``est``. Kept only when the estimate is at least a tenth of a sampling
-    interval and twice its standard error; :func:`diagnose` then accepts it only if
-    the model refitted on the shifted input improves its held-out criterion.
-    """
-    from ..delay import estimate_delay, shift_input
-
-    n = len(tau)
-    t = np.zeros(n)
-    labels = np.zeros(n, dtype=np.int64)
-    for k, seg in enumerate(segments):
-        t[seg] = np.arange(len(seg)) * dt
-        labels[seg] = k
-    groups = labels if len(segments) >= 2 else None
-    base = clone(est).set_params(verbose=0)
-    if getattr(est, "window_", None) is not None:
-        base.set_params(window=est.window_)  # the window est's fit chose
-    try:
-        # Its refits differ only in the shifted input: with the weak form they
-        # reuse the first one's feature integrals (the Gram matrices agree with
-        # fits afresh to rounding; the search reads the refits' supports).
-        with warnings.catch_warnings(), reuse_weak_columns():
-            warnings.simplefilter("ignore")
-            estimate = estimate_delay(base, X, tau, t, groups=groups)
-            shifted = shift_input(tau, t, estimate.delay, groups)
-    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
-        if verbose:
-            print(f"[lagsindy] no input delay estimate: {exc}")
-        return None
-    if verbose:
-        print(f"[lagsindy] {estimate}")
-    size = abs(estimate.delay)
-    if size < 0.1 * dt or (np.isfinite(estimate.std) and size <= 2 * estimate.std):
-        return None
-    return estimate, shifted
 
 
 def _bootstrap_final(
