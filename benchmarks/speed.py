@@ -621,7 +621,12 @@ DIAGNOSE_STEPS = [
         ("__init__",),
     ),
     ("refits from rows (`LagrangianSINDy.fit`)", "lagsindy/estimator.py", ("fit",)),
-    ("input delay search (`estimate_delay`)", "lagsindy/delay.py", ("estimate_delay",)),
+    # every estimate goes through ``_estimate_delay`` (diagnose calls it directly)
+    (
+        "input delay search (`estimate_delay`)",
+        "lagsindy/delay.py",
+        ("_estimate_delay",),
+    ),
     (
         "- of which its least squares (`_fold_scores`, one per fold)",
         "lagsindy/delay.py",
@@ -1138,7 +1143,10 @@ def main(argv=None):
         print(section)
         return
     if args.ratios or args.floor_only:
-        repeats = 1 if quick else min(args.repeats, 3)
+        # The ratios' runs are short (a few tenths of a second): up to 9 repeats,
+        # since on a shared machine one disturbed run moves a best-of-3 ratio by 0.3.
+        cap = 9 if args.ratios else 3
+        repeats = 1 if quick else min(args.repeats, cap)
         if args.ratios:
             section = ratios_section(args.baseline, repeats=repeats, quick=quick)
             title, marker = "Passive search", RATIOS_MARKER
