@@ -637,6 +637,16 @@ class TermKernels:
         n2 = 2 * self.n_dof
         return self._per_term("hess", (n2, n2), q, qd, general_hessians)
 
+    def hessians_t(self, q, qd, general_hessians):
+        """:meth:`hessians` in the layout (p, 2 d, 2 d, n) (samples last).
+
+        The kernel's own layout: without general terms no copy is made.
+        """
+        n2, s = 2 * self.n_dof, q.shape[0]
+        if self.plan is not None and not self.general.size:
+            return self._batched("hess", q, qd).reshape(self.n_terms, n2, n2, s)
+        return self.hessians(q, qd, general_hessians).permute(1, 2, 3, 0)
+
 
 def compile_terms(terms: Sequence[sp.Expr], coordinates: Sequence[str]) -> TermKernels:
     """Compile candidate terms into :class:`TermKernels` (batched where possible)."""

@@ -6,13 +6,13 @@ from .formulation.operator import (  # noqa: F401
     DEFAULT_CHUNK_SIZE,
     NOISE_ROWS,
     EulerLagrangeOperator,
-    bump_function,
     forward_accelerations,
     lagrangian_columns,
     lagrangian_components,
     lagrangian_gradients,
 )
 from .formulation.weak import (  # noqa: F401
+    bump_function,
     check_time_order,
     estimate_noise_covariance,
     estimate_sampling_interval,

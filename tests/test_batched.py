@@ -81,6 +81,10 @@ def test_batched_components_and_gradients_match_torch_func(kind, names, angles, 
     assert torch.equal(
         op.mass_matrices_t(q, qd), op.mass_matrices(q, qd).permute(1, 2, 3, 0)
     )
+    assert torch.equal(
+        kernels.hessians_t(q, qd, lagrangian_hessians),
+        kernels.hessians(q, qd, lagrangian_hessians).permute(1, 2, 3, 0),
+    )
 
 
 def test_mixed_terms_split_between_batched_and_general_paths():
@@ -121,6 +125,13 @@ def test_mixed_terms_split_between_batched_and_general_paths():
     assert torch.equal(op.columns_t(X), op.columns(X).permute(1, 2, 0))
     assert torch.equal(
         op.mass_matrices_t(q, qd), op.mass_matrices(q, qd).permute(1, 2, 3, 0)
+    )
+    assert torch.equal(
+        kernels.hessians_t(q, qd, lagrangian_hessians),
+        kernels.hessians(q, qd, lagrangian_hessians).permute(1, 2, 3, 0),
+    )
+    assert torch.equal(
+        op._force_jacobians_t(q, qd), op.force_jacobians(q, qd).permute(1, 2, 3, 0)
     )
 
 

@@ -369,6 +369,19 @@ def test_bootstrap_cost_tiny(tiny_results):
     assert all(float(r.split("**")[1].rstrip("x")) > 0 for r in rows)
 
 
+def test_noise_correction_tiny(tiny_results):
+    from benchmarks import noise_correction
+
+    noise_correction.main([])
+    text = (tiny_results / "noise_correction_quick.md").read_text()
+    _check_header(text)
+    assert "torch threads 1" in text
+    row = next(line for line in text.splitlines() if line.startswith("| single"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[2] == "after" and len(cells) == 7
+    assert all(float(c.rstrip(" s")) > 0 for c in cells[3:])
+
+
 def test_quick_runner_skips_what_needs_optional_things(monkeypatch, capsys):
     """`python -m benchmarks --quick` goes on past missing packages and data (#18)."""
     import types

@@ -17,9 +17,10 @@ import lagsindy.formulation.operator as operator_module
 from lagsindy import CandidateLibrary
 from lagsindy._batched import compile_terms
 from lagsindy.euler_lagrange import EulerLagrangeOperator
-from lagsindy.formulation.operator import _band, _correlate
 from lagsindy.formulation.scaling import BalancedGram, _balance_rows
 from lagsindy.formulation.weak import (
+    _band,
+    _correlate,
     check_time_order,
     trajectory_segments,
     weighted_median,

@@ -36,6 +36,7 @@ from torch.func import jacfwd, jvp, vmap
 
 from .._batched import TermKernels, compile_terms
 from .._expr import compile_torch, symbols_for
+from .weak import _band, _correlate, _window_weights, bump_function
 
 DEFAULT_CHUNK_SIZE = 32_768
 # Elements (float64: 8 bytes each) of the buffers of one chunk of the strong-form Gram
@@ -299,9 +300,13 @@ class EulerLagrangeOperator:
         (Reverse mode: forward-mode dual numbers would import ``torch._dynamo`` on
         their first product with a constant, seconds per process.)
         """
+        return self._force_jacobians_t(q, qd).permute(3, 0, 1, 2)
+
+    def _force_jacobians_t(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
+        """:meth:`force_jacobians` in the layout (n_forces, n_dof, 2 n_dof, n)."""
         d, n = self.n_dof, q.shape[0]
         if self._force_fn is None:
-            return q.new_zeros((n, 0, d, 2 * d))
+            return q.new_zeros((0, d, 2 * d, n))
         x = torch.cat([q.T, qd.T]).detach().requires_grad_(True)  # (2d, n)
         rows = []
         with torch.enable_grad():
@@ -314,7 +319,7 @@ class EulerLagrangeOperator:
         if not rows:  # constant forces
             rows = [torch.zeros_like(x)] * out.shape[0]
         jac = torch.stack(rows).detach()  # (n_forces * d, 2d, n)
-        return jac.reshape(len(self.forces), d, 2 * d, n).permute(3, 0, 1, 2)
+        return jac.reshape(len(self.forces), d, 2 * d, n)
 
     def mass_matrices(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
         """``M_k`` of every Lagrangian term, shape (n_samples, n_terms, n_dof, n_dof)."""
@@ -705,9 +710,11 @@ class EulerLagrangeOperator:
         """Rows used by the noise correction and the integrands' sensitivities there.
 
         Returns ``(rows, factor, h1, h2)``: ``rows`` the sample indices (``None``: all),
-        ``factor`` the scale-up of the subsample, and ``h1[s, k, i, x]``,
-        ``h2[s, k, i, x]`` the derivatives of the a- and b-integrands of feature ``k``
-        and coordinate ``i`` with respect to ``x = [q, qd]`` at sample ``s``.
+        ``factor`` the scale-up of the subsample, and ``h1[k, i, x, s]``,
+        ``h2[k, i, x, s]`` the derivatives of the a- and b-integrands of feature ``k``
+        and coordinate ``i`` with respect to ``x = [q, qd]`` at sample ``s`` (samples
+        last: the kernels' own layout, in which :meth:`_noise_block` needs no
+        transposing copies).
         """
         d = self.n_dof
         n = q.shape[0]
@@ -722,16 +729,18 @@ class EulerLagrangeOperator:
         h1_parts, h2_parts = [], []
         if self._fn is not None:
             if isinstance(self._fn, TermKernels):
-                hess = self._fn.hessians(q, qd, lagrangian_hessians)
-            else:
-                hess = lagrangian_hessians(self._fn, q, qd)  # (n, p, 2d, 2d)
-            h1_parts.append(hess[:, :, d:, :])
-            h2_parts.append(hess[:, :, :d, :])
+                hess = self._fn.hessians_t(q, qd, lagrangian_hessians)
+            else:  # (p, 2d, 2d, n)
+                hess = lagrangian_hessians(self._fn, q, qd).permute(1, 2, 3, 0)
+            h1_parts.append(hess[:, d:])
+            h2_parts.append(hess[:, :d])
         if self._force_fn is not None:
-            jac = self.force_jacobians(q, qd)  # (n, f, d, 2d)
+            jac = self._force_jacobians_t(q, qd)  # (f, d, 2d, n)
             h1_parts.append(torch.zeros_like(jac))
             h2_parts.append(jac)
-        return rows, factor, torch.cat(h1_parts, dim=1), torch.cat(h2_parts, dim=1)
+        if len(h1_parts) == 1:  # views of the hessians: no copy needed
+            return rows, factor, h1_parts[0], h2_parts[0]
+        return rows, factor, torch.cat(h1_parts), torch.cat(h2_parts)
 
     def _noise_block(self, sens, weights, noise_cov, width, slices=None):
         """First-order noise contribution to the weak Gram (see :meth:`weak_gram`).
@@ -744,28 +753,38 @@ class EulerLagrangeOperator:
         a2, ab, b2 = weights
         if rows is not None:
             a2, ab, b2 = a2[rows], ab[rows], b2[rows]
-        p0 = h1.shape[1]
+        p0 = h1.shape[0]
         # sum_s [h1 h2]^T (W_s kron Lambda) [h1 h2], W_s = [[a2, ab], [ab, b2]] (a
         # Gram matrix of the test functions, so positive semi-definite). Its LDL^T
         # factors, W_s = u u^T + v v^T with u = (sqrt(a2), ab / sqrt(a2)) and
         # v = (0, sqrt(b2 - ab^2 / a2)), turn the four products into one:
         # sum_s z1 Lambda z1^T + z2 Lambda z2^T, z1 = sqrt(a2) h1 + ab / sqrt(a2) h2,
         # z2 = sqrt(b2 - ab^2 / a2) h2 (a2 = 0 implies ab = 0: Cauchy-Schwarz).
+        # Samples last throughout: the per-sample weights scale the last axis, Lambda
+        # mixes the 2d derivatives, and the sum over samples and derivatives is one
+        # matrix product (P0, 2 * 2d * n) x (2 * 2d * n, P0) per coordinate.
         pos = a2 > 0
         root = torch.sqrt(torch.where(pos, a2, torch.ones_like(a2)))
-        u1 = torch.sqrt(a2)[:, None, None]
-        u2 = torch.where(pos, ab / root, torch.zeros_like(a2))[:, None, None]
-        v2 = torch.sqrt(torch.clamp(b2[:, None, None] - u2 * u2, min=0.0))
-        n = h1.shape[0]
+        u1 = torch.sqrt(a2)
+        u2 = torch.where(pos, ab / root, torch.zeros_like(a2))
+        v2 = torch.sqrt(torch.clamp(b2 - u2 * u2, min=0.0))
+        n = h1.shape[-1]
         parts = [slice(0, n)] if slices is None else slices
         out = h1.new_zeros((len(parts), d, width, width))
+        z = h1.new_empty((p0, 2) + h1.shape[2:])  # (P0, 2, 2d, n)
         for i in range(d):
-            m1, m2 = h1[:, :, i, :], h2[:, :, i, :]  # (n, P0, 2d)
-            z = torch.stack([u1 * m1 + u2 * m2, v2 * m2], dim=2)  # (n, P0, 2, 2d)
-            z_flat = z.reshape(n, p0, -1)
-            lz = (z @ noise_cov).reshape(n, p0, -1)
+            m1, m2 = h1[:, i], h2[:, i]  # (P0, 2d, n)
+            # in place: on these strided views, out-of-place products and their sum
+            # cost several times more (temporaries in a transposed order)
+            torch.mul(m1, u1, out=z[:, 0])
+            z[:, 0].addcmul_(m2, u2)
+            torch.mul(m2, v2, out=z[:, 1])
+            lz = torch.matmul(noise_cov.T, z)  # Lambda over the 2d derivatives
             for j, sl in enumerate(parts):
-                block = torch.einsum("skx,slx->kl", lz[sl], z_flat[sl])
+                if slices is None:
+                    block = lz.reshape(p0, -1) @ z.reshape(p0, -1).T
+                else:
+                    block = lz[..., sl].reshape(p0, -1) @ z[..., sl].reshape(p0, -1).T
                 out[j, i, :p0, :p0] = factor * block
         return out[0] if slices is None else out
 
@@ -833,68 +852,3 @@ def lagrangian_gradients(
     with _quiet_forward_ad():
         parts = [batched(q[sl], qd[sl]) for sl in _chunks(q.shape[0], chunk_size)]
     return torch.cat(parts, dim=0)
-
-
-def bump_function(window: int, dt: float, power: int = 4):
-    r"""Bump test function on ``window`` samples and its time derivative.
-
-    :math:`\psi(s) = (1 - s^2)^{m}` for :math:`s \in [-1, 1]` across the window, with
-    ``m = power``; :math:`\psi` and its first ``m - 1`` derivatives vanish at both
-    ends, so integration by parts has no boundary terms and the rectangle rule is
-    accurate.
-
-    Returns
-    -------
-    psi, dpsi : Tensor of shape (window,)
-        Values and time derivatives (per second) at the samples.
-    """
-    s = torch.linspace(-1.0, 1.0, window, dtype=torch.float64)
-    half = (window - 1) / 2 * dt
-    psi = (1 - s**2) ** power
-    dpsi = -2 * power * s * (1 - s**2) ** (power - 1) / half
-    return psi, dpsi
-
-
-def _correlate(
-    signal: torch.Tensor, kernel: torch.Tensor, stride: int, band=None
-) -> torch.Tensor:
-    """Sliding sums ``sum_j kernel[j] signal[start + j]`` along dim 0, every ``stride``.
-
-    One matrix product with the banded matrix of the windows (``band``, from
-    :func:`_band`, when the caller has it already): on CPU in float64 this is many
-    times faster than ``conv1d`` with one input channel, which has no fast kernel.
-    """
-    n = signal.shape[0]
-    if band is None:
-        band = _band(kernel.to(signal), n, stride)
-    return (band @ signal.reshape(n, -1)).reshape(-1, *signal.shape[1:])
-
-
-def _band(kernel: torch.Tensor, n: int, stride: int) -> torch.Tensor:
-    """``B`` of shape (n_windows, n) with ``B[w, w * stride + j] = kernel[j]``."""
-    k = kernel.shape[0]
-    n_win = max(0, (n - k) // stride + 1)
-    band = kernel.new_zeros((n_win, n))
-    starts = torch.arange(n_win, device=kernel.device).unsqueeze(1) * stride
-    band.scatter_(
-        1, starts + torch.arange(k, device=kernel.device), kernel.expand(n_win, k)
-    )
-    return band
-
-
-def _window_weights(n: int, kernel_a, kernel_b, stride: int):
-    """Per-sample sums over windows of a^2, a b and b^2 (for the noise correction)."""
-    k = kernel_a.shape[0]
-    n_win = (n - k) // stride + 1
-    starts = kernel_a.new_zeros((1, 1, n_win))
-    starts[..., :] = 1.0
-    out = []
-    for kern in (kernel_a * kernel_a, kernel_a * kernel_b, kernel_b * kernel_b):
-        # scatter each window's kernel onto its samples: a transposed correlation
-        full = torch.nn.functional.conv_transpose1d(
-            starts, kern.view(1, 1, -1), stride=stride
-        )
-        res = kernel_a.new_zeros(n)
-        res[: full.shape[-1]] = full.flatten()[:n]
-        out.append(res)
-    return tuple(out)
