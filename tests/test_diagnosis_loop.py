@@ -395,3 +395,53 @@ def test_diagnose_never_fits_the_same_model_twice(delay, monkeypatch):
     # delay search's refit at the estimate, the trial and the joint revision on the
     # shifted input, ...)
     assert len(seen) == (5 if delay else 2)
+
+
+def test_diagnose_refits_share_the_joint_fits_weak_statistics(monkeypatch):
+    """Inside diagnose every refit's features are among the joint revision's fit, so
+    their weak-form statistics (noise part included) are gathered, not computed
+    again: the diagnosis equals the one with every refit's statistics afresh."""
+    import contextlib
+
+    import lagsindy.diagnostics.search as search_module
+    import lagsindy.formulation.operator as operator_module
+
+    system = cart_pendulum().with_damping(viscous={"theta": 0.1}, coulomb={"x": 0.2})
+    data = make_dataset(
+        system,
+        n_trajectories=8,
+        duration=4.0,
+        excitation="sincos",
+        noise=1e-3,
+        protocol="sensor",
+        random_state=0,
+    )
+    est = LagrangianSINDy(system.paper_library()).fit(
+        data.X, data.tau, groups=data.groups
+    )
+    reused = []
+    original = operator_module.EulerLagrangeOperator._reused_grams
+
+    def spy(self, *args, **kwargs):
+        reused.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(operator_module.EulerLagrangeOperator, "_reused_grams", spy)
+    shared = diagnose(est, data.X, data.tau, groups=data.groups)
+    n_shared = len(reused)
+    monkeypatch.setattr(search_module, "reuse_weak_columns", contextlib.nullcontext)
+    reused.clear()
+    fresh = diagnose(est, data.X, data.tau, groups=data.groups)
+    # measured: 5 gathered (the three folds' statistics on the input shifted by the
+    # delay estimate, the trial refit on it, and the revised model's refit)
+    assert n_shared == 5 and not reused
+    assert shared.effects == fresh.effects == ["viscous(theta)", "coulomb(x)"]
+    # measured: the same coefficients and held-out error, bit for bit (a gathered
+    # block; another BLAS may round the fresh sums differently)
+    np.testing.assert_allclose(shared.final.coef_, fresh.final.coef_, rtol=1e-12)
+    np.testing.assert_allclose(
+        shared.final.dissipation_coef_, fresh.final.dissipation_coef_, rtol=1e-12
+    )
+    assert shared.heldout_error_after == pytest.approx(
+        fresh.heldout_error_after, rel=1e-10
+    )

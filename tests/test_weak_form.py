@@ -547,3 +547,59 @@ def test_reuse_weak_columns_gives_the_statistics_of_a_fresh_call(monkeypatch):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
         # the forces' row did change: the comparison can fail
         assert not torch.allclose(first[window][0][:, -1], fresh[window][0][:, -1])
+
+
+def test_reuse_weak_columns_serves_a_subset_of_the_kept_features(monkeypatch):
+    """A call whose features are among a kept call's (in another order, forces
+    included, with or without a generalized force) takes their block: it equals a
+    fresh call to rounding; a feature the kept call lacks means a fresh call."""
+    import sympy as sp
+
+    import lagsindy.formulation.operator as operator_module
+    from lagsindy._expr import symbols_for
+    from lagsindy.dissipation import make_term
+
+    data = make_dataset(
+        cart_pendulum(), n_trajectories=3, excitation="sincos", noise=0.01,
+        random_state=5,
+    )  # fmt: skip
+    terms = list(cart_pendulum().paper_library().terms_)
+    coords = ["x", "theta"]
+    forces = [
+        make_term(kind, c, coords).forces
+        for kind, c in (("viscous", "x"), ("coulomb", "theta"), ("drag", "x"))
+    ]
+    union = EulerLagrangeOperator(coords, terms, forces=forces)
+    pick = [7, 0, 3, 12]  # a few terms, not in the library's order
+    sub = EulerLagrangeOperator(coords, [terms[k] for k in pick], forces=forces[1:2])
+    q_s, qd_s, _ = symbols_for(coords)
+    wider = EulerLagrangeOperator(coords, terms[:3] + [sp.exp(q_s[0]) * qd_s[1] ** 2])
+    X, tau = torch.tensor(data.X), torch.tensor(data.tau)
+    segs = [torch.arange(0, 500), torch.arange(500, 1000), torch.arange(1000, 1500)]
+    cov = torch.diag(torch.tensor([1e-4, 2e-4, 3e-4, 1e-3], dtype=torch.float64))
+    kw = dict(strides={61: 15}, dt=0.01, noise_cov=cov, noise_rows=700)
+    kw["return_noise"] = True
+    reused = []
+    original = operator_module.EulerLagrangeOperator._reused_grams
+
+    def spy(self, *args, **kwargs):
+        reused.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(operator_module.EulerLagrangeOperator, "_reused_grams", spy)
+    fresh = {y: sub.weak_grams(X, y, {61: segs}, **kw)[61] for y in (None, tau)}
+    with operator_module.reuse_weak_columns():
+        union.weak_grams(X, None, {61: segs}, **kw)  # kept, without a force
+        got = {y: sub.weak_grams(X, y, {61: segs}, **kw)[61] for y in (None, tau)}
+        assert len(reused) == 2
+        wider.weak_grams(X, tau, {61: segs}, **kw)  # a term not kept: afresh
+        assert len(reused) == 2
+    for y in (None, tau):
+        for a, b in zip(got[y][:2], fresh[y][:2]):  # Gram, noise part
+            a, b = a.numpy(), b.numpy()
+            assert a.shape == b.shape == (2, 5 + (y is not None), 5 + (y is not None))
+            # measured: the Gram equal, the noise part to 1.5e-18 of its largest
+            # entry (a gather of the kept block; rounding may differ on other BLAS)
+            np.testing.assert_allclose(a, b, rtol=1e-14, atol=1e-14 * np.abs(b).max())
+        assert got[y][2] == fresh[y][2]  # windows
+    assert float(fresh[tau][1].abs().max()) > 0  # the noise part is there to compare

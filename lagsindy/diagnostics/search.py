@@ -15,6 +15,7 @@ from sklearn.utils.validation import check_is_fitted
 from .._torch import to_tensor
 from .._validation import validate_state, validate_tau
 from ..delay import _diagnose_delay
+from ..formulation.operator import reuse_weak_columns
 from .catalogue import (
     _DISSIPATIVE,
     _NONNEGATIVE,
@@ -194,30 +195,36 @@ def diagnose(
     elif not isinstance(eps, dict):
         eps = {c: float(eps) for c in coords}
 
-    search = _Search(
-        est,
-        Xa,
-        tau_a,
-        groups,
-        catalogue=catalogue,
-        extra_terms=extra_terms,
-        angles=angles,
-        eps=eps,
-        n_splits=n_splits,
-        window=window,
-        min_explained=min_explained,
-        min_improvement=min_improvement,
-        verbose=verbose,
-    )
-    if "delay" in catalogue and tau_a is not None and search.dt and search.dt > 0:
-        search.input_delay()  # step 0
-    search.total_ref = float(sum(search.scorer.w @ r for r in search.scorer.reference))
-    if revise and search.diss:
-        search.revise()  # step 1
-    search.swap_pass()  # step 2b
-    search.add_effects(max_effects)  # step 2
-    search.swap_pass()
-    report = search.report(units, bootstrap, random_state)  # step 3
+    # The refits share their features' weak-form statistics: each later refit's
+    # features are among the joint revision's (the library and the dissipative
+    # candidates), so only its input is integrated again.
+    with reuse_weak_columns():
+        search = _Search(
+            est,
+            Xa,
+            tau_a,
+            groups,
+            catalogue=catalogue,
+            extra_terms=extra_terms,
+            angles=angles,
+            eps=eps,
+            n_splits=n_splits,
+            window=window,
+            min_explained=min_explained,
+            min_improvement=min_improvement,
+            verbose=verbose,
+        )
+        if "delay" in catalogue and tau_a is not None and search.dt and search.dt > 0:
+            search.input_delay()  # step 0
+        search.total_ref = float(
+            sum(search.scorer.w @ r for r in search.scorer.reference)
+        )
+        if revise and search.diss:
+            search.revise()  # step 1
+        search.swap_pass()  # step 2b
+        search.add_effects(max_effects)  # step 2
+        search.swap_pass()
+        report = search.report(units, bootstrap, random_state)  # step 3
     if report.degenerate_folds:
         warnings.warn(
             "diagnose excluded degenerate folds from some models' held-out scores "

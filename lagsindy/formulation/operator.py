@@ -56,13 +56,17 @@ _WEAK_REUSE = contextvars.ContextVar("lagsindy_weak_reuse", default=None)
 def reuse_weak_columns():
     """Within the block, weak-form statistics of the same samples reuse the features.
 
-    Fits that differ only in the generalized forces (an input delay search shifts the
-    input and refits) have the same feature integrands and window sums; inside this
-    block :meth:`EulerLagrangeOperator.weak_grams` keeps them (keyed by the features,
-    the samples, the windows and the noise covariance) and only integrates the new
-    forces. The Gram matrices so assembled equal the ones computed afresh up to
-    rounding (the feature block is the first call's, the force row is summed on its
-    own). The kept columns are dropped when the block ends.
+    Fits of the same samples differ in their generalized forces (an input delay
+    search shifts the input and refits) or in some of their features (diagnose's
+    refits add effects to the Lagrangian's library), while each feature's integrands
+    and window sums stay the same. Inside this block
+    :meth:`EulerLagrangeOperator.weak_grams` keeps the feature part of its Gram
+    matrices, noise part and window columns (keyed by the samples, the windows, the
+    sampling interval and the noise covariance, and labelled with the features); a
+    later call whose features are all among a kept call's takes their block and only
+    integrates its forces. The Gram matrices so assembled equal the ones computed
+    afresh up to rounding (the feature block is gathered from the kept one, the force
+    row is summed on its own). The kept columns are dropped when the block ends.
     """
     token = _WEAK_REUSE.set({})
     try:
@@ -543,13 +547,14 @@ class EulerLagrangeOperator:
         q, qd = X[order, :d], X[order, d : 2 * d]
         store = _WEAK_REUSE.get()
         key = None
-        if store is not None and y is not None and extra is None and not per_segment:
+        if store is not None and extra is None and not per_segment:
             key = self._reuse_key(
                 X, order, segments_by_window, strides, dt, noise_cov, noise_rows
             )
-            if all(w in store.get(key, {}) for w in windows):
+            found = self._kept_block(store.get(key, ()), windows)
+            if found is not None:
                 return self._reused_grams(
-                    store[key], X, y, order, windows, dt, return_noise, lazy
+                    *found, X, y, order, windows, dt, return_noise, lazy
                 )
         a_int, b_int = self._weak_integrands(q, qd, order, y, extra)
         width = a_int.shape[2]
@@ -583,7 +588,7 @@ class EulerLagrangeOperator:
                 counts.append(cols.shape[0])
                 grams.append(torch.einsum("wip,wiq->ipq", cols, cols))
                 if key is not None:
-                    feats.append((sl, cols[:, :, :-1]))
+                    feats.append((sl, cols[:, :, : self.n_columns]))
                 if sens is not None:
                     for acc, w in zip(
                         weights, _window_weights(n, -dt * dpsi, -dt * psi, stride)
@@ -605,8 +610,20 @@ class EulerLagrangeOperator:
                     sens, weights, noise_cov, width, slices if per_segment else None
                 )
             if key is not None:  # the features' part, for fits with other forces
-                kept = store.setdefault(key, {})
-                kept[window] = (gram, noise, n_windows, stride, feats)
+                ids = self._feature_ids()
+                entries = store.setdefault(key, [])
+                kept = next((e[1] for e in entries if e[0] == ids), None)
+                if kept is None:
+                    kept = {}
+                    entries.append((ids, kept))
+                pf = self.n_columns
+                kept[window] = (
+                    gram[:, :pf, :pf],
+                    noise[:, :pf, :pf],
+                    n_windows,
+                    stride,
+                    feats,
+                )
             return (
                 (gram, noise, n_windows) if return_noise else (gram - noise, n_windows)
             )
@@ -664,8 +681,6 @@ class EulerLagrangeOperator:
         cov = None if noise_cov is None else noise_cov.detach().cpu().numpy().tobytes()
         return (
             tuple(self.coordinates),
-            tuple(self.terms),
-            tuple(tuple(f) for f in self.forces),
             str(X.dtype),
             str(X.device),
             digest,
@@ -675,29 +690,52 @@ class EulerLagrangeOperator:
             int(rows),
         )
 
-    def _reused_grams(self, kept, X, y, order, windows, dt, return_noise, lazy):
+    def _feature_ids(self) -> tuple:
+        """What identifies each feature (column) across operators: its term or force."""
+        return tuple(("term", t) for t in self.terms) + tuple(
+            ("force", tuple(f)) for f in self.forces
+        )
+
+    def _kept_block(self, entries, windows):
+        """``(kept, index)``: a reuse entry holding every feature of this operator
+        (at ``index`` in its columns) for every window asked for, or None."""
+        ids = self._feature_ids()
+        for have, kept in entries:
+            if all(w in kept for w in windows):
+                position = {f: k for k, f in enumerate(have)}
+                if all(f in position for f in ids):
+                    return kept, [position[f] for f in ids]
+        return None
+
+    def _reused_grams(self, kept, index, X, y, order, windows, dt, return_noise, lazy):
         """:meth:`weak_grams` from a reuse block's kept feature columns and new ``y``.
 
-        The feature block of each Gram matrix is the kept one; the force row and
-        column are sums of the kept feature columns times the new force's window
-        integrals.
+        The feature block of each Gram matrix (and of its noise part) is gathered
+        from the kept one at ``index``; the force row and column are sums of the kept
+        feature columns times the new force's window integrals.
         """
-        tau = y[order]
+        tau = None if y is None else y[order]
+        index = torch.as_tensor(index, dtype=torch.long, device=X.device)
+        pf = len(index)
+        width = pf + (0 if y is None else 1)
 
         def build(window):
-            gram, noise, n_windows, stride, feats = kept[window]
-            psi, _ = (k.to(X) for k in bump_function(window, dt))
-            gram = gram.clone()
-            last = gram.shape[1] - 1
-            cross = torch.zeros_like(gram[:, :last, last])
-            square = torch.zeros_like(gram[:, last, last])
-            for sl, cols in feats:
-                ycols = -dt * _correlate(-tau[sl], psi, stride)
-                cross += torch.einsum("wip,wi->ip", cols, ycols)
-                square += (ycols * ycols).sum(0)
-            gram[:, :last, last] = cross
-            gram[:, last, :last] = cross
-            gram[:, last, last] = square
+            kept_gram, kept_noise, n_windows, stride, feats = kept[window]
+            gram = kept_gram.new_zeros((self.n_dof, width, width))
+            noise = torch.zeros_like(gram)
+            gram[:, :pf, :pf] = kept_gram[:, index][:, :, index]
+            noise[:, :pf, :pf] = kept_noise[:, index][:, :, index]
+            if tau is not None:
+                psi, _ = (k.to(X) for k in bump_function(window, dt))
+                cross = gram.new_zeros((self.n_dof, pf))
+                square = gram.new_zeros(self.n_dof)
+                for sl, cols in feats:
+                    ycols = -dt * _correlate(-tau[sl], psi, stride)
+                    cross += torch.einsum("wip,wi->ip", cols[:, :, index], ycols)
+                    square += (ycols * ycols).sum(0)
+                gram[:, :pf, pf] = cross
+                gram[:, pf, :pf] = cross
+                gram[:, pf, pf] = square
             return (
                 (gram, noise, n_windows) if return_noise else (gram - noise, n_windows)
             )
