@@ -668,7 +668,9 @@ class EulerLagrangeOperator:
         return a_int, b_int
 
     def _reuse_key(self, X, order, segments_by_window, strides, dt, noise_cov, rows):
-        """What the feature part of :meth:`weak_grams` depends on (without ``y``)."""
+        """What the feature part of :meth:`weak_grams` depends on besides the
+        features themselves (labelled by :meth:`_feature_ids`) and ``y``: the
+        samples, the windows, the sampling interval and the noise correction."""
         d = self.n_dof
         digest = hashlib.blake2b(
             X[order, : 2 * d].detach().cpu().contiguous().numpy().tobytes(),
