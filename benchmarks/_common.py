@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import datetime as _dt
+import json
 import os
 import platform
 import shlex
+import subprocess
 import sys
 from pathlib import Path
 
@@ -77,3 +79,38 @@ def write(name: str, text: str) -> Path:
     path.write_text(text)
     print(f"wrote {path}")
     return path
+
+
+def run_in(module, flag, spec, code_root=None, timeout=1800, env=None):
+    """Run ``python -m benchmarks.<module> <flag> <spec as JSON>`` in a fresh
+    interpreter and return the JSON object its last line prints.
+
+    ``code_root``: import lagsindy from that checkout instead of this one (for
+    before/after comparisons); the benchmark's own code is always this checkout's.
+    A timeout or a failure gives ``{**spec, "error": ...}``.
+    """
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    code = os.path.abspath(code_root or root)
+    # lagsindy is imported first (from code_root when given), then this checkout's
+    # benchmarks package runs the measurement.
+    boot = (
+        f"import runpy, sys; sys.path.insert(0, {code!r}); import lagsindy; "
+        f"sys.path[0] = {root!r}; sys.argv[0] = {module!r}; "
+        f"runpy.run_module('benchmarks.{module}', run_name='__main__')"
+    )
+    cmd = [sys.executable, "-c", boot, flag, json.dumps(spec)]
+    try:
+        out = subprocess.run(
+            cmd,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            cwd=root,
+            env=None if env is None else {**os.environ, **env},
+        )
+    except subprocess.TimeoutExpired:
+        return {**spec, "error": f"no result within {timeout} s"}
+    if out.returncode != 0:
+        tail = out.stderr.strip().splitlines()
+        return {**spec, "error": tail[-1] if tail else f"exit {out.returncode}"}
+    return json.loads(out.stdout.strip().splitlines()[-1])

@@ -24,12 +24,10 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
-import sys
 import time
 import warnings
 
-from ._common import command, header, write
+from ._common import command, header, run_in, write
 from ._evaluate import tiny
 
 STEP = 10  # every 10th sample of 1 kHz, as benchmarks.measured
@@ -99,29 +97,6 @@ def measure(spec):
     }
 
 
-def _run_in(spec, code_root=None, timeout=1800):
-    """One ``--_measure`` in a fresh interpreter, lagsindy from ``code_root``."""
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    code = os.path.abspath(code_root or root)
-    boot = (
-        f"import runpy, sys; sys.path.insert(0, {code!r}); import lagsindy; "
-        f"sys.path[0] = {root!r}; sys.argv[0] = 'noise_correction'; "
-        "runpy.run_module('benchmarks.noise_correction', run_name='__main__')"
-    )
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-c", boot, "--_measure", json.dumps(spec)]
-    try:
-        out = subprocess.run(
-            cmd, capture_output=True, text=True, timeout=timeout, cwd=root, env=env
-        )
-    except subprocess.TimeoutExpired:
-        return {**spec, "error": f"no result within {timeout} s"}
-    if out.returncode != 0:
-        tail = out.stderr.strip().splitlines()
-        return {**spec, "error": tail[-1] if tail else f"exit {out.returncode}"}
-    return json.loads(out.stdout.strip().splitlines()[-1])
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="single only, 1 repeat")
@@ -148,7 +123,13 @@ def main(argv=None):
             spec["segments"] = 3
         for _ in range(processes):
             for label, root in codes:
-                res = _run_in(spec, root)
+                res = run_in(
+                    "noise_correction",
+                    "--_measure",
+                    spec,
+                    root,
+                    env={"OMP_NUM_THREADS": "1"},
+                )
                 print(label, res, flush=True)
                 results.setdefault((which, label), []).append(res)
     steps = ["Gram, with the correction", "Gram, without", "default fit", "diagnose"]

@@ -439,25 +439,7 @@ def _run_in(spec, kind, code_root=None, timeout=1800):
 
     ``code_root``: import lagsindy from that checkout instead (for before/after).
     """
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    # lagsindy is imported first (from code_root when given), then this file's
-    # benchmarks package runs the measurement.
-    boot = (
-        f"import runpy, sys; sys.path.insert(0, {os.path.abspath(code_root or root)!r}); import lagsindy; "
-        f"sys.path[0] = {root!r}; sys.argv[0] = 'speed'; "
-        "runpy.run_module('benchmarks.speed', run_name='__main__')"
-    )
-    cmd = [sys.executable, "-c", boot, f"--_{kind}", json.dumps(spec)]
-    try:
-        out = subprocess.run(
-            cmd, capture_output=True, text=True, timeout=timeout, cwd=root
-        )
-    except subprocess.TimeoutExpired:
-        return {**spec, "error": f"no result within {timeout} s"}
-    if out.returncode != 0:
-        tail = out.stderr.strip().splitlines()
-        return {**spec, "error": tail[-1] if tail else f"exit {out.returncode}"}
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return _common.run_in("speed", f"--_{kind}", spec, code_root, timeout)
 
 
 def _codes(baseline):

@@ -23,6 +23,38 @@ def pytest_configure(config):
         torch.set_num_threads(1)
 
 
+@pytest.fixture
+def fit_rows(monkeypatch):
+    """Rows of every ``LagrangianSINDy.fit`` made from here on, in order (clear the
+    list to count from a later point)."""
+    rows = []
+    original = LagrangianSINDy.fit
+
+    def recorded(self, X, *args, **kwargs):
+        rows.append(len(X))
+        return original(self, X, *args, **kwargs)
+
+    monkeypatch.setattr(LagrangianSINDy, "fit", recorded)
+    return rows
+
+
+@pytest.fixture
+def reused_grams(monkeypatch):
+    """One entry per weak-form statistics served from kept ones from here on
+    (``EulerLagrangeOperator._reused_grams``, see ``reuse_weak_columns``)."""
+    from lagsindy.formulation.operator import EulerLagrangeOperator
+
+    calls = []
+    original = EulerLagrangeOperator._reused_grams
+
+    def spy(self, *args, **kwargs):
+        calls.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(EulerLagrangeOperator, "_reused_grams", spy)
+    return calls
+
+
 @pytest.fixture(autouse=True)
 def _seed():
     """Tests that draw random numbers themselves start from a known state."""

@@ -79,7 +79,7 @@ def test_delay_is_estimated_and_removes_the_bias(delayed):
 
 
 @pytest.mark.parametrize("lag", [0.030, 0.0])
-def test_support_search_refits_only_while_the_estimate_moves(delayed, lag, monkeypatch):
+def test_support_search_refits_only_while_the_estimate_moves(delayed, lag, fit_rows):
     # With a delay the first fit (at 0) is followed by a refit at the estimate; an
     # estimate that stays where the last fit was made ends the search (no refit of
     # the same input to confirm the support).
@@ -87,42 +87,26 @@ def test_support_search_refits_only_while_the_estimate_moves(delayed, lag, monke
 
     system, X, tau, t, groups = delayed
     tau = shift_input(tau, t, 0.030 - lag, groups)  # lag 0: the true input
-    fits = []
-    original = LagrangianSINDy.fit
-
-    def counted(self, *args, **kwargs):
-        fits.append(1)
-        return original(self, *args, **kwargs)
-
-    monkeypatch.setattr(LagrangianSINDy, "fit", counted)
     result = delay_module.estimate_delay(
         make(system), X, tau, t, groups=groups, max_delay=0.048, n_splits=2
     )
     # measured 29.995 ms (2 fits) and -0.0074 ms (0.09 % of the 8 ms sampling
     # interval, under the 1 % within which a refit is skipped; 1 fit)
     assert abs(result.delay - lag) < 0.001
-    assert len(fits) == (2 if lag else 1)
+    assert len(fit_rows) == (2 if lag else 1)
 
 
-def test_support_search_fits_delay_zero_on_every_row(delayed, monkeypatch):
+def test_support_search_fits_delay_zero_on_every_row(delayed, fit_rows):
     # The fit at delay 0 sees the recorded input on every row (no shift runs out
     # of data there); the refit at the estimate only the rows every shift covers.
     system, X, tau, t, groups = delayed
-    rows = []
-    original = LagrangianSINDy.fit
-
-    def counted(self, X_, *args, **kwargs):
-        rows.append(len(X_))
-        return original(self, X_, *args, **kwargs)
-
-    monkeypatch.setattr(LagrangianSINDy, "fit", counted)
     estimate_delay(make(system), X, tau, t, groups=groups, max_delay=0.048)
     # shifts of up to 6 samples (48 ms at 8 ms) drop the first and last 7 rows of
     # each of the 4 trajectories (the rows within 48 ms of an end, 48 ms included)
-    assert rows == [len(X), len(X) - 4 * 2 * 7]
+    assert fit_rows == [len(X), len(X) - 4 * 2 * 7]
 
 
-def test_support_search_takes_a_given_first_fit(delayed, monkeypatch):
+def test_support_search_takes_a_given_first_fit(delayed, fit_rows):
     # A fit given for delay 0 (diagnose's joint fit) replaces the first fit: the
     # estimate is the same, one fit fewer is made.
     import lagsindy.delay as delay_module
@@ -131,18 +115,12 @@ def test_support_search_takes_a_given_first_fit(delayed, monkeypatch):
     first = make(system).fit(X, tau, groups=groups)
     kw = dict(groups=groups, max_delay=0.048, n_splits=2, method="support", verbose=0)
     own = delay_module._estimate_delay(make(system), X, tau, t, **kw)
-    fits = []
-    original = LagrangianSINDy.fit
-
-    def counted(self, *args, **kwargs):
-        fits.append(1)
-        return original(self, *args, **kwargs)
-
-    monkeypatch.setattr(LagrangianSINDy, "fit", counted)
+    assert len(fit_rows) == 3  # the first fit, then the search's two
+    fit_rows.clear()
     given = delay_module._estimate_delay(
         make(system), X, tau, t, fitted_at_zero=first, **kw
     )
-    assert len(fits) == 1  # the refit at the estimate only (2 without the given fit)
+    assert len(fit_rows) == 1  # the refit at the estimate only
     assert given.delay == own.delay
     np.testing.assert_array_equal(given.scores, own.scores)
 

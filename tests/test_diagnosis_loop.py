@@ -397,14 +397,15 @@ def test_diagnose_never_fits_the_same_model_twice(delay, monkeypatch):
     assert len(seen) == (5 if delay else 2)
 
 
-def test_diagnose_refits_share_the_joint_fits_weak_statistics(monkeypatch):
+def test_diagnose_refits_share_the_joint_fits_weak_statistics(
+    monkeypatch, reused_grams
+):
     """Inside diagnose every refit's features are among the joint revision's fit, so
     their weak-form statistics (noise part included) are gathered, not computed
     again: the diagnosis equals the one with every refit's statistics afresh."""
     import contextlib
 
     import lagsindy.diagnostics.search as search_module
-    import lagsindy.formulation.operator as operator_module
 
     system = cart_pendulum().with_damping(viscous={"theta": 0.1}, coulomb={"x": 0.2})
     data = make_dataset(
@@ -419,14 +420,7 @@ def test_diagnose_refits_share_the_joint_fits_weak_statistics(monkeypatch):
     est = LagrangianSINDy(system.paper_library()).fit(
         data.X, data.tau, groups=data.groups
     )
-    reused = []
-    original = operator_module.EulerLagrangeOperator._reused_grams
-
-    def spy(self, *args, **kwargs):
-        reused.append(1)
-        return original(self, *args, **kwargs)
-
-    monkeypatch.setattr(operator_module.EulerLagrangeOperator, "_reused_grams", spy)
+    reused = reused_grams
     shared = diagnose(est, data.X, data.tau, groups=data.groups)
     n_shared = len(reused)
     monkeypatch.setattr(search_module, "reuse_weak_columns", contextlib.nullcontext)

@@ -501,7 +501,7 @@ def test_weak_r2_scores_what_the_weak_form_fits(cart_positions_only):
     assert pointwise < 0  # measured -3.17
 
 
-def test_reuse_weak_columns_gives_the_statistics_of_a_fresh_call(monkeypatch):
+def test_reuse_weak_columns_gives_the_statistics_of_a_fresh_call(reused_grams):
     """Inside reuse_weak_columns a second call on the same samples with other forces
     takes the features' part from the first and equals a fresh call (noise part
     included); other samples, or leaving the block, compute afresh."""
@@ -523,14 +523,7 @@ def test_reuse_weak_columns_gives_the_statistics_of_a_fresh_call(monkeypatch):
         return_noise=True,
     )  # fmt: skip
     by_window = {61: segs, 121: segs[:2]}
-    reused = []
-    original = operator_module.EulerLagrangeOperator._reused_grams
-
-    def spy(self, *args, **kwargs):
-        reused.append(1)
-        return original(self, *args, **kwargs)
-
-    monkeypatch.setattr(operator_module.EulerLagrangeOperator, "_reused_grams", spy)
+    reused = reused_grams
     fresh = op.weak_grams(X, shifted, by_window, **kw)
     with operator_module.reuse_weak_columns():
         first = op.weak_grams(X, tau, by_window, **kw)
@@ -549,7 +542,7 @@ def test_reuse_weak_columns_gives_the_statistics_of_a_fresh_call(monkeypatch):
         assert not torch.allclose(first[window][0][:, -1], fresh[window][0][:, -1])
 
 
-def test_reuse_weak_columns_serves_a_subset_of_the_kept_features(monkeypatch):
+def test_reuse_weak_columns_serves_a_subset_of_the_kept_features(reused_grams):
     """A call whose features are among a kept call's (in another order, forces
     included, with or without a generalized force) takes their block: it equals a
     fresh call to rounding; a feature the kept call lacks means a fresh call."""
@@ -579,14 +572,7 @@ def test_reuse_weak_columns_serves_a_subset_of_the_kept_features(monkeypatch):
     cov = torch.diag(torch.tensor([1e-4, 2e-4, 3e-4, 1e-3], dtype=torch.float64))
     kw = dict(strides={61: 15}, dt=0.01, noise_cov=cov, noise_rows=700)
     kw["return_noise"] = True
-    reused = []
-    original = operator_module.EulerLagrangeOperator._reused_grams
-
-    def spy(self, *args, **kwargs):
-        reused.append(1)
-        return original(self, *args, **kwargs)
-
-    monkeypatch.setattr(operator_module.EulerLagrangeOperator, "_reused_grams", spy)
+    reused = reused_grams
     fresh = {y: sub.weak_grams(X, y, {61: segs}, **kw)[61] for y in (None, tau)}
     with operator_module.reuse_weak_columns():
         union.weak_grams(X, None, {61: segs}, **kw)  # kept, without a force
