@@ -224,7 +224,9 @@ def diagnose(
         search.swap_pass()  # step 2b
         search.add_effects(max_effects)  # step 2
         search.swap_pass()
-        report = search.report(units, bootstrap, random_state)  # step 3
+    # outside the block: a bootstrap's refits of resampled rows would only add
+    # statistics that nothing reuses
+    report = search.report(units, bootstrap, random_state)  # step 3
     if report.degenerate_folds:
         warnings.warn(
             "diagnose excluded degenerate folds from some models' held-out scores "
