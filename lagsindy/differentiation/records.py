@@ -281,26 +281,35 @@ def check_weak_form_segments(X, n_dof: int, segments, dt: float) -> None:
     """
     X = np.asarray(X, dtype=float)
     q, qd = X[:, :n_dof], X[:, n_dof : 2 * n_dof]
+    # Segments of one length at once (each its own medians): the same values as
+    # one segment after the other, the first jumping segment reported.
+    by_length = {}
     for k, rows in enumerate(segments):
         rows = np.asarray(rows).astype(np.intp)
-        if rows.size < 3:
-            continue
-        step = np.diff(q[rows], axis=0)
-        expected = dt * (qd[rows][1:] + qd[rows][:-1]) / 2
+        if rows.size >= 3:
+            by_length.setdefault(rows.size, []).append((k, rows))
+    first = None  # (segment, step) of the first jump
+    for group in by_length.values():
+        idx = np.stack([rows for _, rows in group])  # (segments, length)
+        step = np.diff(q[idx], axis=1)
+        expected = dt * (qd[idx][:, 1:] + qd[idx][:, :-1]) / 2
         mismatch = np.abs(step - expected)
-        spread = 1.4826 * np.median(
-            np.abs(mismatch - np.median(mismatch, axis=0)), axis=0
+        centre = np.median(mismatch, axis=1, keepdims=True)
+        spread = 1.4826 * np.median(np.abs(mismatch - centre), axis=1, keepdims=True)
+        jump = (np.abs(step) > 4 * np.abs(expected) + 10 * spread + 1e-12).any(axis=2)
+        for j in np.flatnonzero(jump.any(axis=1)):
+            if first is None or group[j][0] < first[0]:
+                first = (group[j][0], int(np.flatnonzero(jump[j])[0]))
+    if first is not None:
+        k, s = first
+        rows = np.asarray(segments[k]).astype(np.intp)
+        raise ValueError(
+            "formulation='weak' integrates over consecutive rows as if they were "
+            f"dt = {dt:.4g} s apart, but trajectory {k} (rows {rows[0]}-"
+            f"{rows[-1]}) jumps between rows {rows[s]} and {rows[s + 1]}: the "
+            "positions change far more than the velocities allow, as across a gap "
+            "in the time stamps. Cut the trajectories at their gaps and pass the "
+            "segments as groups (groups = lagsindy.differentiation.split_gaps(t, "
+            "groups), or derivatives(..., return_groups=True)), or fit with "
+            "formulation='strong'"
         )
-        jump = np.abs(step) > 4 * np.abs(expected) + 10 * spread + 1e-12
-        if jump.any():
-            s = int(np.flatnonzero(jump.any(axis=1))[0])
-            raise ValueError(
-                "formulation='weak' integrates over consecutive rows as if they were "
-                f"dt = {dt:.4g} s apart, but trajectory {k} (rows {rows[0]}-"
-                f"{rows[-1]}) jumps between rows {rows[s]} and {rows[s + 1]}: the "
-                "positions change far more than the velocities allow, as across a gap "
-                "in the time stamps. Cut the trajectories at their gaps and pass the "
-                "segments as groups (groups = lagsindy.differentiation.split_gaps(t, "
-                "groups), or derivatives(..., return_groups=True)), or fit with "
-                "formulation='strong'"
-            )

@@ -163,7 +163,7 @@ def weak_gram(
             f"no trajectory is as long as window={first} samples (the longest has "
             f"{longest}); lower window or record longer trajectories"
         )
-    order = check_time_order(Xt, d, usable)
+    order = check_time_order(Xt, d, usable, enough=TIME_ORDER_MIN)
     if order < TIME_ORDER_MIN:
         raise ValueError(
             "the rows do not look like time-ordered trajectories (the position "
@@ -295,11 +295,13 @@ def trajectory_segments(X: torch.Tensor, n_dof: int, groups=None, dt=None):
             raise ValueError(
                 f"groups must have one label per row of X ({n}), got shape {groups.shape}"
             )
-        _, first = np.unique(groups, return_index=True)
-        return [
-            torch.as_tensor(np.flatnonzero(groups == groups[i]), device=X.device)
-            for i in np.sort(first)
-        ]
+        # each label's rows in order, labels in order of first appearance: one
+        # stable sort by label instead of one comparison of every row per label
+        _, first, inverse = np.unique(groups, return_index=True, return_inverse=True)
+        rows = np.argsort(inverse.ravel(), kind="stable")
+        counts = np.bincount(inverse.ravel(), minlength=first.size)
+        parts = np.split(rows, np.cumsum(counts)[:-1])
+        return [torch.as_tensor(parts[k], device=X.device) for k in np.argsort(first)]
     jump = _jumps(X[:, :n_dof], X[:, n_dof : 2 * n_dof], dt)
     if X.shape[1] >= 3 * n_dof:  # velocities jump too where a trajectory ends
         jump |= _jumps(X[:, n_dof : 2 * n_dof], X[:, 2 * n_dof : 3 * n_dof], dt)
@@ -322,7 +324,7 @@ def _jumps(x: torch.Tensor, xd: torch.Tensor, dt: float) -> torch.Tensor:
     return (mismatch > torch.maximum(8 * spread, floor)).any(dim=1)
 
 
-def check_time_order(X: torch.Tensor, n_dof: int, segments) -> float:
+def check_time_order(X: torch.Tensor, n_dof: int, segments, enough=None) -> float:
     """How well the position steps follow the velocities: about 1 if time-ordered.
 
     For lags ``k`` in ``TIME_ORDER_LAGS`` (shorter than the segments), the
@@ -333,6 +335,9 @@ def check_time_order(X: torch.Tensor, n_dof: int, segments) -> float:
     every 0.01, cart-pendulum), but not the longer lags' (0.997 and 0.93 at lag 16):
     the integrated motion grows with the lag, the noise of a position difference
     does not. (Lag 1 alone rejected time-ordered data at noise 0.08 and above.)
+
+    With ``enough``, the lags stop at the first whose correlation reaches it (that
+    value is returned): enough to tell whether the largest reaches ``enough``.
     """
     # All segments at once: positions, and the running trapezoid integral of the
     # velocities over all rows; a lag's pairs are those inside one segment, whose
@@ -362,6 +367,8 @@ def check_time_order(X: torch.Tensor, n_dof: int, segments) -> float:
         den = float(torch.sqrt((a * a).sum() * (b * b).sum()))
         if den > 0:
             best = max(best, float((a * b).sum()) / den)
+            if enough is not None and best >= enough:
+                break
     return best
 
 
@@ -376,22 +383,28 @@ def estimate_sampling_interval(X: torch.Tensor, n_dof: int, segments) -> float:
     # Overflows give inf and nan silently, as in torch (the fit then reports
     # non-finite statistics).
     Xn = X.detach().cpu().numpy() if torch.is_tensor(X) else np.asarray(X)
-    ratios, weights = [], []
+    idx = [
+        seg.cpu().numpy() if torch.is_tensor(seg) else np.asarray(seg)
+        for seg in segments
+    ]
+    idx = [i.astype(np.intp, copy=False) for i in idx if i.size >= 2]
     with np.errstate(all="ignore"):
-        for seg in segments:
-            idx = seg.cpu().numpy() if torch.is_tensor(seg) else np.asarray(seg)
-            q, qd = Xn[idx, :n_dof], Xn[idx, n_dof : 2 * n_dof]
-            if q.shape[0] < 2:
-                continue
-            mid = (qd[1:] + qd[:-1]) / 2
+        if idx:
+            # All segments at once, the steps across two segments left out: the
+            # same ratios, in the same order, as one segment after the other.
+            rows = np.concatenate(idx)
+            inside = np.ones(rows.size - 1, dtype=bool)
+            inside[np.cumsum([i.size for i in idx])[:-1] - 1] = False
+            q, qd = Xn[rows, :n_dof], Xn[rows, n_dof : 2 * n_dof]
+            mid = ((qd[1:] + qd[:-1]) / 2)[inside]
             ok = np.abs(mid) > 0
-            ratios.append((q[1:] - q[:-1])[ok] / mid[ok])
-            weights.append(mid[ok] ** 2)
-        if not ratios or sum(w.size for w in weights) == 0:
+            ratios = (q[1:] - q[:-1])[inside][ok] / mid[ok]
+            weights = mid[ok] ** 2
+        if not idx or weights.size == 0:
             raise ValueError(
                 "cannot estimate dt: the velocities are all zero; pass dt="
             )
-        return weighted_median(np.concatenate(ratios), np.concatenate(weights))
+        return weighted_median(ratios, weights)
 
 
 # Candidates below which weighted_median sorts what is left instead of selecting.
