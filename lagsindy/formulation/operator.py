@@ -638,7 +638,8 @@ class EulerLagrangeOperator:
         dphi/dq, the forces, ``-extra``, ``-y``).
 
         Written into two buffers: when every term is batched, straight from the
-        gradient kernel's (term, [q, qd], sample) output, one transposing copy each.
+        gradient kernel's (term, [q, qd], sample) output, one transposing copy per
+        coordinate and buffer.
         """
         d, n = self.n_dof, q.shape[0]
         p = self.n_terms
@@ -652,8 +653,11 @@ class EulerLagrangeOperator:
             batched = isinstance(kernels, TermKernels) and kernels.plan is not None
             if batched and not kernels.general.size:
                 g = kernels._batched("grad", q, qd).view(p, 2 * d, n)
-                a_int[:, :, :p] = g[:, d:].permute(2, 1, 0)  # dphi/dqd: (n, d, p)
-                b_int[:, :, :p] = g[:, :d].permute(2, 1, 0)  # dphi/dq
+                # one 2-d transpose per coordinate: a third faster than one
+                # 3-d permuted copy of each half
+                for i in range(d):
+                    a_int[:, i, :p] = g[:, d + i].T  # dphi/dqd_i: (n, p)
+                    b_int[:, i, :p] = g[:, i].T  # dphi/dq_i
             else:
                 g = lagrangian_gradients(kernels, q, qd, chunk_size=self.chunk_size)
                 a_int[:, :, :p] = g[:, :, d:].transpose(1, 2)
