@@ -589,3 +589,25 @@ def test_reuse_weak_columns_serves_a_subset_of_the_kept_features(reused_grams):
             np.testing.assert_allclose(a, b, rtol=1e-14, atol=1e-14 * np.abs(b).max())
         assert got[y][2] == fresh[y][2]  # windows
     assert float(fresh[tau][1].abs().max()) > 0  # the noise part is there to compare
+
+
+def test_reuse_weak_columns_keeps_its_own_copy():
+    """A caller changing the matrices a kept call returned does not change what a
+    later call gathers."""
+    import lagsindy.formulation.operator as operator_module
+
+    data = make_dataset(
+        cart_pendulum(), n_trajectories=2, excitation="sincos", random_state=6
+    )
+    lib = cart_pendulum().paper_library()
+    op = EulerLagrangeOperator(lib.coordinates_, lib.terms_)
+    X, tau = torch.tensor(data.X), torch.tensor(data.tau)
+    segs = [torch.arange(0, 500), torch.arange(500, 1000)]
+    kw = dict(strides={61: 15}, dt=0.01, return_noise=True)
+    with operator_module.reuse_weak_columns():
+        first = op.weak_grams(X, tau, {61: segs}, **kw)[61]
+        want = first[0].clone()
+        first[0].mul_(2.0)  # the caller's own business
+        again = op.weak_grams(X, tau, {61: segs}, **kw)[61]
+    # the force row is summed again (rounding); the doubled matrix would be 2x off
+    np.testing.assert_allclose(again[0].numpy(), want.numpy(), rtol=1e-12)

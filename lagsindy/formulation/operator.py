@@ -617,9 +617,10 @@ class EulerLagrangeOperator:
                     kept = {}
                     entries.append((ids, kept))
                 pf = self.n_columns
+                # copies: the caller owns the returned matrices (and may change them)
                 kept[window] = (
-                    gram[:, :pf, :pf],
-                    noise[:, :pf, :pf],
+                    gram[:, :pf, :pf].clone(),
+                    noise[:, :pf, :pf].clone(),
                     n_windows,
                     stride,
                     feats,
