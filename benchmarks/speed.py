@@ -558,13 +558,13 @@ def floor_section(baseline=None, repeats=3, quick=False):
 # ------------------------------------------------- passive search and diagnosis
 RATIOS_MARKER = "\n## Passive search and diagnosis against one fit"
 # Functions whose cumulative CPU time the profile of one passive search reports:
-# (label, file suffix, function names).
+# (label, file suffix or suffixes, function names).
 SEARCH_STEPS = [
     ("whole fit", "lagsindy/estimator.py", ("fit",)),
     ("Gram statistics (weak form)", "formulation/__init__.py", ("gram_statistics",)),
     (
         "- of which the noise correction",
-        "formulation/operator.py",
+        ("formulation/operator.py", "formulation/weak.py"),
         ("_noise_sensitivities", "_noise_block"),
     ),
     ("case III search (`fit_fixed`)", "cases/fixed.py", ("fit_fixed",)),
@@ -594,7 +594,7 @@ DIAGNOSE_STEPS = [
     ("weak Gram statistics, every call", "formulation/operator.py", ("weak_grams",)),
     (
         "- of which the noise correction",
-        "formulation/operator.py",
+        ("formulation/operator.py", "formulation/weak.py"),
         ("_noise_sensitivities", "_noise_block"),
     ),
     (

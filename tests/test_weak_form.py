@@ -611,3 +611,36 @@ def test_reuse_weak_columns_keeps_its_own_copy():
         again = op.weak_grams(X, tau, {61: segs}, **kw)[61]
     # the force row is summed again (rounding); the doubled matrix would be 2x off
     np.testing.assert_allclose(again[0].numpy(), want.numpy(), rtol=1e-12)
+
+
+@pytest.mark.parametrize("chunk", [1, 600])
+def test_weak_integrands_by_chunks_equal_one_block(monkeypatch, chunk):
+    """The integrands evaluated by groups of whole trajectories (one each, or a few)
+    give the Gram statistics of one evaluation on all rows, noise part included,
+    with trajectories of several lengths."""
+    import lagsindy.formulation.operator as operator_module
+
+    data = make_dataset(
+        cart_pendulum(), n_trajectories=4, excitation="sincos", noise=0.01,
+        random_state=7,
+    )  # fmt: skip
+    lib = cart_pendulum().paper_library()
+    op = EulerLagrangeOperator(lib.coordinates_, lib.terms_)
+    X, tau = torch.tensor(data.X), torch.tensor(data.tau)
+    segs = [torch.arange(0, 500), torch.arange(500, 800), torch.arange(1000, 1500)]
+    segs.append(torch.arange(1500, 1700))
+    cov = torch.diag(torch.tensor([1e-4, 2e-4, 3e-4, 1e-3], dtype=torch.float64))
+    kw = dict(
+        strides={61: 15, 161: 40}, dt=0.01, noise_cov=cov, return_noise=True
+    )  # fmt: skip
+    by_window = {61: segs, 161: segs[:3]}
+    monkeypatch.setattr(operator_module, "WEAK_CHUNK", 1 << 40)  # one block
+    whole = op.weak_grams(X, tau, by_window, **kw)
+    monkeypatch.setattr(operator_module, "WEAK_CHUNK", chunk * 316)  # ~chunk rows
+    parts = op.weak_grams(X, tau, by_window, **kw)
+    for window in by_window:
+        for a, b in zip(parts[window][:2], whole[window][:2]):
+            a, b = a.numpy(), b.numpy()
+            # measured: equal (the same kernels row by row, summed in the same order)
+            np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-13 * np.abs(b).max())
+        assert parts[window][2] == whole[window][2]

@@ -36,7 +36,7 @@ from torch.func import jacfwd, jvp, vmap
 
 from .._batched import TermKernels, compile_terms
 from .._expr import compile_torch, symbols_for
-from .weak import _band, _correlate, _window_weights, bump_function
+from .weak import _band, _correlate, _noise_block, _window_weights, bump_function
 
 DEFAULT_CHUNK_SIZE = 32_768
 # Elements (float64: 8 bytes each) of the buffers of one chunk of the strong-form Gram
@@ -46,6 +46,9 @@ GRAM_CACHE = 1 << 20
 GRAM_MIN_CHUNK = 256
 # Samples used to evaluate the weak form's noise correction (a sum over samples).
 NOISE_ROWS = 10_000
+# Elements (float64) of the weak form's integrands and gradient kernel output per
+# chunk of trajectories (EulerLagrangeOperator._integrand_chunks).
+WEAK_CHUNK = 1 << 19
 
 # Per-window weak-form columns of the features kept for reuse (see reuse_weak_columns);
 # None outside a reuse block.
@@ -556,12 +559,15 @@ class EulerLagrangeOperator:
                 return self._reused_grams(
                     *found, X, y, order, windows, dt, return_noise, lazy
                 )
-        a_int, b_int = self._weak_integrands(q, qd, order, y, extra)
-        width = a_int.shape[2]
-        # Where each base segment's rows sit in the integrands (by its first row).
-        offsets, start = {}, 0
+        chunks = self._integrand_chunks(q, qd, order, y, extra, [len(s) for s in base])
+        width = chunks[0][1].shape[2]
+        # Where each base segment's rows sit (by its first row): its position among
+        # all the rows, its length and the chunk of integrands that holds it.
+        offsets, start, c = {}, 0, 0
         for seg in base:
-            offsets[int(seg[0])] = (start, len(seg))
+            while start >= chunks[c][0] + chunks[c][1].shape[0]:
+                c += 1
+            offsets[int(seg[0])] = (start, len(seg), c)
             start += len(seg)
         sens = None
         if noise_cov is not None:
@@ -575,15 +581,17 @@ class EulerLagrangeOperator:
             weights = [X.new_zeros(order.shape[0]) for _ in range(3)]
             bands = {}  # per segment length: the windows' banded matrices
             for seg in segments_by_window[window]:
-                first, n = offsets[int(seg[0])]
+                first, n, c = offsets[int(seg[0])]
                 sl = slice(first, first + n)
                 slices.append(sl)
                 if n not in bands:
                     bands[n] = (_band(dpsi, n, stride), _band(psi, n, stride))
                 band_a, band_b = bands[n]
+                begin, a_int, b_int = chunks[c]
+                here = slice(first - begin, first - begin + n)
                 cols = -dt * (
-                    _correlate(a_int[sl], dpsi, stride, band_a)
-                    + _correlate(b_int[sl], psi, stride, band_b)
+                    _correlate(a_int[here], dpsi, stride, band_a)
+                    + _correlate(b_int[here], psi, stride, band_b)
                 )
                 counts.append(cols.shape[0])
                 grams.append(torch.einsum("wip,wiq->ipq", cols, cols))
@@ -606,8 +614,8 @@ class EulerLagrangeOperator:
                 n_windows = sum(counts)
             noise = torch.zeros_like(gram)
             if sens is not None:
-                noise = self._noise_block(
-                    sens, weights, noise_cov, width, slices if per_segment else None
+                noise = _noise_block(
+                    d, sens, weights, noise_cov, width, slices if per_segment else None
                 )
             if key is not None:  # the features' part, for fits with other forces
                 ids = self._feature_ids()
@@ -632,6 +640,38 @@ class EulerLagrangeOperator:
         if lazy:
             return {w: functools.partial(build, w) for w in windows}
         return {w: build(w) for w in windows}
+
+    def _integrand_chunks(self, q, qd, order, y, extra, lengths):
+        """:meth:`_weak_integrands` by consecutive groups of whole segments.
+
+        Each group holds about :data:`WEAK_CHUNK` elements of integrands and kernel
+        output (at least one segment), so that the buffers stay in the processor's
+        cache and are small enough for the allocator to reuse rather than map
+        afresh: on 50,000 rows x 39 terms the kernel and the copies took 2x longer
+        as one block. Every row's integrands are those of one call on all rows.
+
+        Returns
+        -------
+        list of (start, a, b)
+            The integrands (see :meth:`_weak_integrands`) of the rows
+            ``order[start:start + len(a)]``.
+        """
+        n_extra = 0 if extra is None else extra.shape[2]
+        width = self.n_columns + n_extra + (0 if y is None else 1)
+        per_row = self.n_dof * 2 * (width + self.n_terms)
+        target = max(1, WEAK_CHUNK // per_row)
+        out, start, size = [], 0, 0
+        for length in lengths:
+            size += length
+            if size >= target:
+                out.append((start, start + size))
+                start, size = start + size, 0
+        if size or not out:
+            out.append((start, start + size))
+        return [
+            (a, *self._weak_integrands(q[a:b], qd[a:b], order[a:b], y, extra))
+            for a, b in out
+        ]
 
     def _weak_integrands(self, q, qd, order, y, extra):
         """Integrands per sample, each of shape (n, n_dof, width): the a-weighted part
@@ -758,7 +798,7 @@ class EulerLagrangeOperator:
         ``factor`` the scale-up of the subsample, and ``h1[k, i, x, s]``,
         ``h2[k, i, x, s]`` the derivatives of the a- and b-integrands of feature ``k``
         and coordinate ``i`` with respect to ``x = [q, qd]`` at sample ``s`` (samples
-        last: the kernels' own layout, in which :meth:`_noise_block` needs no
+        last: the kernels' own layout, in which :func:`~.weak._noise_block` needs no
         transposing copies).
         """
         d = self.n_dof
@@ -786,52 +826,6 @@ class EulerLagrangeOperator:
         if len(h1_parts) == 1:  # views of the hessians: no copy needed
             return rows, factor, h1_parts[0], h2_parts[0]
         return rows, factor, torch.cat(h1_parts), torch.cat(h2_parts)
-
-    def _noise_block(self, sens, weights, noise_cov, width, slices=None):
-        """First-order noise contribution to the weak Gram (see :meth:`weak_gram`).
-
-        With ``slices`` (row ranges, every row sampled): one contribution per range,
-        stacked on a leading axis.
-        """
-        d = self.n_dof
-        rows, factor, h1, h2 = sens
-        a2, ab, b2 = weights
-        if rows is not None:
-            a2, ab, b2 = a2[rows], ab[rows], b2[rows]
-        p0 = h1.shape[0]
-        # sum_s [h1 h2]^T (W_s kron Lambda) [h1 h2], W_s = [[a2, ab], [ab, b2]] (a
-        # Gram matrix of the test functions, so positive semi-definite). Its LDL^T
-        # factors, W_s = u u^T + v v^T with u = (sqrt(a2), ab / sqrt(a2)) and
-        # v = (0, sqrt(b2 - ab^2 / a2)), turn the four products into one:
-        # sum_s z1 Lambda z1^T + z2 Lambda z2^T, z1 = sqrt(a2) h1 + ab / sqrt(a2) h2,
-        # z2 = sqrt(b2 - ab^2 / a2) h2 (a2 = 0 implies ab = 0: Cauchy-Schwarz).
-        # Samples last throughout: the per-sample weights scale the last axis, Lambda
-        # mixes the 2d derivatives, and the sum over samples and derivatives is one
-        # matrix product (P0, 2 * 2d * n) x (2 * 2d * n, P0) per coordinate.
-        pos = a2 > 0
-        root = torch.sqrt(torch.where(pos, a2, torch.ones_like(a2)))
-        u1 = torch.sqrt(a2)
-        u2 = torch.where(pos, ab / root, torch.zeros_like(a2))
-        v2 = torch.sqrt(torch.clamp(b2 - u2 * u2, min=0.0))
-        n = h1.shape[-1]
-        parts = [slice(0, n)] if slices is None else slices
-        out = h1.new_zeros((len(parts), d, width, width))
-        z = h1.new_empty((p0, 2) + h1.shape[2:])  # (P0, 2, 2d, n)
-        for i in range(d):
-            m1, m2 = h1[:, i], h2[:, i]  # (P0, 2d, n)
-            # in place: on these strided views, out-of-place products and their sum
-            # cost several times more (temporaries in a transposed order)
-            torch.mul(m1, u1, out=z[:, 0])
-            z[:, 0].addcmul_(m2, u2)
-            torch.mul(m2, v2, out=z[:, 1])
-            lz = torch.matmul(noise_cov.T, z)  # Lambda over the 2d derivatives
-            for j, sl in enumerate(parts):
-                if slices is None:
-                    block = lz.reshape(p0, -1) @ z.reshape(p0, -1).T
-                else:
-                    block = lz[..., sl].reshape(p0, -1) @ z[..., sl].reshape(p0, -1).T
-                out[j, i, :p0, :p0] = factor * block
-        return out[0] if slices is None else out
 
 
 def forward_accelerations(

@@ -582,3 +582,52 @@ def _window_weights(n: int, kernel_a, kernel_b, stride: int):
         res[: full.shape[-1]] = full.flatten()[:n]
         out.append(res)
     return tuple(out)
+
+
+def _noise_block(d, sens, weights, noise_cov, width, slices=None):
+    """First-order noise contribution to the weak Gram (see
+    :meth:`~lagsindy.formulation.operator.EulerLagrangeOperator.weak_gram`), from
+    the sensitivities of :meth:`EulerLagrangeOperator._noise_sensitivities` and the
+    per-sample window weights, for ``d`` coordinates.
+
+    With ``slices`` (row ranges, every row sampled): one contribution per range,
+    stacked on a leading axis.
+    """
+    rows, factor, h1, h2 = sens
+    a2, ab, b2 = weights
+    if rows is not None:
+        a2, ab, b2 = a2[rows], ab[rows], b2[rows]
+    p0 = h1.shape[0]
+    # sum_s [h1 h2]^T (W_s kron Lambda) [h1 h2], W_s = [[a2, ab], [ab, b2]] (a
+    # Gram matrix of the test functions, so positive semi-definite). Its LDL^T
+    # factors, W_s = u u^T + v v^T with u = (sqrt(a2), ab / sqrt(a2)) and
+    # v = (0, sqrt(b2 - ab^2 / a2)), turn the four products into one:
+    # sum_s z1 Lambda z1^T + z2 Lambda z2^T, z1 = sqrt(a2) h1 + ab / sqrt(a2) h2,
+    # z2 = sqrt(b2 - ab^2 / a2) h2 (a2 = 0 implies ab = 0: Cauchy-Schwarz).
+    # Samples last throughout: the per-sample weights scale the last axis, Lambda
+    # mixes the 2d derivatives, and the sum over samples and derivatives is one
+    # matrix product (P0, 2 * 2d * n) x (2 * 2d * n, P0) per coordinate.
+    pos = a2 > 0
+    root = torch.sqrt(torch.where(pos, a2, torch.ones_like(a2)))
+    u1 = torch.sqrt(a2)
+    u2 = torch.where(pos, ab / root, torch.zeros_like(a2))
+    v2 = torch.sqrt(torch.clamp(b2 - u2 * u2, min=0.0))
+    n = h1.shape[-1]
+    parts = [slice(0, n)] if slices is None else slices
+    out = h1.new_zeros((len(parts), d, width, width))
+    z = h1.new_empty((p0, 2) + h1.shape[2:])  # (P0, 2, 2d, n)
+    for i in range(d):
+        m1, m2 = h1[:, i], h2[:, i]  # (P0, 2d, n)
+        # in place: on these strided views, out-of-place products and their sum
+        # cost several times more (temporaries in a transposed order)
+        torch.mul(m1, u1, out=z[:, 0])
+        z[:, 0].addcmul_(m2, u2)
+        torch.mul(m2, v2, out=z[:, 1])
+        lz = torch.matmul(noise_cov.T, z)  # Lambda over the 2d derivatives
+        for j, sl in enumerate(parts):
+            if slices is None:
+                block = lz.reshape(p0, -1) @ z.reshape(p0, -1).T
+            else:
+                block = lz[..., sl].reshape(p0, -1) @ z[..., sl].reshape(p0, -1).T
+            out[j, i, :p0, :p0] = factor * block
+    return out[0] if slices is None else out
