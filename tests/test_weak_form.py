@@ -501,23 +501,28 @@ def test_weak_r2_scores_what_the_weak_form_fits(cart_positions_only):
     assert pointwise < 0  # measured -3.17
 
 
+def _cart_weak_case(n_trajectories, random_state, noise=0.01):
+    """The cart-pendulum's paper-library operator, its rows and inputs as tensors,
+    and a noise covariance for [q, qd]."""
+    data = make_dataset(
+        cart_pendulum(), n_trajectories=n_trajectories, excitation="sincos",
+        noise=noise, random_state=random_state,
+    )  # fmt: skip
+    lib = cart_pendulum().paper_library()
+    op = EulerLagrangeOperator(lib.coordinates_, lib.terms_)
+    cov = torch.diag(torch.tensor([1e-4, 2e-4, 3e-4, 1e-3], dtype=torch.float64))
+    return op, torch.tensor(data.X), torch.tensor(data.tau), cov
+
+
 def test_reuse_weak_columns_gives_the_statistics_of_a_fresh_call(reused_grams):
     """Inside reuse_weak_columns a second call on the same samples with other forces
     takes the features' part from the first and equals a fresh call (noise part
     included); other samples, or leaving the block, compute afresh."""
     import lagsindy.formulation.operator as operator_module
 
-    data = make_dataset(
-        cart_pendulum(), n_trajectories=3, excitation="sincos", noise=0.01,
-        random_state=4,
-    )  # fmt: skip
-    lib = cart_pendulum().paper_library()
-    op = EulerLagrangeOperator(lib.coordinates_, lib.terms_)
-    X = torch.tensor(data.X)
-    tau = torch.tensor(data.tau)
+    op, X, tau, cov = _cart_weak_case(3, 4)
     shifted = torch.roll(tau, 3, dims=0) * 1.5
     segs = [torch.arange(0, 500), torch.arange(500, 1000), torch.arange(1000, 1500)]
-    cov = torch.diag(torch.tensor([1e-4, 2e-4, 3e-4, 1e-3], dtype=torch.float64))
     kw = dict(
         strides={61: 15, 121: 30}, dt=0.01, noise_cov=cov, noise_rows=700,
         return_noise=True,
@@ -552,10 +557,7 @@ def test_reuse_weak_columns_serves_a_subset_of_the_kept_features(reused_grams):
     from lagsindy._expr import symbols_for
     from lagsindy.dissipation import make_term
 
-    data = make_dataset(
-        cart_pendulum(), n_trajectories=3, excitation="sincos", noise=0.01,
-        random_state=5,
-    )  # fmt: skip
+    _, X, tau, cov = _cart_weak_case(3, 5)
     terms = list(cart_pendulum().paper_library().terms_)
     coords = ["x", "theta"]
     forces = [
@@ -567,9 +569,7 @@ def test_reuse_weak_columns_serves_a_subset_of_the_kept_features(reused_grams):
     sub = EulerLagrangeOperator(coords, [terms[k] for k in pick], forces=forces[1:2])
     q_s, qd_s, _ = symbols_for(coords)
     wider = EulerLagrangeOperator(coords, terms[:3] + [sp.exp(q_s[0]) * qd_s[1] ** 2])
-    X, tau = torch.tensor(data.X), torch.tensor(data.tau)
     segs = [torch.arange(0, 500), torch.arange(500, 1000), torch.arange(1000, 1500)]
-    cov = torch.diag(torch.tensor([1e-4, 2e-4, 3e-4, 1e-3], dtype=torch.float64))
     kw = dict(strides={61: 15}, dt=0.01, noise_cov=cov, noise_rows=700)
     kw["return_noise"] = True
     reused = reused_grams
@@ -596,12 +596,7 @@ def test_reuse_weak_columns_keeps_its_own_copy():
     later call gathers."""
     import lagsindy.formulation.operator as operator_module
 
-    data = make_dataset(
-        cart_pendulum(), n_trajectories=2, excitation="sincos", random_state=6
-    )
-    lib = cart_pendulum().paper_library()
-    op = EulerLagrangeOperator(lib.coordinates_, lib.terms_)
-    X, tau = torch.tensor(data.X), torch.tensor(data.tau)
+    op, X, tau, _ = _cart_weak_case(2, 6, noise=0.0)
     segs = [torch.arange(0, 500), torch.arange(500, 1000)]
     kw = dict(strides={61: 15}, dt=0.01, return_noise=True)
     with operator_module.reuse_weak_columns():
@@ -620,16 +615,9 @@ def test_weak_integrands_by_chunks_equal_one_block(monkeypatch, chunk):
     with trajectories of several lengths."""
     import lagsindy.formulation.operator as operator_module
 
-    data = make_dataset(
-        cart_pendulum(), n_trajectories=4, excitation="sincos", noise=0.01,
-        random_state=7,
-    )  # fmt: skip
-    lib = cart_pendulum().paper_library()
-    op = EulerLagrangeOperator(lib.coordinates_, lib.terms_)
-    X, tau = torch.tensor(data.X), torch.tensor(data.tau)
+    op, X, tau, cov = _cart_weak_case(4, 7)
     segs = [torch.arange(0, 500), torch.arange(500, 800), torch.arange(1000, 1500)]
     segs.append(torch.arange(1500, 1700))
-    cov = torch.diag(torch.tensor([1e-4, 2e-4, 3e-4, 1e-3], dtype=torch.float64))
     kw = dict(
         strides={61: 15, 161: 40}, dt=0.01, noise_cov=cov, return_noise=True
     )  # fmt: skip
