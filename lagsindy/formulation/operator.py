@@ -644,11 +644,12 @@ class EulerLagrangeOperator:
     def _integrand_chunks(self, q, qd, order, y, extra, lengths):
         """:meth:`_weak_integrands` by consecutive groups of whole segments.
 
-        Each group holds about :data:`WEAK_CHUNK` elements of integrands and kernel
-        output (at least one segment), so that the buffers stay in the processor's
-        cache and are small enough for the allocator to reuse rather than map
-        afresh: on 50,000 rows x 39 terms the kernel and the copies took 2x longer
-        as one block. Every row's integrands are those of one call on all rows.
+        On the CPU each group holds about :data:`WEAK_CHUNK` elements of integrands
+        and kernel output (at least one segment), so that the buffers stay in the
+        processor's cache and are small enough for the allocator to reuse rather
+        than map afresh: on 50,000 rows x 39 terms the kernel and the copies took 2x
+        longer as one block. On a GPU all rows form one group. Every row's
+        integrands are those of one call on all rows.
 
         Returns
         -------
@@ -659,7 +660,9 @@ class EulerLagrangeOperator:
         n_extra = 0 if extra is None else extra.shape[2]
         width = self.n_columns + n_extra + (0 if y is None else 1)
         per_row = self.n_dof * 2 * (width + self.n_terms)
-        target = max(1, WEAK_CHUNK // per_row)
+        # On a GPU one launch of each kernel over all rows costs less than many.
+        cpu = q.device.type == "cpu"
+        target = max(1, WEAK_CHUNK // per_row) if cpu else max(1, q.shape[0])
         out, start, size = [], 0, 0
         for length in lengths:
             size += length
