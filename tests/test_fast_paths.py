@@ -341,3 +341,38 @@ def test_weak_integrands_written_from_the_kernel_equal_the_concatenated_ones():
     # measured: equal (both are copies of the same kernel values)
     np.testing.assert_array_equal(a_int.numpy(), want_a.numpy())
     np.testing.assert_array_equal(b_int.numpy(), want_b.numpy())
+
+
+def test_fourth_differences_at_once_equal_one_segment_at_a_time():
+    """The noise covariance and the white-velocity check take the fourth differences
+    of all segments at once: the same as one ``torch.diff`` per segment (segments
+    shorter than 5 rows, and in any order, included), bit for bit."""
+    from lagsindy.formulation.weak import (
+        WHITE_VELOCITY,
+        estimate_noise_covariance,
+        white_velocities,
+    )
+
+    rng = np.random.default_rng(3)
+    X = torch.tensor(rng.normal(size=(60, 6)))
+    for segs in (
+        [torch.arange(0, 25), torch.arange(25, 28), torch.arange(28, 60)],
+        [torch.arange(40, 60), torch.arange(0, 40)],
+        [torch.arange(0, 4)],
+    ):
+        parts = [torch.diff(X[s, :4], n=4, dim=0) for s in segs if len(s) > 4]
+        want = (
+            torch.zeros(4, 4, dtype=X.dtype)
+            if not parts
+            else (lambda z: z.T @ z / (70.0 * z.shape[0]))(torch.cat(parts))
+        )
+        assert torch.equal(estimate_noise_covariance(X, segs, 2), want)
+        qd = [X[s, 2:4] for s in segs if len(s) > 4]
+        if qd:
+            level = torch.sqrt(
+                torch.cat([torch.diff(v, n=4, dim=0) for v in qd]).pow(2).mean(0) / 70
+            )
+            white = bool((level > WHITE_VELOCITY * torch.cat(qd).std(dim=0)).all())
+        else:
+            white = False
+        assert white_velocities(X, segs, 2) == white

@@ -559,16 +559,17 @@ class EulerLagrangeOperator:
                 return self._reused_grams(
                     *found, X, y, order, windows, dt, return_noise, lazy
                 )
-        chunks = self._integrand_chunks(q, qd, order, y, extra, [len(s) for s in base])
+        lengths = [int(s.shape[0]) for s in base]
+        chunks = self._integrand_chunks(q, qd, order, y, extra, lengths)
         width = chunks[0][1].shape[2]
         # Where each base segment's rows sit (by its first row): its position among
         # all the rows, its length and the chunk of integrands that holds it.
         offsets, start, c = {}, 0, 0
-        for seg in base:
+        for seg, length in zip(base, lengths):
             while start >= chunks[c][0] + chunks[c][1].shape[0]:
                 c += 1
-            offsets[int(seg[0])] = (start, len(seg), c)
-            start += len(seg)
+            offsets[int(seg[0])] = (start, length, c)
+            start += length
         sens = None
         if noise_cov is not None:
             rows = order.shape[0] if per_segment else noise_rows
@@ -594,7 +595,8 @@ class EulerLagrangeOperator:
                     + _correlate(b_int[here], psi, stride, band_b)
                 )
                 counts.append(cols.shape[0])
-                grams.append(torch.einsum("wip,wiq->ipq", cols, cols))
+                by_dof = cols.transpose(0, 1)  # (dof, windows, columns)
+                grams.append(torch.bmm(by_dof.transpose(1, 2), by_dof))
                 if key is not None:
                     feats.append((sl, cols[:, :, : self.n_columns]))
                 if sens is not None:

@@ -156,9 +156,10 @@ def weak_gram(
         check_weak_form_segments(to_numpy(Xt), d, parts, dt)
     auto = isinstance(window, str)
     first = WINDOW_FIRST if auto else int(window)
-    usable = [s for s in segments if len(s) >= first]
+    size = {id(s): int(s.shape[0]) for s in segments}  # (len() of a tensor is slow)
+    usable = [s for s in segments if size[id(s)] >= first]
     if not usable:
-        longest = max(len(s) for s in segments)
+        longest = max(size.values())
         raise ValueError(
             f"no trajectory is as long as window={first} samples (the longest has "
             f"{longest}); lower window or record longer trajectories"
@@ -185,11 +186,12 @@ def weak_gram(
             )
     windows = [first]
     if auto and not white_velocities(Xt, usable, d):
-        windows = window_ladder([len(s) for s in usable], d, operator.n_terms, first)
-    by_window = {w: [s for s in usable if len(s) >= w] for w in windows}
+        lengths = [size[id(s)] for s in usable]
+        windows = window_ladder(lengths, d, operator.n_terms, first)
+    by_window = {w: [s for s in usable if size[id(s)] >= w] for w in windows}
     # Windows per rung, known before any sum: (len - w) // stride + 1 per segment.
     counts = {
-        w: sum((len(s) - w) // window_stride(w) + 1 for s in by_window[w])
+        w: sum((size[id(s)] - w) // window_stride(w) + 1 for s in by_window[w])
         for w in windows
     }
     if counts[first] * d < operator.n_terms:
@@ -238,15 +240,32 @@ def white_velocities(X: torch.Tensor, segments, n_dof: int) -> bool:
     spread, against 6e-4 or more at noise 1e-3 on measured velocities): their errors, if
     any, are smooth in time, which ``window="auto"`` checks for.
     """
-    parts = [X[seg, n_dof : 2 * n_dof] for seg in segments if len(seg) > 4]
-    if not parts:
+    found = _fourth_differences(X, segments, slice(n_dof, 2 * n_dof))
+    if found is None:
         return False
-    qd = torch.cat(parts)
-    level = torch.sqrt(
-        torch.cat([torch.diff(p, n=4, dim=0) for p in parts]).pow(2).mean(0) / 70.0
-    )
+    qd, d4 = found
+    level = torch.sqrt(d4.pow(2).mean(0) / 70.0)
     spread = qd.std(dim=0)
     return bool((level > WHITE_VELOCITY * spread).all())
+
+
+def _fourth_differences(X: torch.Tensor, segments, columns):
+    """``(x, d4)``: the ``columns`` of the rows of the segments longer than 4 rows,
+    and their fourth differences along each segment (those across two segments left
+    out), or None without such a segment.
+
+    All segments at once: the same values, in the same order, as one
+    ``torch.diff(x, n=4)`` per segment.
+    """
+    long = [seg for seg in segments if seg.shape[0] > 4]
+    if not long:
+        return None
+    rows = torch.cat(long)
+    x = X[rows, columns]
+    lengths = torch.as_tensor([seg.shape[0] for seg in long], device=X.device)
+    owner = torch.repeat_interleave(torch.arange(len(long), device=X.device), lengths)
+    inside = owner[4:] == owner[:-4]  # the five rows of a difference in one segment
+    return x, torch.diff(x, n=4, dim=0)[inside]
 
 
 def estimate_noise_covariance(X: torch.Tensor, segments, n_dof: int) -> torch.Tensor:
@@ -263,14 +282,10 @@ def estimate_noise_covariance(X: torch.Tensor, segments, n_dof: int) -> torch.Te
     -------
     Tensor of shape (2 * n_dof, 2 * n_dof)
     """
-    parts = []
-    for seg in segments:
-        x = X[seg, : 2 * n_dof]
-        if x.shape[0] > 4:
-            parts.append(torch.diff(x, n=4, dim=0))
-    if not parts:
+    found = _fourth_differences(X, segments, slice(0, 2 * n_dof))
+    if found is None:
         return X.new_zeros((2 * n_dof, 2 * n_dof))
-    z = torch.cat(parts)
+    z = found[1]
     return z.T @ z / (70.0 * z.shape[0])
 
 
