@@ -376,3 +376,10 @@ def test_fourth_differences_at_once_equal_one_segment_at_a_time():
         else:
             white = False
         assert white_velocities(X, segs, 2) == white
+    # rows given as arrays or lists, as the 0.1 module path's users may pass them
+    as_arrays = [np.arange(0, 25), list(range(25, 60))]
+    as_tensors = [torch.arange(0, 25), torch.arange(25, 60)]
+    assert torch.equal(
+        estimate_noise_covariance(X, as_arrays, 2),
+        estimate_noise_covariance(X, as_tensors, 2),
+    )

@@ -257,7 +257,8 @@ def _fourth_differences(X: torch.Tensor, segments, columns):
     All segments at once: the same values, in the same order, as one
     ``torch.diff(x, n=4)`` per segment.
     """
-    long = [seg for seg in segments if seg.shape[0] > 4]
+    as_rows = (torch.as_tensor(seg, device=X.device) for seg in segments)
+    long = [seg for seg in as_rows if seg.shape[0] > 4]
     if not long:
         return None
     rows = torch.cat(long)
