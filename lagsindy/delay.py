@@ -273,11 +273,11 @@ def _estimate_delay(
     tau,
     t,
     *,
-    groups,
-    max_delay,
-    n_splits,
-    method,
-    verbose,
+    groups=None,
+    max_delay=None,
+    n_splits=3,
+    method="support",
+    verbose=0,
     fitted_at_zero=None,
 ):
     """:func:`estimate_delay`; ``fitted_at_zero``: ``estimator`` already fitted on
@@ -285,9 +285,6 @@ def _estimate_delay(
     support search's first fit instead of fitting it again."""
     import warnings
 
-    import pandas as pd
-
-    frame = isinstance(X, pd.DataFrame)
     n = len(X)
     tau = np.asarray(tau, dtype=float)
     tau2 = tau[:, None] if tau.ndim == 1 else tau
@@ -333,8 +330,6 @@ def _estimate_delay(
     scale = float(np.mean(np.var(tau2[keep], axis=0)))
     scores = np.full((k, len(candidates)), np.nan)
     rows = np.flatnonzero(keep)
-    Xk = X.iloc[rows] if frame else np.asarray(X)[rows]
-    gk = groups[rows]
 
     if method not in ("support", "refit"):
         raise ValueError(f"method must be 'support' or 'refit', got {method!r}")
@@ -342,7 +337,6 @@ def _estimate_delay(
         result = _support_search(
             estimator,
             X,
-            Xk,
             tau2,
             t,
             groups,
@@ -356,6 +350,7 @@ def _estimate_delay(
         if result is not None:
             scores, fold_delays, delay, at_edge = result
             return _finish(delay, at_edge, candidates, scores, fold_delays, k)
+    Xk, gk = _take_rows(X, rows), groups[rows]
 
     def evaluate(c):
         if not np.isnan(scores[0, c]):
@@ -367,8 +362,8 @@ def _estimate_delay(
             est = clone(estimator)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                est.fit(Xk.iloc[tr] if frame else Xk[tr], shifted[tr], groups=gk[tr])
-                pred = np.asarray(est.predict(Xk.iloc[te] if frame else Xk[te]))
+                est.fit(_take_rows(Xk, tr), shifted[tr], groups=gk[tr])
+                pred = np.asarray(est.predict(_take_rows(Xk, te)))
             pred = pred.reshape(shifted[te].shape)
             scores[f, c] = float(np.mean((pred - shifted[te]) ** 2)) / scale
         if verbose:
@@ -395,6 +390,13 @@ def _estimate_delay(
     delay, at_edge = _vertex(candidates, scores.mean(axis=0))
     fold_delays = np.array([_vertex(candidates, s)[0] for s in scores])
     return _finish(delay, at_edge, candidates, scores, fold_delays, k)
+
+
+def _take_rows(X, rows):
+    """The ``rows`` of ``X`` (an array-like or a DataFrame, whose columns stay)."""
+    import pandas as pd
+
+    return X.iloc[rows] if isinstance(X, pd.DataFrame) else np.asarray(X)[rows]
 
 
 def _finish(delay, at_edge, candidates, scores, fold_delays, k):
@@ -444,7 +446,6 @@ SAME_DELAY = 1e-2
 def _support_search(
     estimator,
     X,
-    Xk,
     tau2,
     t,
     groups,
@@ -459,12 +460,12 @@ def _support_search(
     until the support is stable. Returns None when the columns cannot be read.
 
     The first fit, at delay 0, sees every row of ``X`` (``fitted_at_zero`` when
-    given); the refits at other delays see the rows ``Xk`` that every candidate's
-    shift covers. The scores are always on ``Xk``."""
+    given); the refits at other delays see the ``rows`` that every candidate's
+    shift covers. The scores are always on those rows."""
     import warnings
 
     n_dof = tau2.shape[1]
-    gk = groups[rows]
+    Xk, gk = _take_rows(X, rows), groups[rows]
     shifted = _shift_many(tau2, t, np.asarray(candidates, dtype=float), groups)[:, rows]
     step = float(candidates[1] - candidates[0])
     delay, support, fitted_at = 0.0, None, None
@@ -593,16 +594,7 @@ def _diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
         with warnings.catch_warnings(), reuse_weak_columns():
             warnings.simplefilter("ignore")
             estimate = _estimate_delay(
-                base,
-                X,
-                tau,
-                t,
-                groups=groups,
-                max_delay=None,
-                n_splits=3,
-                method="support",
-                verbose=0,
-                fitted_at_zero=fitted_at_zero,
+                base, X, tau, t, groups=groups, fitted_at_zero=fitted_at_zero
             )
             shifted = shift_input(tau, t, estimate.delay, groups)
     except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:

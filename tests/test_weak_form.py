@@ -627,11 +627,12 @@ def test_weak_integrands_by_chunks_equal_one_block(monkeypatch, chunk):
     monkeypatch.setattr(operator_module, "WEAK_CHUNK", chunk * 316)  # ~chunk rows
     parts = op.weak_grams(X, tau, by_window, **kw)
     order = torch.cat(segs)
-    groups = op._integrand_chunks(
+    groups, owner = op._integrand_chunks(
         X[order, :2], X[order, 2:4], order, tau, None, [len(s) for s in segs]
     )
     # one trajectory per group, or 500 + 300 and 500 + 200 rows
     assert [g[0] for g in groups] == ([0, 500, 800, 1300] if chunk == 1 else [0, 800])
+    assert owner == ([0, 1, 2, 3] if chunk == 1 else [0, 0, 1, 1])
     for window in by_window:
         for a, b in zip(parts[window][:2], whole[window][:2]):
             a, b = a.numpy(), b.numpy()

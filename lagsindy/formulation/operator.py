@@ -59,17 +59,13 @@ _WEAK_REUSE = contextvars.ContextVar("lagsindy_weak_reuse", default=None)
 def reuse_weak_columns():
     """Within the block, weak-form statistics of the same samples reuse the features.
 
-    Fits of the same samples differ in their generalized forces (an input delay
-    search shifts the input and refits) or in some of their features (diagnose's
-    refits add effects to the Lagrangian's library), while each feature's integrands
-    and window sums stay the same. Inside this block
-    :meth:`EulerLagrangeOperator.weak_grams` keeps the feature part of its Gram
-    matrices, noise part and window columns (keyed by the samples, the windows, the
-    sampling interval and the noise covariance, and labelled with the features); a
-    later call whose features are all among a kept call's takes their block and only
-    integrates its forces. The Gram matrices so assembled equal the ones computed
-    afresh up to rounding (the feature block is gathered from the kept one, the force
-    row is summed on its own). The kept columns are dropped when the block ends.
+    Refits of the same samples differ in their input (an input delay search) or in
+    some features (diagnose adds effects), while each feature's window sums stay the
+    same. Inside this block :meth:`EulerLagrangeOperator.weak_grams` keeps the
+    features' Gram block, noise part and window columns (keyed by the samples,
+    windows, sampling interval and noise covariance); a later call whose features
+    are all among a kept call's gathers their block and only integrates its input,
+    equal to a fresh call up to rounding. The kept columns go when the block ends.
     """
     token = _WEAK_REUSE.set({})
     try:
@@ -359,7 +355,7 @@ class EulerLagrangeOperator:
             whole.
         """
         n_extra = 0 if extra is None else extra.shape[2]
-        width = self.n_columns + n_extra + (0 if y is None else 1)
+        width = self._width(y, extra)
         out = X.new_zeros((self.n_dof, width, width))
         p, buf, work = self.n_columns, None, {}
         for sl in _chunks(X.shape[0], self._gram_chunk(width)):
@@ -560,16 +556,15 @@ class EulerLagrangeOperator:
                     *found, X, y, order, windows, dt, return_noise, lazy
                 )
         lengths = [int(s.shape[0]) for s in base]
-        chunks = self._integrand_chunks(q, qd, order, y, extra, lengths)
+        chunks, owner = self._integrand_chunks(q, qd, order, y, extra, lengths)
         width = chunks[0][1].shape[2]
         # Where each base segment's rows sit (by its first row): its position among
         # all the rows, its length and the chunk of integrands that holds it.
-        offsets, start, c = {}, 0, 0
-        for seg, length in zip(base, lengths):
-            while start >= chunks[c][0] + chunks[c][1].shape[0]:
-                c += 1
-            offsets[int(seg[0])] = (start, length, c)
-            start += length
+        starts = np.cumsum([0] + lengths[:-1])
+        offsets = {
+            int(seg[0]): (int(start), length, c)
+            for seg, start, length, c in zip(base, starts, lengths, owner)
+        }
         sens = None
         if noise_cov is not None:
             rows = order.shape[0] if per_segment else noise_rows
@@ -646,37 +641,43 @@ class EulerLagrangeOperator:
     def _integrand_chunks(self, q, qd, order, y, extra, lengths):
         """:meth:`_weak_integrands` by consecutive groups of whole segments.
 
-        On the CPU each group holds about :data:`WEAK_CHUNK` elements of integrands
-        and kernel output (at least one segment), so that the buffers stay in the
-        processor's cache and are small enough for the allocator to reuse rather
-        than map afresh: on 50,000 rows x 39 terms the kernel and the copies took 2x
-        longer as one block. On a GPU all rows form one group. Every row's
-        integrands are those of one call on all rows.
+        On the CPU a group holds about :data:`WEAK_CHUNK` elements of integrands and
+        kernel output (at least one segment): the buffers stay in cache and are
+        reused by the allocator, not mapped afresh (on 50,000 rows x 39 terms one
+        block took 2x longer). On a GPU all rows form one group. The integrands
+        are those of one call on all rows.
 
         Returns
         -------
-        list of (start, a, b)
+        chunks : list of (start, a, b)
             The integrands (see :meth:`_weak_integrands`) of the rows
             ``order[start:start + len(a)]``.
+        owner : list of int
+            The chunk of each segment.
         """
-        n_extra = 0 if extra is None else extra.shape[2]
-        width = self.n_columns + n_extra + (0 if y is None else 1)
-        per_row = self.n_dof * 2 * (width + self.n_terms)
+        per_row = self.n_dof * 2 * (self._width(y, extra) + self.n_terms)
         # On a GPU one launch of each kernel over all rows costs less than many.
-        cpu = q.device.type == "cpu"
-        target = max(1, WEAK_CHUNK // per_row) if cpu else max(1, q.shape[0])
-        out, start, size = [], 0, 0
+        on_cpu = q.device.type == "cpu"
+        target = max(1, WEAK_CHUNK // per_row) if on_cpu else max(1, q.shape[0])
+        bounds, owner, start, size = [], [], 0, 0
         for length in lengths:
+            owner.append(len(bounds))
             size += length
             if size >= target:
-                out.append((start, start + size))
+                bounds.append((start, start + size))
                 start, size = start + size, 0
-        if size or not out:
-            out.append((start, start + size))
-        return [
+        if size or not bounds:
+            bounds.append((start, start + size))
+        chunks = [
             (a, *self._weak_integrands(q[a:b], qd[a:b], order[a:b], y, extra))
-            for a, b in out
+            for a, b in bounds
         ]
+        return chunks, owner
+
+    def _width(self, y, extra) -> int:
+        """Columns of the statistics and integrands: features, ``extra``, ``y``."""
+        n_extra = 0 if extra is None else extra.shape[2]
+        return self.n_columns + n_extra + (0 if y is None else 1)
 
     def _weak_integrands(self, q, qd, order, y, extra):
         """Integrands per sample, each of shape (n, n_dof, width): the a-weighted part
@@ -691,7 +692,7 @@ class EulerLagrangeOperator:
         p = self.n_terms
         f = len(self.forces)
         n_extra = 0 if extra is None else extra.shape[2]
-        width = p + f + n_extra + (0 if y is None else 1)
+        width = self._width(y, extra)
         a_int = q.new_zeros((n, d, width))
         b_int = q.new_empty((n, d, width))
         if self._fn is not None:

@@ -156,10 +156,10 @@ def weak_gram(
         check_weak_form_segments(to_numpy(Xt), d, parts, dt)
     auto = isinstance(window, str)
     first = WINDOW_FIRST if auto else int(window)
-    size = {id(s): int(s.shape[0]) for s in segments}  # (len() of a tensor is slow)
-    usable = [s for s in segments if size[id(s)] >= first]
+    # s.shape[0], not len(s): len() of a tensor costs several microseconds
+    usable = [s for s in segments if s.shape[0] >= first]
     if not usable:
-        longest = max(size.values())
+        longest = max(s.shape[0] for s in segments)
         raise ValueError(
             f"no trajectory is as long as window={first} samples (the longest has "
             f"{longest}); lower window or record longer trajectories"
@@ -186,12 +186,12 @@ def weak_gram(
             )
     windows = [first]
     if auto and not white_velocities(Xt, usable, d):
-        lengths = [size[id(s)] for s in usable]
+        lengths = [s.shape[0] for s in usable]
         windows = window_ladder(lengths, d, operator.n_terms, first)
-    by_window = {w: [s for s in usable if size[id(s)] >= w] for w in windows}
+    by_window = {w: [s for s in usable if s.shape[0] >= w] for w in windows}
     # Windows per rung, known before any sum: (len - w) // stride + 1 per segment.
     counts = {
-        w: sum((size[id(s)] - w) // window_stride(w) + 1 for s in by_window[w])
+        w: sum((s.shape[0] - w) // window_stride(w) + 1 for s in by_window[w])
         for w in windows
     }
     if counts[first] * d < operator.n_terms:
@@ -640,10 +640,7 @@ def _noise_block(d, sens, weights, noise_cov, width, slices=None):
         z[:, 0].addcmul_(m2, u2)
         torch.mul(m2, v2, out=z[:, 1])
         lz = torch.matmul(noise_cov.T, z)  # Lambda over the 2d derivatives
-        for j, sl in enumerate(parts):
-            if slices is None:
-                block = lz.reshape(p0, -1) @ z.reshape(p0, -1).T
-            else:
-                block = lz[..., sl].reshape(p0, -1) @ z[..., sl].reshape(p0, -1).T
+        for j, sl in enumerate(parts):  # (all rows: views, no copies)
+            block = lz[..., sl].reshape(p0, -1) @ z[..., sl].reshape(p0, -1).T
             out[j, i, :p0, :p0] = factor * block
     return out[0] if slices is None else out
