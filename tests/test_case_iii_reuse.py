@@ -43,6 +43,65 @@ def test_shortlist_scores_equal_one_operator_per_model(case_iii_problem):
     assert len({round(g, 6) for g in got[:-1]}) > 1  # the models do score differently
 
 
+def test_scores_of_singular_mass_matrices_equal_one_operator(case_iii_problem):
+    """Models whose mass matrix is singular on every row (one velocity squared,
+    or the square of a sum of velocities) score through the pseudo-inverse,
+    beside regular ones in the same batch, as one operator per model scores them."""
+    p = case_iii_problem
+    names = list(p.names)
+    rng = np.random.default_rng(0)
+    coefs = []
+    for kinetic in ("x_dot**2", "theta_dot**2"):
+        coef = np.zeros(p.n_features)
+        coef[names.index(kinetic)] = 1.0
+        coef[names.index("cos(theta)")] = 9.81
+        coefs.append(coef)
+    coef = np.zeros(p.n_features)  # (x_dot + theta_dot)**2: rank one
+    for name, value in (("x_dot**2", 1.0), ("theta_dot*x_dot", 2.0)):
+        coef[names.index(name)] = value
+    coef[names.index("theta_dot**2")] = 1.0
+    coef[names.index("cos(theta)")] = 9.81
+    coefs.append(coef)
+    coefs.append(rng.standard_normal(p.n_features) * (rng.random(p.n_features) < 0.3))
+    Xs = p.Xt[:500]
+    got = acceleration_r2s(p, coefs, Xs)
+    want = [_r2_one_operator(p, c, Xs) for c in coefs]
+    # measured: equal to 2e-16 (the last model, R2 = -6514: 2e-14 relative)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["single_pendulum", "triple_pendulum"])
+def test_scores_of_one_and_three_dof_models_equal_one_operator(name):
+    """Other sizes than two degrees of freedom score through pinv_solve."""
+    from conftest import first_problem
+
+    from lagsindy import CandidateLibrary, LagrangianSINDy
+    from lagsindy.systems import get_system, make_dataset
+
+    system = get_system(name)
+    data = make_dataset(system, n_trajectories=2, excitation=None, random_state=0)
+    # the Lagrangian's own terms and a few others (the paper's triple pendulum
+    # library, 222 terms, takes 20 s to fit)
+    first = system.coordinates[0]
+    terms = list(system.terms()) + [f"sin({first})", f"sin({first})**2"]
+    library = CandidateLibrary.from_terms(system.coordinates, terms)
+    p = first_problem(LagrangianSINDy(library), data.X[:400])
+    rng = np.random.default_rng(1)
+    coefs = [
+        rng.standard_normal(p.n_features) * (rng.random(p.n_features) < 0.4)
+        for _ in range(3)
+    ]
+    coefs[0][:] = 0.0  # the true Lagrangian, in the library's terms
+    coefs[0][: len(library)] = system.true_coefficients(library)
+    Xs = p.Xt[:300]
+    got = acceleration_r2s(p, coefs, Xs)
+    want = [_r2_one_operator(p, c, Xs) for c in coefs]
+    # measured: equal to 1e-15 relative (a sign flip of the residual cannot show:
+    # the squared errors do not depend on it)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert got[0] > 0.99  # the true model predicts the accelerations
+
+
 @pytest.mark.slow  # 20 s; test_lockstep_solves checks the batched search's reuse
 def test_first_start_result_stands_for_the_first_start(case_iii_problem):
     """solve(first=<starts=1 result>) equals a fresh solve, restarts included."""

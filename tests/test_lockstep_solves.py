@@ -207,3 +207,45 @@ def test_staged_fista_batch_keeps_a_small_unpenalised_feature():
         np.testing.assert_allclose(res.coef.numpy(), want.coef.numpy(), atol=1e-12)
     # 0.01 is below a tenth of the largest: kept only where it is not penalised
     assert 0 in got[0].support and 0 not in got[1].support
+
+
+def test_a_residual_at_the_floor_needs_no_bound(monkeypatch):
+    """A first start whose residual is at PATH_FLOOR stops without the dense
+    bound (the bound is >= 0, so it could not restart the path): only the other
+    problems' bounds are computed, in the batch and in one solve."""
+    from conftest import first_problem
+
+    from lagsindy import LagrangianSINDy
+    from lagsindy.cases import sparse
+    from lagsindy.systems import cart_pendulum, make_dataset
+
+    system = cart_pendulum()
+    data = make_dataset(system, n_trajectories=10, excitation=None, random_state=0)
+    p = first_problem(
+        LagrangianSINDy(system.paper_library()), data.X, groups=data.groups
+    )
+    free = np.flatnonzero(p.identifiable)
+    jobs = [(free[free != r], r, -1.0, True, None) for r in free]
+    ranked = p.solver.solve_many(p.balanced, jobs, p.penalty, 1.0, starts=1)
+    costs = np.array([res.cost for _, res in ranked])
+    at_floor = costs <= sparse.PATH_FLOOR
+    assert at_floor.any() and not at_floor.all()  # measured: 4 of 38 at <= 1.4e-10
+    seen = []
+
+    def counted(datafits):
+        seen.extend(d.const for d in datafits)
+        return dense_residuals(datafits)
+
+    dense_residuals = sparse.dense_residuals
+    monkeypatch.setattr(sparse, "dense_residuals", counted)
+    again = [(f, r, s, c, res) for (f, r, s, c, _), (_, res) in zip(jobs, ranked)]
+    p.solver.solve_many(p.balanced, again, p.penalty, 1.0)
+    assert len(seen) == int((~at_floor).sum())
+
+    def never(datafit):
+        raise AssertionError("the bound of a path at the floor was computed")
+
+    monkeypatch.setattr(sparse, "dense_residual", never)
+    f, r, s, c, first = again[int(np.flatnonzero(at_floor)[0])]
+    coef, res = p.solver.solve(p.balanced, f, r, s, p.penalty, 1.0, 0, first=first)
+    assert res is first

@@ -366,19 +366,63 @@ def acceleration_r2s(p: Problem, coefs, Xt) -> list:
     m, k = len(scored), op.n_terms
     # (models, i, j, rows)
     mc = (c[:, :k] @ mass.reshape(k, n * n * Xt.shape[0])).reshape(m, n, n, -1)
-    qdd_t = qdd.T
-    inertial = sum(mc[:, :, j] * qdd_t[j] for j in range(n))  # (models, i, rows)
-    bias = torch.matmul(c, theta).transpose(0, 1) - inertial
-    pred = pinv_solve(mc.permute(0, 3, 1, 2), -bias.transpose(1, 2))  # (m, rows, n)
+    # Each model's Euler-Lagrange residual r = M(c) qdd + h(c), (n_dof, models, rows)
+    residual = torch.matmul(c, theta)
     # Squared errors summed in torch; a prediction that is not finite leaves its
     # sum not finite, and the model scores -inf.
-    numerator = to_numpy(((qdd[None] - pred) ** 2).sum(1))  # (models, n_dof)
+    numerator = to_numpy(_error_squares(mc, residual, qdd.T))  # (models, n_dof)
     values = _r2_from_sums(numerator, _total_squares(to_numpy(qdd)))
     scores = [-np.inf] * len(coefs)
     for i, j in enumerate(scored):
         if np.all(np.isfinite(numerator[i])):
             scores[j] = float(values[i])
     return scores
+
+
+def _error_squares(mc, residual, qdd_t):
+    r"""Summed squared errors of the predicted accelerations, per model and dof.
+
+    The prediction is :math:`M^{+} (-h) = M^{+} (M \ddot q - r)` with ``r`` the
+    model's Euler-Lagrange residual, so where ``M`` is invertible the error
+    :math:`\ddot q - M^{+}(M \ddot q - r)` is :math:`M^{-1} r`: for two degrees of
+    freedom, the well-conditioned matrices (those :func:`pinv_solve` solves by
+    Cramer's rule) give it without forming the prediction; the others, and other
+    sizes, go through :func:`pinv_solve`.
+
+    Parameters
+    ----------
+    mc : Tensor of shape (models, n_dof, n_dof, rows)
+    residual : Tensor of shape (n_dof, models, rows)
+    qdd_t : Tensor of shape (n_dof, rows)
+
+    Returns
+    -------
+    Tensor of shape (models, n_dof)
+    """
+    n = mc.shape[1]
+    if n != 2:
+        inertial = sum(mc[:, :, j] * qdd_t[j] for j in range(n))  # (models, i, rows)
+        rhs = (inertial - residual.transpose(0, 1)).transpose(1, 2)  # (m, rows, n)
+        pred = pinv_solve(mc.permute(0, 3, 1, 2), rhs)
+        return ((qdd_t.T[None] - pred) ** 2).sum(1)
+    a, b, c = mc[:, 0, 0], mc[:, 1, 0], mc[:, 1, 1]
+    r0, r1 = residual[0], residual[1]
+    det = a * c - b * b
+    norm = a.abs() + c.abs() + 2 * b.abs()
+    easy = det.abs() > 1e-8 * norm * norm  # as pinv_solve decides
+    safe = torch.where(easy, det, 1.0)
+    e0 = (c * r0 - b * r1) / safe
+    e1 = (a * r1 - b * r0) / safe
+    if not bool(easy.all()):
+        hard = (~easy).nonzero(as_tuple=True)
+        q0, q1 = qdd_t[0][hard[1]], qdd_t[1][hard[1]]
+        ah, bh, ch = a[hard], b[hard], c[hard]
+        rhs0 = ah * q0 + mc[:, 0, 1][hard] * q1 - r0[hard]  # M qdd - r
+        rhs1 = bh * q0 + ch * q1 - r1[hard]
+        pred = _pinv_solve2(ah, bh, ch, rhs0, rhs1)
+        e0[hard] = q0 - pred[:, 0]
+        e1[hard] = q1 - pred[:, 1]
+    return torch.stack([(e0 * e0).sum(1), (e1 * e1).sum(1)], dim=1)
 
 
 def pinv_solve(mat, rhs):

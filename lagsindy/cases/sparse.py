@@ -175,7 +175,7 @@ class SparseSolve:
                     extra["w0"] = results[-1].first_stage
                 res = self.staged(datafit, lam, features, weights, verbose, **extra)
             results.append(res)
-            if self.lam_decay <= 1:
+            if self.lam_decay <= 1 or res.cost <= PATH_FLOOR:  # bound >= 0: no need
                 break
             if bound is None:
                 bound = dense_residual(datafit)
@@ -319,21 +319,22 @@ class SparseSolve:
                 w0=None if k == 0 else [paths[j][-1].first_stage for j in run],
             )
             fresh = dict(zip(run, solved))
-            still = []
+            latest = {j: fresh[j] if j in fresh else prepared[j][5] for j in open_}
             for j in open_:
-                res = fresh[j] if j in fresh else prepared[j][5]
-                paths[j].append(res)
-                if one_start or self.lam_decay <= 1:
-                    continue
-                if bounds[j] is None:  # every open problem's, at once
-                    todo = [i for i in open_ if bounds[i] is None]
-                    for i, v in zip(
-                        todo, dense_residuals([prepared[i][1] for i in todo])
-                    ):
-                        bounds[i] = v
-                if res.cost > (1 + PATH_TIE) * bounds[j] + PATH_FLOOR:
-                    still.append(j)
-            open_ = still
+                paths[j].append(latest[j])
+            if one_start or self.lam_decay <= 1:
+                break
+            # A residual at the floor stops whatever the bound (it is >= 0); the
+            # bounds of the others, at once.
+            above = [j for j in open_ if latest[j].cost > PATH_FLOOR]
+            todo = [j for j in above if bounds[j] is None]
+            for j, v in zip(todo, dense_residuals([prepared[j][1] for j in todo])):
+                bounds[j] = v
+            open_ = [
+                j
+                for j in above
+                if latest[j].cost > (1 + PATH_TIE) * bounds[j] + PATH_FLOOR
+            ]
             if not open_:
                 break
         out = []
