@@ -325,11 +325,11 @@ def acceleration_r2s(p: Problem, coefs, Xt) -> list:
 
     The Euler-Lagrange columns and per-term mass matrices of the union of the models'
     supports are evaluated once on ``Xt`` (one operator, not one per model). All the
-    models are then scored together: their mass matrices ``M(c)`` and right-hand
-    sides are one stacked product over the union's features, the accelerations
-    ``M(c)^+ (-h(c))`` one batched pseudo-inverse solve (:func:`pinv_solve`, closed
-    form for one and two degrees of freedom) and the scores one vectorized
-    :func:`r2_scores`. The result equals the former one-model-at-a-time scoring
+    models are then scored together: their mass matrices ``M(c)`` and
+    Euler-Lagrange residuals are one stacked product over the union's features, the
+    errors of the accelerations ``M(c)^+ (-h(c))`` one batched closed form
+    (:func:`_error_squares`) and the scores one vectorized R^2 (as
+    :func:`r2_scores`). The result equals the former one-model-at-a-time scoring
     (``accelerations_from`` and ``sklearn.metrics.r2_score`` per model) up to
     rounding.
 
@@ -407,10 +407,7 @@ def _error_squares(mc, residual, qdd_t):
         return ((qdd_t.T[None] - pred) ** 2).sum(1)
     a, b, c = mc[:, 0, 0], mc[:, 1, 0], mc[:, 1, 1]
     r0, r1 = residual[0], residual[1]
-    det = a * c - b * b
-    norm = a.abs() + c.abs() + 2 * b.abs()
-    easy = det.abs() > 1e-8 * norm * norm  # as pinv_solve decides
-    safe = torch.where(easy, det, 1.0)
+    easy, safe = _cramer_safe(a, b, c)
     e0 = (c * r0 - b * r1) / safe
     e1 = (a * r1 - b * r0) / safe
     if not bool(easy.all()):
@@ -464,16 +461,22 @@ def pinv_solve(mat, rhs):
     # rule, which the pseudo-inverse equals there up to rounding: the smaller
     # eigenvalue is at least |det| / (|a| + |c| + 2|b|), so a condition number
     # below 1e8 is certain. The others by the eigen-decomposition below.
-    det = a * c - b * b
-    norm = a.abs() + c.abs() + 2 * b.abs()
-    easy = det.abs() > 1e-8 * norm * norm
-    safe = torch.where(easy, det, 1.0).unsqueeze(-1)
-    out = torch.stack([c * r0 - b * r1, a * r1 - b * r0], dim=-1) / safe
+    easy, safe = _cramer_safe(a, b, c)
+    out = torch.stack([c * r0 - b * r1, a * r1 - b * r0], dim=-1) / safe.unsqueeze(-1)
     if bool(easy.all()):
         return out
     hard = (~easy).nonzero(as_tuple=True)  # one search, five gathers
     out[hard] = _pinv_solve2(a[hard], b[hard], c[hard], r0[hard], r1[hard])
     return out
+
+
+def _cramer_safe(a, b, c):
+    """Which ``[[a, b], [b, c]]`` Cramer's rule solves (condition number certainly
+    below 1e8, see :func:`pinv_solve`), and their determinants (1 elsewhere)."""
+    det = a * c - b * b
+    norm = a.abs() + c.abs() + 2 * b.abs()
+    easy = det.abs() > 1e-8 * norm * norm
+    return easy, torch.where(easy, det, 1.0)
 
 
 def _pinv_solve2(a, b, c, r0, r1):
