@@ -162,7 +162,11 @@ def test_batched_rows_in_several_batches(monkeypatch):
     q, qd, qdd = random_states(2, 1000, 5)
     whole = lagrangian_columns(kernels, q, qd, qdd)
     monkeypatch.setattr(batched, "BATCH_ELEMENTS", 1)  # 256 rows per batch
-    np.testing.assert_array_equal(lagrangian_columns(kernels, q, qd, qdd), whole)
+    got = lagrangian_columns(kernels, q, qd, qdd)
+    # measured: equal bit for bit; the margin leaves room for SIMD kernels that
+    # round a vector's tail differently on other CPUs (a batching bug shows at O(1))
+    scale = float(whole.abs().max())
+    np.testing.assert_allclose(got, whole, rtol=1e-14, atol=1e-14 * scale)
 
 
 @pytest.mark.gpu

@@ -163,7 +163,10 @@ def test_pinv_solve_equals_torch_pinv(n):
     alone = pinv_solve(m[220:300], b[220:300])
     err = (alone - want[220:300]).abs().amax(-1) / size[220:300]
     assert float((err / (cond[220:300] * 2.2e-16)).max()) < 50
-    torch.testing.assert_close(alone, got[220:300], rtol=0, atol=0)
+    if n <= 2:  # closed forms, element by element: the same bits in any batch
+        torch.testing.assert_close(alone, got[220:300], rtol=0, atol=0)
+    else:  # LAPACK, whose kernels may depend on the batch's size and alignment
+        torch.testing.assert_close(alone, got[220:300], rtol=1e-12, atol=0)
 
 
 def test_r2_scores_equal_sklearn():

@@ -124,5 +124,6 @@ def test_compiled_expressions_share_one_elimination():
     a = torch.tensor([0.3], dtype=torch.float64)
     b = torch.tensor([0.02], dtype=torch.float64)
     want = [np.tanh(2.0) * np.cos(0.3), np.cos(0.3) ** 2]
-    np.testing.assert_allclose(f(a, b).numpy(), want, rtol=1e-15)
-    np.testing.assert_allclose(g(a, b).numpy(), want, rtol=1e-15)
+    # torch's tanh and cos against numpy's (other math libraries): a few ulp
+    np.testing.assert_allclose(f(a, b).numpy(), want, rtol=4e-15)
+    np.testing.assert_allclose(g(a, b).numpy(), want, rtol=4e-15)

@@ -155,7 +155,10 @@ def test_solve_many_equals_solve(case_iii_problem):
             (coef, res, want, one),
         ):
             np.testing.assert_array_equal(got_c != 0, want_c != 0)
-            np.testing.assert_allclose(got_c, want_c, rtol=1e-10, atol=1e-14)
+            # The batch refits in NumPy, one solve in torch: on ill-conditioned
+            # supports they differ by up to 8.8e-11 relative on the development
+            # host and 1.1e-10 with torch's generic (non-SIMD) kernels.
+            np.testing.assert_allclose(got_c, want_c, rtol=1e-9, atol=1e-14)
             assert got_r.cost == pytest.approx(want_r.cost, rel=1e-10, abs=1e-15)
             for a, b in zip(got_r.stages, want_r.stages, strict=True):
                 np.testing.assert_array_equal(a.support, b.support)

@@ -102,7 +102,10 @@ def test_ranking_keeps_the_shortlist_of_every_candidate(
         coef, res = by_r[candidates[i]]
         want = every[i][0].copy()
         want[candidates[i]] = 1.0
-        np.testing.assert_array_equal(coef, want)
+        # measured: equal bit for bit (the same refit of the same support); other
+        # BLAS kernels may round the batches' padded products differently
+        np.testing.assert_array_equal(coef != 0, want != 0)
+        np.testing.assert_allclose(coef, want, rtol=1e-12, atol=0)
         # the batch's residual sums run over other coordinates: measured 5e-15
         np.testing.assert_allclose(res.cost, costs[i], rtol=1e-12)
     # Every candidate left out has a bound above the shortlist's last residual.
