@@ -136,7 +136,7 @@ def test_staged_schedule_removes_small_terms_and_debiases():
     np.testing.assert_array_equal(res.support, [0, 2, 7])
     # debiased: the least-squares fit of the support, no L1 shrinkage left (the
     # refit solves the Gram matrix, lstsq an SVD of the rows: measured 4.4e-15 here,
-    # 0.8e-15 to 3.1e-15 with other BLAS kernels; without the refit the last stage's
+    # 0.9e-15 to 3.1e-15 with other BLAS kernels; without the refit the last stage's
     # lam = 5e-4 leaves 5e-4)
     w_ls = np.linalg.lstsq(A[:, res.support], y, rcond=None)[0]
     np.testing.assert_allclose(res.coef.numpy()[res.support], w_ls, rtol=0, atol=2e-14)
