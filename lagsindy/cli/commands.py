@@ -318,7 +318,8 @@ def _check_numbers(args):
         np.isfinite(args.dt) and args.dt > 0
     ):
         raise CLIError(f"--dt must be a positive number of seconds, got {args.dt}")
-    if getattr(args, "window", None) is not None and args.window < 5:
+    window = getattr(args, "window", "auto")
+    if window is not None and window != "auto" and window < 5:
         raise CLIError(
             f"--window must be at least 5 samples (a test function), got {args.window}"
         )

@@ -82,6 +82,18 @@ def _add_derivative_options(p):
     )
 
 
+def _window(text):
+    """``--window``: an integer number of samples, or ``auto``."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number of samples or 'auto', got {text!r}"
+        ) from None
+
+
 def _add_fit_options(p, *, required):
     """Options of a fit from a CSV (shared by ``fit`` and ``diagnose``)."""
     p.add_argument(
@@ -172,13 +184,14 @@ def _add_fit_options(p, *, required):
     )
     p.add_argument(
         "--window",
-        type=int,
-        default=None,
-        help="samples per test function of the weak form, >= 5 (default: the "
-        "estimator's, 81). With "
-        "derivatives estimated from positions, fit refits at twice the window and "
-        "warns when the coefficients move: the smoothed derivatives' errors bias "
-        "short windows",
+        type=_window,
+        metavar="SAMPLES|auto",
+        default="auto",
+        help="samples per test function of the weak form, >= 5, or 'auto' (default "
+        "auto: 81 samples, doubled to 161, 321, 641 while the coefficients move by "
+        "more than 3 %% and the next window confirms the longer one, since the "
+        "smoothed derivatives' errors bias short windows; a warning says when no "
+        "window settles)",
     )
     p.add_argument(
         "--delay",

@@ -555,6 +555,14 @@ def bump_function(window: int, dt: float, power: int = 4):
     return psi, dpsi
 
 
+# A segment whose banded matrix of windows (see _band) would hold more entries than
+# this is correlated in blocks of BAND_BLOCK windows that share one small band: the
+# whole matrix grows with the square of the segment's length (a 100,000-sample
+# record at window 81: 5,000 x 100,000 entries, 4 GB, per matrix).
+BAND_ENTRIES = 1 << 22
+BAND_BLOCK = 64
+
+
 def _correlate(
     signal: torch.Tensor, kernel: torch.Tensor, stride: int, band=None
 ) -> torch.Tensor:
@@ -563,23 +571,70 @@ def _correlate(
     One matrix product with the banded matrix of the windows (``band``, from
     :func:`_band`, when the caller has it already): on CPU in float64 this is many
     times faster than ``conv1d`` with one input channel, which has no fast kernel.
+    A long segment's band is one block of windows, slid along the rows
+    (:class:`_BlockBand`).
     """
     n = signal.shape[0]
     if band is None:
         band = _band(kernel.to(signal), n, stride)
-    return (band @ signal.reshape(n, -1)).reshape(-1, *signal.shape[1:])
+    flat = signal.reshape(n, -1)
+    out = band @ flat if isinstance(band, torch.Tensor) else band.apply(flat)
+    return out.reshape(-1, *signal.shape[1:])
 
 
-def _band(kernel: torch.Tensor, n: int, stride: int) -> torch.Tensor:
-    """``B`` of shape (n_windows, n) with ``B[w, w * stride + j] = kernel[j]``."""
+def _band(kernel: torch.Tensor, n: int, stride: int):
+    """``B`` of shape (n_windows, n) with ``B[w, w * stride + j] = kernel[j]``.
+
+    When ``B`` would hold more than :data:`BAND_ENTRIES` entries, a
+    :class:`_BlockBand` instead: the same products, in blocks of windows.
+    """
     k = kernel.shape[0]
     n_win = max(0, (n - k) // stride + 1)
+    if n_win * n <= BAND_ENTRIES or n_win <= BAND_BLOCK:
+        return _band_matrix(kernel, n_win, n, stride)
+    rows = (BAND_BLOCK - 1) * stride + k
+    return _BlockBand(_band_matrix(kernel, BAND_BLOCK, rows, stride), n_win, stride)
+
+
+def _band_matrix(kernel, n_win, n, stride):
+    k = kernel.shape[0]
     band = kernel.new_zeros((n_win, n))
     starts = torch.arange(n_win, device=kernel.device).unsqueeze(1) * stride
     band.scatter_(
         1, starts + torch.arange(k, device=kernel.device), kernel.expand(n_win, k)
     )
     return band
+
+
+class _BlockBand:
+    """The banded matrix of a long segment's windows, as one block slid along it.
+
+    The windows are shifts of one kernel, so every block of :data:`BAND_BLOCK`
+    consecutive windows has the same band (``block``, of shape (BAND_BLOCK, rows)),
+    applied to the rows under the block: memory and work grow with the segment's
+    length, not its square.
+    """
+
+    def __init__(self, block, n_win, stride):
+        self.block, self.n_win, self.stride = block, n_win, stride
+
+    def apply(self, flat):
+        """The windows' sums of ``flat`` (rows, columns): (n_windows, columns)."""
+        per, rows = self.block.shape
+        hop = per * self.stride
+        n_full = self.n_win // per
+        parts = []
+        if n_full:
+            # (blocks, rows, columns): overlapping views of ``flat``, no copy
+            views = flat[: (n_full - 1) * hop + rows].unfold(0, rows, hop)
+            full = torch.matmul(self.block, views.transpose(1, 2))
+            parts.append(full.reshape(-1, flat.shape[1]))
+        rest = self.n_win - n_full * per
+        if rest:
+            span = (rest - 1) * self.stride + (rows - (per - 1) * self.stride)
+            start = n_full * hop
+            parts.append(self.block[:rest, :span] @ flat[start : start + span])
+        return torch.cat(parts) if len(parts) > 1 else parts[0]
 
 
 def _window_weights(n: int, kernel_a, kernel_b, stride: int):
