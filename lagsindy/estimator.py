@@ -229,7 +229,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
     stages_ : list of lagsindy.solvers.Stage
         The sparsification path.
     residual_ : float
-        Relative residual of the final fit.
+        Relative residual of the final fit (with forces: warns above 0.5).
     formulation_ : {"strong", "weak"}
         The formulation used (the choice of ``formulation="auto"``).
     window_ : int
@@ -238,7 +238,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         The learned mass matrix checked on (up to 500 of) the fitted samples:
         ``mass_check_.fraction`` of them have it singular or indefinite, along
         ``mass_check_.coordinates``; ``mass_check_.ok`` is False (and the fit warns)
-        above 1 %.
+        above 1 %; with forces, also where it is negative definite (``.negative``).
     dt_ : float or None
         Sampling interval used by the weak formulation.
     noise_cov_ : ndarray or None
@@ -790,7 +790,7 @@ def _fitted_state(
             stacklevel=4,
         )
     fixed = solution.fixed
-    return FittedLagrangian(
+    fitted = FittedLagrangian(
         library=library,
         coef=coef[:n_terms],
         case=case,
@@ -809,6 +809,8 @@ def _fitted_state(
         residual=result.cost,
         tau_1d=tau is not None and np.asarray(y).ndim == 1,
     )
+    fitted.warn_unexplained(stacklevel=4)
+    return fitted
 
 
 def _from_params(cls, library, params):

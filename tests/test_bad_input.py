@@ -6,6 +6,7 @@ may surface as a numpy, pandas, sympy or torch error.
 """
 
 import re
+import warnings
 
 import numpy as np
 import pandas as pd
@@ -14,7 +15,12 @@ import scipy.sparse as sps
 from sklearn.exceptions import NotFittedError
 
 from lagsindy import CandidateLibrary, LagrangianSINDy
-from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
+from lagsindy.systems import (
+    cart_pendulum,
+    double_pendulum,
+    make_dataset,
+    single_pendulum,
+)
 
 TERMS = ["theta_dot**2", "cos(theta)", "theta**2"]
 
@@ -507,3 +513,47 @@ def test_refit_replaces_the_compiled_model(pend):
     est.set_params(library=other).fit(pend.X, pend.tau)
     fresh = LagrangianSINDy(other).fit(pend.X, pend.tau)
     np.testing.assert_array_equal(est.predict(pend.X), fresh.predict(pend.X))
+
+
+# ------------------------------------------- forces that no Lagrangian explains
+@pytest.fixture(scope="module")
+def double():
+    return make_dataset(
+        double_pendulum(), n_trajectories=6, duration=5.0, excitation="sincos",
+        random_state=0,
+    )  # fmt: skip
+
+
+def _fit_recorded(data, tau):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est = LagrangianSINDy(double_pendulum().paper_library()).fit(
+            data.X, tau, groups=data.groups
+        )
+    return est, [str(w.message) for w in caught]
+
+
+def test_right_forces_give_no_warning(double):
+    est, caught = _fit_recorded(double, double.tau)
+    assert est.residual_ < 1e-6  # measured: 3.5e-8
+    assert est.mass_check_.negative == 0.0
+    assert caught == []
+
+
+def test_negated_forces_say_the_kinetic_energy_is_negative(double):
+    """-tau fits -L exactly: the residual says nothing, the mass matrix does."""
+    est, caught = _fit_recorded(double, -double.tau)
+    assert est.residual_ < 1e-6  # measured: 3.5e-8, as with the right sign
+    assert est.mass_check_.negative == 1.0 and est.mass_check_.ok
+    assert any("negative definite" in m and "sign convention" in m for m in caught)
+
+
+@pytest.mark.parametrize("wrong", ["one sign flipped", "columns swapped"])
+def test_forces_no_lagrangian_explains_are_reported(double, wrong):
+    tau = double.tau * [-1, 1] if wrong == "one sign flipped" else double.tau[:, ::-1]
+    est, caught = _fit_recorded(double, np.ascontiguousarray(tau))
+    # measured: 0.73 (flipped), 0.75 (swapped)
+    assert est.residual_ > 0.6
+    assert any(
+        "of the measured forces' sum of squares unexplained" in m for m in caught
+    )

@@ -387,7 +387,9 @@ def _fit(args) -> int:
         from ..refine import refine
 
         if args.refine < 2:
-            raise CLIError(f"--refine needs a horizon of >= 2 samples, got {args.refine}")
+            raise CLIError(
+                f"--refine needs a horizon of >= 2 samples, got {args.refine}"
+            )
         _say(args, f"refining by rollouts of {args.refine} samples ...")
         sparse = est
         est = refine(est, X, tau, groups=args._groups, horizon=args.refine)
