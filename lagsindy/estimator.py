@@ -527,6 +527,23 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
 
 # ----------------------------------------------------------------------------- steps
+def _warn_default_library(coordinates):
+    """The default library's products of two factors cannot couple velocities through
+    an angle (a double pendulum fitted with it returned 27 meaningless terms)."""
+    a, b = coordinates[:2]
+    warnings.warn(
+        f"library=None fits degree-2 polynomials of {coordinates}, which have no term "
+        "coupling two coordinates' velocities through an angle (a cart-pendulum's "
+        f"x_dot*theta_dot*cos(theta), a double pendulum's {a}_dot*{b}_dot*cos({a} - "
+        f"{b})): if these coordinates are coupled, the fit returns a wrong Lagrangian. "
+        f"Pass a library: CandidateLibrary.chain({list(coordinates)}) for a chain of "
+        "links, CandidateLibrary.polynomial(coordinates, angles=[...], degree=3 or 4), "
+        "or a system's paper_library().",
+        UserWarning,
+        stacklevel=5,
+    )
+
+
 def _prepare(est, X, y):
     """Validated data, built library and dissipation terms, and the case."""
     library = clone(est.library) if est.library is not None else None
@@ -541,6 +558,8 @@ def _prepare(est, X, y):
         library = CandidateLibrary.polynomial(
             coordinates, angles="all", degree=2, raw_angles=True
         )
+        if len(coordinates) > 1:
+            _warn_default_library(coordinates)
     elif library.coordinates is None:
         library.set_params(coordinates=coordinates)
     library.build()

@@ -557,3 +557,14 @@ def test_forces_no_lagrangian_explains_are_reported(double, wrong):
     assert any(
         "of the measured forces' sum of squares unexplained" in m for m in caught
     )
+
+
+def test_default_library_on_several_coordinates_says_it_cannot_couple(double, pend):
+    """Degree-2 products cannot hold cos(theta1 - theta2) * velocities: a double
+    pendulum fitted with library=None got 27 meaningless terms without a word."""
+    with pytest.warns(UserWarning, match=r"library=None fits degree-2 polynomials"):
+        LagrangianSINDy().fit(double.X, double.tau, groups=double.groups)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        LagrangianSINDy().fit(pend.X, groups=pend.groups)  # one coordinate
+    assert not any("library=None" in str(w.message) for w in caught)
