@@ -41,8 +41,10 @@ def to_tensor(array, *, dtype=torch.float64, device="cpu") -> torch.Tensor:
     if torch.is_tensor(array):
         return array.to(dtype=dtype, device=device)
     arr = np.asarray(array)
-    if not arr.flags.writeable:
-        arr = arr.copy()  # torch cannot wrap read-only memory (e.g. pandas views)
+    if not arr.flags.writeable or any(st < 0 for st in arr.strides):
+        # torch wraps neither read-only memory (e.g. pandas views) nor negative
+        # strides (reversed views such as tau[:, ::-1])
+        arr = arr.copy()
     return torch.as_tensor(arr, dtype=dtype, device=device)
 
 

@@ -568,3 +568,18 @@ def test_default_library_on_several_coordinates_says_it_cannot_couple(double, pe
         warnings.simplefilter("always")
         LagrangianSINDy().fit(pend.X, groups=pend.groups)  # one coordinate
     assert not any("library=None" in str(w.message) for w in caught)
+
+
+def test_reversed_views_are_read_as_their_values(cart):
+    """Negative-stride views (tau[:, ::-1], X[::-1]) raised a raw torch error."""
+    library = cart_pendulum().paper_library()
+    views = LagrangianSINDy(library, formulation="strong").fit(
+        cart.X[::-1], cart.tau[:, ::-1][:, ::-1][::-1]
+    )
+    copies = LagrangianSINDy(library, formulation="strong").fit(
+        cart.X[::-1].copy(), cart.tau[::-1].copy()
+    )
+    np.testing.assert_array_equal(views.coef_, copies.coef_)
+    np.testing.assert_array_equal(
+        views.predict(cart.X[::-1]), copies.predict(cart.X[::-1].copy())
+    )
