@@ -154,6 +154,23 @@ def test_timing_glitches_are_reported_by_row():
         derivatives(q, t)
 
 
+def test_dropped_samples_are_reported_and_split_gaps_cuts_there():
+    """Single dropped frames (steps of 2 dt, below the gap factor of 5) bias the weak
+    form, which assumes evenly spaced samples; derivatives() now says so."""
+    t = np.delete(np.arange(400) * 0.01, [100, 250])
+    q = np.sin(2 * t)
+    with pytest.warns(UserWarning, match=r"2 step\(s\).*before row\(s\) 100 .*249 "):
+        derivatives(q, t)
+    labels = split_gaps(t, gap_factor=1.5)  # the advice
+    assert np.flatnonzero(np.diff(labels) != 0).tolist() == [99, 248]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        regular = np.arange(400) * 0.01
+        derivatives(np.sin(2 * regular), regular)  # a regular clock: nothing to say
+        jitter = np.random.default_rng(0).uniform(-0.3, 0.3, 400) * 0.01
+        derivatives(np.sin(2 * regular), regular + jitter)  # no regular clock
+
+
 # ----------------------------------------------------------------- shipped data
 def test_shipped_recordings_load_without_configuration(monkeypatch):
     monkeypatch.delenv("LAGSINDY_MULTIARM_DIR", raising=False)

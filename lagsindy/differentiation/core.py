@@ -17,9 +17,11 @@ from .records import (
     _check_times,
     _is_uniform,
     _segments,
+    _skipped_samples,
     _split_at_gaps,
     _warn_gaps,
     _warn_glitches,
+    _warn_skips,
 )
 
 METHODS = ("pspline", "spline", "savgol", "finite_difference")
@@ -174,6 +176,9 @@ def derivatives(
         _warn_gaps(gaps, times, gap_factor)
     if glitches:
         _warn_glitches(glitches, times)
+    skips = _skipped_samples(times, segments)
+    if skips:
+        _warn_skips(skips, times)
     need = _MIN_SAMPLES[method]
     for key, sl in segments:
         if sl.stop - sl.start < need:

@@ -144,6 +144,9 @@ def _is_uniform(t: np.ndarray) -> bool:
 _GAP_FACTOR = 5.0
 # A step shorter than this fraction of the median step is a timing glitch.
 _GLITCH_FRACTION = 0.25
+# On a regular clock, a step longer than this many median steps (and no gap) means
+# dropped samples.
+_SKIP_FACTOR = 1.5
 
 
 def _split_at_gaps(times, segments, factor):
@@ -196,6 +199,39 @@ def _warn_gaps(gaps, times, factor, stacklevel=3):
         "Fit with the segments as trajectories, so that the weak form and "
         "cross-validation never span a gap: groups = split_gaps(t, groups) "
         "(lagsindy.differentiation), or derivatives(..., return_groups=True)",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+
+
+def _skipped_samples(times, segments, factor=_SKIP_FACTOR):
+    """Rows after a step of more than ``factor`` median steps, in segments on a
+    regular clock (90 % of the steps within 10 % of the median): dropped samples,
+    shorter than a gap."""
+    rows = []
+    for _, sl in segments:
+        steps = np.diff(times[sl])
+        if steps.size == 0:
+            continue
+        median = float(np.median(steps))
+        if np.mean(np.abs(steps - median) <= 0.1 * median) >= 0.9:
+            rows.extend(
+                (sl.start + 1 + np.flatnonzero(steps > factor * median)).tolist()
+            )
+    return rows
+
+
+def _warn_skips(rows, times, stacklevel=3):
+    warnings.warn(
+        f"{len(rows)} step(s) of the time stamps are more than {_SKIP_FACTOR:g} times "
+        f"their trajectory's median step (dropped samples?), before row(s) "
+        f"{_describe_rows(rows, times)}. The derivatives use the time stamps as "
+        "given, but the weak form (the fit's default) assumes evenly spaced samples "
+        "within a trajectory, and such steps bias it (0.5 % of the samples dropped "
+        "moved a cart-pendulum's coefficients by 2 %). Keep these derivatives and "
+        "fit with the trajectories cut there, groups=split_gaps(t, groups, "
+        "gap_factor=1.5) (lagsindy.differentiation; the same fit was then exact), "
+        "or interpolate the record onto a regular clock",
         UserWarning,
         stacklevel=stacklevel,
     )
