@@ -315,3 +315,19 @@ def test_dissipation_terms_are_built_once_per_parameters(monkeypatch):
     np.testing.assert_array_equal(fits[0].coef_, fits[1].coef_)
     names = [t.name for t in fits[1].dissipation_library_.terms_]
     assert names == ["viscous(x)", "viscous(theta)"]
+
+
+def test_verbose_announces_a_restart_only_when_one_follows(capsys):
+    """The last start of the path was announced as restarting, with nothing after."""
+    data = make_dataset(
+        cart_pendulum(), n_trajectories=20, duration=5.0, excitation="sincos",
+        noise=0.01, protocol="paper", random_state=0,
+    )  # fmt: skip
+    LagrangianSINDy(cart_pendulum().paper_library(), verbose=1).fit(
+        data.X, data.tau, groups=data.groups
+    )
+    lines = capsys.readouterr().out.splitlines()
+    restarts = [i for i, line in enumerate(lines) if "restarting the path" in line]
+    assert restarts  # measured: 1
+    for i in restarts:
+        assert "stage 1: lam=" in lines[i + 1]

@@ -181,9 +181,10 @@ class SparseSolve:
                 bound = dense_residual(datafit)
             if res.cost <= (1 + PATH_TIE) * bound + PATH_FLOOR:
                 break
-            if verbose:
+            if verbose and k + 1 < starts:
                 print(
-                    f"[lagsindy] relative residual {res.cost:.3g} is above the dense "
+                    f"[lagsindy] relative residual {res.cost:.3g} (after the refit) is "
+                    "above the dense "
                     f"least-squares bound {bound:.3g}: restarting the path from "
                     f"lam={lam / self.lam_decay:.3g}"
                 )
