@@ -1073,6 +1073,11 @@ def test_fit_chooses_the_window_and_says_which(capsys, tmp_path):
     assert LagrangianSINDy.load(tmp_path / "b.json").window == 81
     code, _, err = run(capsys, *fit, "--window", "3", "--out", tmp_path / "c.json")
     assert code == 2 and "--window must be at least 5" in err
+    # the README's "auto" is accepted, as the default it is
+    code, out, err = run(capsys, *fit, "--window", "auto", "--out", tmp_path / "d.json")
+    assert code == 0 and "(weak form, test window 161 samples)" in out + err
+    code, _, err = run(capsys, *fit, "--window", "wide", "--out", tmp_path / "e.json")
+    assert code == 2 and "a whole number of samples or 'auto'" in err
 
 
 def test_fit_refine_saves_the_refined_model(capsys, workdir, tmp_path):
