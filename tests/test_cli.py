@@ -1082,14 +1082,27 @@ def test_fit_chooses_the_window_and_says_which(capsys, tmp_path):
 
 def test_fit_refine_saves_the_refined_model(capsys, workdir, tmp_path):
     code, out, err = run(
-        capsys, "fit", workdir / "data.csv", "--coordinates", "x,theta",
-        "--angles", "theta", "--library", "poly3", "--refine", "50",
-        "--held-out", "0", "--out", tmp_path / "r.json",
+        capsys,
+        "fit",
+        workdir / "data.csv",
+        "--coordinates",
+        "x,theta",
+        "--angles",
+        "theta",
+        "--library",
+        "poly3",
+        "--refine",
+        "50",
+        "--held-out",
+        "0",
+        "--out",
+        tmp_path / "r.json",
     )
     assert code == 0, err
     found = re.search(
         r"rollout refinement over (\d+) windows of 50 samples: RMSE ([\d.e-]+) -> "
-        r"([\d.e-]+)", out
+        r"([\d.e-]+)",
+        out,
     )
     assert found, out
     assert int(found.group(1)) == 6 * 14  # 400 samples: starts 0, 25, ..., 325
@@ -1099,7 +1112,29 @@ def test_fit_refine_saves_the_refined_model(capsys, workdir, tmp_path):
     assert _kept(tmp_path / "r.json") == _kept(workdir / "model.json")
     assert not np.array_equal(refined.coef_, sparse.coef_)
     code, out, err = run(
-        capsys, "fit", workdir / "data.csv", "--coordinates", "x,theta",
-        "--refine", "1", "--out", tmp_path / "bad.json",
+        capsys,
+        "fit",
+        workdir / "data.csv",
+        "--coordinates",
+        "x,theta",
+        "--refine",
+        "1",
+        "--out",
+        tmp_path / "bad.json",
     )
     assert code != 0 and "--refine" in err
+
+
+@pytest.mark.parametrize("copy", ["data.csv", "q.csv"])
+def test_fit_refuses_rows_out_of_time_order(capsys, workdir, tmp_path, copy):
+    """Rows whose 't' goes back were refused only when derivatives were estimated;
+    with the derivative columns given they reached the weak form silently."""
+    df = pd.read_csv(workdir / copy)
+    rows = df.index.to_numpy().copy()
+    rows[[50, 51]] = rows[[51, 50]]
+    df.iloc[rows].to_csv(tmp_path / "swapped.csv", index=False)
+    code, _, err = run(
+        capsys, "fit", tmp_path / "swapped.csv", "--coordinates", "x,theta",
+        "--angles", "theta", "--out", tmp_path / "m.json",
+    )  # fmt: skip
+    assert code == 2 and "'t' must increase within each trajectory" in err

@@ -142,6 +142,8 @@ def _state_and_groups(df, coords, args, source, angles=()):
     method = getattr(args, "derivatives", None)
     groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
     if not _derivatives_estimated(df, coords, args):
+        if "t" in df.columns:  # the weak form takes the rows in this order
+            _check_increasing(_numeric(df, ["t"], source)[:, 0], groups, source)
         X = pd.DataFrame(_numeric(df, names, source), columns=names, index=df.index)
         return X, groups
     from ..differentiation import derivatives
@@ -161,11 +163,7 @@ def _state_and_groups(df, coords, args, source, angles=()):
                 f"a trajectory in {source} has {idx.size} rows; derivative estimation "
                 "needs at least 5 samples per trajectory"
             )
-        if np.any(np.diff(t[idx]) <= 0):
-            raise CLIError(
-                f"'t' must increase within each trajectory in {source} (sort the rows, "
-                "and give separate trajectories a 'trajectory' column)"
-            )
+    _check_increasing(t, groups, source)
     kwargs = {"groups": groups, "return_groups": True}
     if method is not None:
         kwargs["method"] = method
@@ -201,6 +199,15 @@ def _state_and_groups(df, coords, args, source, angles=()):
             f"{(len(df), 3 * len(coords))}"
         )
     return pd.DataFrame(X, columns=names, index=df.index), groups
+
+
+def _check_increasing(t, groups, source):
+    for idx in _group_rows(groups, len(t)):
+        if np.any(np.diff(t[idx]) <= 0):
+            raise CLIError(
+                f"'t' must increase within each trajectory in {source} (sort the rows, "
+                "and give separate trajectories a 'trajectory' column)"
+            )
 
 
 def _group_rows(groups, n):
