@@ -1138,3 +1138,14 @@ def test_fit_refuses_rows_out_of_time_order(capsys, workdir, tmp_path, copy):
         "--angles", "theta", "--out", tmp_path / "m.json",
     )  # fmt: skip
     assert code == 2 and "'t' must increase within each trajectory" in err
+
+
+def test_predict_takes_rows_in_any_order(capsys, workdir, tmp_path):
+    """predict evaluates rows one by one: a 't' out of order is no error there."""
+    df = pd.read_csv(workdir / "data.csv").iloc[::-1]
+    df.to_csv(tmp_path / "reversed.csv", index=False)
+    code, _, err = run(
+        capsys, "predict", workdir / "model.json", tmp_path / "reversed.csv",
+        "--out", tmp_path / "p.csv",
+    )  # fmt: skip
+    assert code == 0, err

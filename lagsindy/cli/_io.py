@@ -114,7 +114,7 @@ def _is_float(v):
 
 def _state_frame(df, coords, args, source):
     """X as a DataFrame ``[q, q_dot, q_ddot]``; derivatives estimated if absent."""
-    return _state_and_groups(df, coords, args, source)[0]
+    return _state_and_groups(df, coords, args, source, ordered=False)[0]
 
 
 def _derivatives_estimated(df, coords, args):
@@ -126,12 +126,14 @@ def _derivatives_estimated(df, coords, args):
     return not all(n in df.columns for n in state_names(coords))
 
 
-def _state_and_groups(df, coords, args, source, angles=()):
+def _state_and_groups(df, coords, args, source, angles=(), ordered=True):
     """X ``[q, q_dot, q_ddot]`` and the trajectory labels to fit with.
 
     When derivatives are estimated, ``angles`` are unwrapped per trajectory (as
     ``Derivatives(angles=...)`` does in the API) and trajectories are cut at gaps in
     ``t`` (one warning says where); the labels returned are then the segments.
+    ``ordered``: refuse a ``t`` that goes back within a trajectory also when the
+    derivatives are given (fit and diagnose; ``predict`` takes rows one by one).
     """
     import pandas as pd
 
@@ -142,7 +144,7 @@ def _state_and_groups(df, coords, args, source, angles=()):
     method = getattr(args, "derivatives", None)
     groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
     if not _derivatives_estimated(df, coords, args):
-        if "t" in df.columns:  # the weak form takes the rows in this order
+        if ordered and "t" in df.columns:  # the weak form takes the rows in order
             _check_increasing(_numeric(df, ["t"], source)[:, 0], groups, source)
         X = pd.DataFrame(_numeric(df, names, source), columns=names, index=df.index)
         return X, groups
