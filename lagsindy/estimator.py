@@ -123,9 +123,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         A given ``alpha`` is multiplied by ``step_growth`` at each stage, as in the
         paper; a step that makes FISTA diverge is halved automatically.
     threshold : float, default=0.05
-        Hard threshold between stages, relative to the largest scaled coefficient
-        (a term is dropped when its contribution to the equations is below
-        ``threshold`` times that of the dominant term).
+        Hard threshold between stages, relative to the largest scaled coefficient: a
+        term contributing less than ``threshold`` times the dominant term is dropped
+        (a link 100 times lighter than the rest needs a lower value, e.g. 1e-3).
     dissipation_threshold : float, default=1e-3
         The hard threshold for dissipation terms. Friction and damping forces are
         usually a few percent of the conservative ones, so they get a lower threshold;
