@@ -1082,28 +1082,15 @@ def test_fit_chooses_the_window_and_says_which(capsys, tmp_path):
 
 def test_fit_refine_saves_the_refined_model(capsys, workdir, tmp_path):
     code, out, err = run(
-        capsys,
-        "fit",
-        workdir / "data.csv",
-        "--coordinates",
-        "x,theta",
-        "--angles",
-        "theta",
-        "--library",
-        "poly3",
-        "--refine",
-        "50",
-        "--held-out",
-        "0",
-        "--out",
-        tmp_path / "r.json",
-    )
+        capsys, "fit", workdir / "data.csv", "--coordinates", "x,theta",
+        "--angles", "theta", "--library", "poly3", "--refine", "50",
+        "--held-out", "0", "--out", tmp_path / "r.json",
+    )  # fmt: skip
     assert code == 0, err
     found = re.search(
         r"rollout refinement over (\d+) windows of 50 samples: RMSE ([\d.e-]+) -> "
-        r"([\d.e-]+)",
-        out,
-    )
+        r"([\d.e-]+)", out
+    )  # fmt: skip
     assert found, out
     assert int(found.group(1)) == 6 * 14  # 400 samples: starts 0, 25, ..., 325
     assert float(found.group(3)) <= float(found.group(2))
@@ -1112,16 +1099,9 @@ def test_fit_refine_saves_the_refined_model(capsys, workdir, tmp_path):
     assert _kept(tmp_path / "r.json") == _kept(workdir / "model.json")
     assert not np.array_equal(refined.coef_, sparse.coef_)
     code, out, err = run(
-        capsys,
-        "fit",
-        workdir / "data.csv",
-        "--coordinates",
-        "x,theta",
-        "--refine",
-        "1",
-        "--out",
-        tmp_path / "bad.json",
-    )
+        capsys, "fit", workdir / "data.csv", "--coordinates", "x,theta",
+        "--refine", "1", "--out", tmp_path / "bad.json",
+    )  # fmt: skip
     assert code != 0 and "--refine" in err
 
 
