@@ -319,9 +319,9 @@ def _check_numbers(args):
     ):
         raise CLIError(f"--dt must be a positive number of seconds, got {args.dt}")
     window = getattr(args, "window", "auto")
-    if window is not None and window != "auto" and window < 5:
+    if window != "auto" and window < 5:
         raise CLIError(
-            f"--window must be at least 5 samples (a test function), got {args.window}"
+            f"--window must be at least 5 samples (a test function), got {window}"
         )
 
 
@@ -580,11 +580,10 @@ def _fit_csv(args):
         unpenalized=_split(args.unpenalized) or None,
         case=args.case,
         formulation=getattr(args, "formulation", "auto"),
+        window=getattr(args, "window", "auto"),
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
     )
-    if getattr(args, "window", None) is not None:
-        est.set_params(window=args.window)
     tau = _apply_delay(args, df, X, tau, groups, est)
     _say(
         args,

@@ -17,7 +17,6 @@ from .records import (
     _check_times,
     _is_uniform,
     _segments,
-    _skipped_samples,
     _split_at_gaps,
     _warn_gaps,
     _warn_glitches,
@@ -171,12 +170,11 @@ def derivatives(
         raise ValueError(f"gap_factor must be a number > 1 or None, got {gap_factor!r}")
     segments = _segments(groups, n)
     times = _check_times(t, n, segments)
-    segments, gaps, glitches = _split_at_gaps(times, segments, gap_factor)
+    segments, gaps, glitches, skips = _split_at_gaps(times, segments, gap_factor)
     if gaps:
         _warn_gaps(gaps, times, gap_factor)
     if glitches:
         _warn_glitches(glitches, times)
-    skips = _skipped_samples(times, segments)
     if skips:
         _warn_skips(skips, times)
     need = _MIN_SAMPLES[method]

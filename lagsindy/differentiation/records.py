@@ -150,24 +150,31 @@ _SKIP_FACTOR = 1.5
 
 
 def _split_at_gaps(times, segments, factor):
-    """Cut segments at gaps; returns (new segments, gaps, glitches).
+    """Cut segments at gaps; returns (new segments, gaps, glitches, skips).
 
     ``gaps`` lists ``(key, row, step, median)`` for each step longer than ``factor``
-    median steps (the row is the first after the gap); ``glitches`` the rows that
-    come less than ``_GLITCH_FRACTION`` median steps after the previous row, in
-    trajectories on a regular clock (90 % of the steps within 10 % of the median).
+    median steps (the row is the first after the gap). In trajectories on a regular
+    clock (90 % of the steps within 10 % of the median), ``glitches`` are the rows
+    that come less than ``_GLITCH_FRACTION`` median steps after the previous row,
+    and ``skips`` those after a step of more than ``_SKIP_FACTOR`` median steps that
+    is no gap (dropped samples).
     """
-    out, gaps, glitches = [], [], []
+    out, gaps, glitches, skips = [], [], [], []
     for key, sl in segments:
         steps = np.diff(times[sl])
         if steps.size == 0:
             out.append((key, sl))
             continue
         median = float(np.median(steps))
-        # glitches only mean something on a regular clock (most steps near the median)
+        # glitches and skips only mean something on a regular clock (most steps
+        # near the median)
         if np.mean(np.abs(steps - median) <= 0.1 * median) >= 0.9:
             short = np.flatnonzero(steps < _GLITCH_FRACTION * median)
             glitches.extend((sl.start + 1 + short).tolist())
+            long = steps > _SKIP_FACTOR * median
+            if factor is not None:
+                long &= steps <= factor * median
+            skips.extend((sl.start + 1 + np.flatnonzero(long)).tolist())
         if factor is None:
             out.append((key, sl))
             continue
@@ -180,7 +187,7 @@ def _split_at_gaps(times, segments, factor):
             out.append(((key, k), slice(a, b)))
         for c in cut:
             gaps.append((key, sl.start + int(c) + 1, float(steps[c]), median))
-    return out, gaps, glitches
+    return out, gaps, glitches, skips
 
 
 def _describe_rows(rows, times, limit=5):
@@ -202,23 +209,6 @@ def _warn_gaps(gaps, times, factor, stacklevel=3):
         UserWarning,
         stacklevel=stacklevel,
     )
-
-
-def _skipped_samples(times, segments, factor=_SKIP_FACTOR):
-    """Rows after a step of more than ``factor`` median steps, in segments on a
-    regular clock (90 % of the steps within 10 % of the median): dropped samples,
-    shorter than a gap."""
-    rows = []
-    for _, sl in segments:
-        steps = np.diff(times[sl])
-        if steps.size == 0:
-            continue
-        median = float(np.median(steps))
-        if np.mean(np.abs(steps - median) <= 0.1 * median) >= 0.9:
-            rows.extend(
-                (sl.start + 1 + np.flatnonzero(steps > factor * median)).tolist()
-            )
-    return rows
 
 
 def _warn_skips(rows, times, stacklevel=3):
@@ -284,7 +274,7 @@ def split_gaps(t, groups=None, *, gap_factor: float = _GAP_FACTOR) -> np.ndarray
     n = np.shape(t)[0] if np.ndim(t) else 0
     segments = _segments(groups, n)
     times = _check_times(t, n, segments)
-    cut, _, _ = _split_at_gaps(times, segments, gap_factor)
+    cut, *_ = _split_at_gaps(times, segments, gap_factor)
     labels = np.empty(n, dtype=int)
     for k, (_, sl) in enumerate(cut):
         labels[sl] = k

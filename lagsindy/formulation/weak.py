@@ -631,7 +631,8 @@ class _BlockBand:
             parts.append(full.reshape(-1, flat.shape[1]))
         rest = self.n_win - n_full * per
         if rest:
-            span = (rest - 1) * self.stride + (rows - (per - 1) * self.stride)
+            width = rows - (per - 1) * self.stride  # the kernel's length
+            span = (rest - 1) * self.stride + width
             start = n_full * hop
             parts.append(self.block[:rest, :span] @ flat[start : start + span])
         return torch.cat(parts) if len(parts) > 1 else parts[0]
