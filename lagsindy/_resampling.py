@@ -20,6 +20,7 @@ from ._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
 from .cases import SparseSolve
 from .formulation import window_stride
 from .formulation.operator import EulerLagrangeOperator
+from .formulation.probes import without_probes
 from .formulation.scaling import _BALANCE_MAX_ITER, BalancedGram
 from .formulation.weak import trajectory_segments
 from .solvers.datafits import GramQuadratic
@@ -484,7 +485,7 @@ def _refit_resample(base, Xa, tau, groups_rows, mult, weak):
             labels.append(np.full(len(groups_rows[g]), len(labels)))
     idx = np.concatenate(idx)
     labels = np.concatenate(labels)
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), without_probes():
         warnings.simplefilter("ignore")
         try:
             est = clone(base).fit(

@@ -285,6 +285,8 @@ def _estimate_delay(
     support search's first fit instead of fitting it again."""
     import warnings
 
+    from .formulation.probes import without_probes
+
     n = len(X)
     tau = np.asarray(tau, dtype=float)
     tau2 = tau[:, None] if tau.ndim == 1 else tau
@@ -360,7 +362,7 @@ def _estimate_delay(
             tr = np.isin(rows, train)
             te = ~tr
             est = clone(estimator)
-            with warnings.catch_warnings():
+            with warnings.catch_warnings(), without_probes():
                 warnings.simplefilter("ignore")
                 est.fit(_take_rows(Xk, tr), shifted[tr], groups=gk[tr])
                 pred = np.asarray(est.predict(_take_rows(Xk, te)))
@@ -464,6 +466,8 @@ def _support_search(
     shift covers. The scores are always on those rows."""
     import warnings
 
+    from .formulation.probes import without_probes
+
     n_dof = tau2.shape[1]
     Xk, gk = _take_rows(X, rows), groups[rows]
     shifted = _shift_many(tau2, t, np.asarray(candidates, dtype=float), groups)[:, rows]
@@ -481,7 +485,7 @@ def _support_search(
             est = fitted_at_zero
         else:
             est = clone(estimator)
-            with warnings.catch_warnings():
+            with warnings.catch_warnings(), without_probes():
                 warnings.simplefilter("ignore")
                 if first:  # delay 0: the recorded input, no row runs out of data
                     est.fit(X, tau2, groups=groups)

@@ -27,6 +27,13 @@ from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .cases import Problem, SparseSolve, solve_case
 from .formulation import feature_operator, gram_statistics
+from .formulation.probes import (
+    PROBE_KINDS,
+    probe_forces,
+    probing,
+    split_probes,
+    warn_unmodelled,
+)
 from .formulation.scaling import (
     BalancedGram,
     IdentifiabilityWarning,  # noqa: F401 - its 0.1 import path
@@ -691,17 +698,24 @@ def _tensors(Xa, tau, device, dtype):
 
 
 def _statistics(est, Xt, tau_t, library, diss, groups, case):
-    """Gram statistics of every feature in the formulation ``est`` asks for."""
+    """Gram statistics of every feature in the formulation ``est`` asks for (with
+    forces and no dissipation library, and probe forces set aside: see
+    :mod:`lagsindy.formulation.probes`)."""
     n_features = len(library.terms_) + len(diss[0])
+    probes = []
+    if case == "forces" and est.dissipation is None and probing():
+        from .dissipation import DissipationLibrary
+
+        probes = _build_dissipation(DissipationLibrary(PROBE_KINDS), library)[0]
     operator = feature_operator(
         library.coordinates_,
         library.terms_,
-        diss[0],
-        range(n_features),
+        list(diss[0]) + list(probes),
+        range(n_features + len(probes)),
         Xt.device,
         Xt.dtype,
     )
-    return gram_statistics(
+    ladder = gram_statistics(
         operator,
         Xt,
         tau_t,
@@ -711,6 +725,7 @@ def _statistics(est, Xt, tau_t, library, diss, groups, case):
         dt=est.dt,
         noise_cov=est.noise_cov,
     )
+    return split_probes(ladder, n_features, [t.name for t in probes])
 
 
 def _solve(case, problem):
@@ -828,7 +843,8 @@ def _fitted_state(
         residual=result.cost,
         tau_1d=tau is not None and np.asarray(y).ndim == 1,
     )
-    fitted.warn_unexplained(stacklevel=4)
+    if not warn_unmodelled(probe_forces(stats, coef, est.normalize), stacklevel=4):
+        fitted.warn_unexplained(stacklevel=4)
     return fitted
 
 

@@ -72,6 +72,7 @@ from ._resampling import (  # noqa: F401 (the private names tests reach through 
 )
 from ._validation import validate_state
 from .formulation.operator import NOISE_ROWS
+from .formulation.probes import without_probes
 from .library import CandidateLibrary
 
 __all__ = ["BootstrapReport", "LibraryBaggingLagrangianSINDy", "bootstrap"]
@@ -368,7 +369,8 @@ def bootstrap(
     if _fast_path_supported(full):
         stats = _group_gram(full, Xa, tau_a, labels)
         if resampling == "blocks" and weak:
-            check = clone(base).fit(Xa, tau_a, groups=labels).fitted_.all_coef()
+            with without_probes():  # the full fit above has reported them
+                check = clone(base).fit(Xa, tau_a, groups=labels).fitted_.all_coef()
         else:
             check = all_coef
         seam = _fast_resample(full, stats, np.ones(n_groups))
@@ -629,7 +631,7 @@ class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEsti
                 remove_trivial=False,
                 remove_dependent=False,
             )
-            with warnings.catch_warnings():
+            with warnings.catch_warnings(), without_probes():
                 warnings.simplefilter("ignore")
                 try:
                     est = clone(base).set_params(library=lib).fit(X, y, groups=groups)

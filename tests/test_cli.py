@@ -689,6 +689,36 @@ def test_warnings_are_printed_on_one_line(capsys, monkeypatch, workdir):
     assert err.splitlines() == ["lagsindy fit: warning: first line second line"]
 
 
+def test_missing_damping_warning_speaks_in_commands(tmp_path, capsys):
+    """The fit's warning about a missing force names the command to run, not the
+    Python call (before: 'lagsindy.diagnose', 'dissipation=DissipationLibrary')."""
+    from lagsindy.systems import make_dataset, single_pendulum
+
+    system = single_pendulum().with_damping(viscous={"theta": 0.2})
+    data = make_dataset(
+        system, n_trajectories=9, duration=3.0, excitation="sincos", random_state=0
+    )
+    csv = tmp_path / "damped.csv"
+    data.to_frame().to_csv(csv, index=False)
+    code, _, err = run(
+        capsys, "fit", csv, "--coordinates", "theta", "--angles", "theta",
+        "--raw-angles", "--out", tmp_path / "m.json",
+    )  # fmt: skip
+    assert code == 0
+    (line,) = [x for x in err.splitlines() if "friction or damping missing" in x]
+    assert "viscous(theta) = 0.2" in line
+    assert "Run `lagsindy diagnose` on the same data" in line
+    assert "lagsindy.diagnose" not in line and "dissipation=" not in line
+
+
+def test_cli_wording_replaces_every_python_hint():
+    from lagsindy.cli import _CLI_WORDING, _cli_wording
+
+    for python, cli in _CLI_WORDING:
+        assert _cli_wording(f"a {python} b") == f"a {cli} b"
+    assert _cli_wording("try window=81 here") == "try window=81 here"
+
+
 def test_debug_shows_the_traceback(workdir):
     with pytest.raises(Exception, match="not found"):
         main(

@@ -47,9 +47,40 @@ _INFO_WARNINGS = (
 )
 
 
-def _one_line(exc) -> str:
+# The library's Python hints, and what a command-line user types instead (longest
+# first: a hint may contain a shorter one).
+_CLI_WORDING = (
+    (
+        "Refit with dissipation=DissipationLibrary(['viscous', 'coulomb']), or run "
+        "lagsindy.diagnose,",
+        "Run `lagsindy diagnose` on the same data,",
+    ),
+    ("(lagsindy.estimate_delay)", "(`lagsindy fit --delay auto`)"),
+    ("see lagsindy.diagnose", "see `lagsindy diagnose`"),
+    ("run lagsindy.diagnose", "run `lagsindy diagnose`"),
+    ("pass a longer window=", "pass a longer --window"),
+    ("Lower lam or threshold.", "Lower --lam or --threshold."),
+    (
+        "or formulation='strong' to silence this",
+        "or --formulation strong to silence this",
+    ),
+    (
+        "or fixed_term=None to search them all",
+        "or leave out --fixed-term to search them all",
+    ),
+)
+
+
+def _one_line(exc, limit: int = 600) -> str:
     text = " ".join(str(exc).split())
-    return text if len(text) <= 600 else text[:597] + "..."
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _cli_wording(text: str) -> str:
+    """``text`` with the library's Python hints in command-line terms."""
+    for python, cli in _CLI_WORDING:
+        text = text.replace(python, cli)
+    return text
 
 
 def main(argv=None) -> int:
@@ -64,7 +95,7 @@ def main(argv=None) -> int:
     quiet = getattr(args, "quiet", False)
 
     def show(message, category, filename, lineno, file=None, line=None):
-        text = _one_line(message)
+        text = _cli_wording(_one_line(message, limit=1000))
         if quiet and any(s in text for s in _INFO_WARNINGS):
             return
         print(f"{prog}: warning: {text}", file=sys.stderr)

@@ -465,11 +465,13 @@ def _held_out_score(est, X, tau, groups, share):
     what it is of (see :func:`_score`), a description of the held-out rows and the
     refit's seconds.
     """
+    from ..formulation.probes import without_probes
+
     mask, where = _held_out_rows(groups, len(X), share)
     train, test = np.flatnonzero(~mask), np.flatnonzero(mask)
     sub = _refit_like(est)
     start = time.perf_counter()
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), without_probes():
         warnings.simplefilter("ignore")
         sub.fit(
             X.iloc[train],

@@ -19,6 +19,7 @@ from sklearn.model_selection import GroupKFold
 from .._torch import to_numpy
 from ..dissipation import DEFAULT_EPS, DissipationLibrary
 from ..formulation.operator import EulerLagrangeOperator
+from ..formulation.probes import without_probes
 from ..formulation.weak import (
     WINDOW_FIRST,
     estimate_noise_covariance,
@@ -433,7 +434,7 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=T
     new.set_params(verbose=0)  # refits are quiet; the result keeps est's verbose
     if not fit:
         return new
-    with warnings.catch_warnings():
+    with warnings.catch_warnings(), without_probes():
         warnings.simplefilter("ignore")
         new.fit(X, tau, groups=groups)
     return new.set_params(verbose=est.verbose)

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from .operator import EulerLagrangeOperator
+from .probes import UnmodelledForceWarning
 from .scaling import BalancedGram, IdentifiabilityWarning
 from .weak import WindowWarning, weak_gram, window_ladder, window_stride
 
@@ -27,6 +28,7 @@ __all__ = [
     "EulerLagrangeOperator",
     "GramStatistics",
     "IdentifiabilityWarning",
+    "UnmodelledForceWarning",
     "WindowWarning",
     "feature_operator",
     "gram_statistics",
@@ -54,6 +56,11 @@ class GramStatistics:
         one and is projected onto the positive semi-definite cone when balanced).
     window : int or None
         Samples per test function of the weak form.
+    probe_gram : Tensor of shape (n_dof, P + n_probes, P + n_probes) or None
+        The Gram statistics with probe forces before the target (see
+        :mod:`~lagsindy.formulation.probes`); ``gram`` is this without them.
+    probe_names : tuple of str
+        The probe forces' names.
     """
 
     gram: torch.Tensor
@@ -62,6 +69,8 @@ class GramStatistics:
     dt: float | None = None
     noise_cov: np.ndarray | None = None
     window: int | None = None
+    probe_gram: torch.Tensor | None = None
+    probe_names: tuple = ()
 
     @property
     def corrected(self) -> bool:

@@ -1,0 +1,240 @@
+"""Probe forces: friction and damping that a fit without a dissipation library misses.
+
+A conservative fit of damped data absorbs the damping into wrong Lagrangian
+coefficients and leaves the rest in its residual, without any sign of it in the
+coefficients themselves (a double pendulum with viscous damping at one joint was
+fitted 35-41 % low, relative residual 0.46). So a fit with measured forces and no
+``dissipation`` adds one viscous and one Coulomb column per coordinate (the *probes*)
+to its Gram statistics, fits the Lagrangian on the other columns only, and then
+refits the kept terms by least squares with and without the probes. When the
+probes explain at least :data:`UNMODELLED_SHARE` of what the model leaves, the fit
+warns (:class:`UnmodelledForceWarning`) and names them.
+
+The probes cost a few columns of the statistics and a few small eigenvalue
+decompositions; the Lagrangian is fitted on the same columns as without them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import dataclasses
+import warnings
+
+import numpy as np
+import torch
+
+from .scaling import NULL_RCOND, BalancedGram, dense_residuals
+from .weak import window_stride
+
+# Kinds of the probe forces (see lagsindy.dissipation.DissipationLibrary).
+PROBE_KINDS = ("viscous", "coulomb")
+
+# Share of the kept terms' least-squares residual that the probes must explain for
+# the fit to warn. Measured on simulations with the weak form (10 trajectories of
+# 5 s; single, double and cart pendulums; noise up to 0.1): right models gave at most
+# 0.40 (single pendulum, noise 0.03-0.1 on every column, residual 4e-4); viscous
+# damping of 0.01-0.3 gave 0.47-1.0 except where noise dominated the residual.
+UNMODELLED_SHARE = 0.5
+
+# The probes must explain at least this share of tau's sum of squares: a missing force
+# under 1 % of tau's RMS is not reported (it also keeps smoothing errors of noisy
+# states out: 86 % of a residual of 1.7e-5 in one measured single pendulum fit).
+EXPLAINED_FLOOR = 1e-4
+
+# Independent equations the check needs per probe beyond the kept terms (3 weak-form
+# windows once let 2 probes fit a 2-term model's residual exactly). m extra columns
+# explain about m / (n - k) of pure noise: a half at this limit, where the share test
+# alone would not separate noise from a force. The count is conservative: weak-form
+# windows overlap and count stride / window each, though a bump's weight sits in
+# about half its window (the tests' 4 trajectories of 300 samples: 44 windows of 81
+# samples per coordinate, 2 coordinates, count 21.7; the kept terms 6 to 11).
+ROWS_PER_PROBE = 2
+
+# The probes named in the warning explain all but this share of what every probe
+# explains.
+NAMED_SHARE = 0.1
+
+
+class UnmodelledForceWarning(UserWarning):
+    """Friction or damping missing from the model explains much of the residual."""
+
+
+_PROBING = contextvars.ContextVar("lagsindy_probe_forces", default=True)
+
+
+@contextlib.contextmanager
+def without_probes():
+    """Fits inside the block add no probe forces.
+
+    For the library's internal refits (delay search, resamples, held-out refits),
+    whose warnings nobody sees: they skip the probes' columns, and refits of the
+    same samples keep reusing each other's weak-form statistics.
+    """
+    token = _PROBING.set(False)
+    try:
+        yield
+    finally:
+        _PROBING.reset(token)
+
+
+def probing() -> bool:
+    """Whether a fit here adds probe forces (see :func:`without_probes`)."""
+    return _PROBING.get()
+
+
+@dataclasses.dataclass(frozen=True)
+class ProbeResult:
+    """What the probe forces explain of a fit's residual.
+
+    Attributes
+    ----------
+    residual : float
+        Relative residual of the kept terms refitted by least squares.
+    probed : float
+        The same with every probe force added.
+    share : float
+        ``(residual - probed) / residual``.
+    named : dict of str to float
+        Only when :attr:`missing`: the probes that explain it, with their
+        coefficients refitted with the kept terms. They are chosen one at a time,
+        each the one that explains most with those before it, until they explain
+        all but :data:`NAMED_SHARE` of what every probe explains.
+    named_residual : float
+        The relative residual with the kept terms and the named probes
+        (``residual`` when none is named).
+    """
+
+    residual: float
+    probed: float
+    share: float
+    named: dict
+    named_residual: float
+
+    @property
+    def missing(self) -> bool:
+        gain = self.residual - self.probed
+        return gain >= EXPLAINED_FLOOR and self.share >= UNMODELLED_SHARE
+
+
+def split_probes(ladder, n_features: int, names) -> list:
+    """The ladder's statistics without the probe columns, the full Gram kept aside.
+
+    ``ladder`` holds functions returning :class:`GramStatistics` whose columns are
+    the ``n_features`` candidates, then one per probe in ``names``, then the target.
+    Each returned function gives statistics of the candidates and target only (what
+    the fit sees), with ``probe_gram`` and ``probe_names`` set.
+    """
+    if not names:
+        return ladder
+
+    def split(build):
+        full = build()
+        keep = list(range(n_features)) + [full.gram.shape[-1] - 1]
+        index = torch.as_tensor(keep, device=full.gram.device)
+        gram = full.gram.index_select(-1, index).index_select(-2, index)
+        return dataclasses.replace(
+            full, gram=gram, probe_gram=full.gram, probe_names=tuple(names)
+        )
+
+    return [lambda build=build: split(build) for build in ladder]
+
+
+def probe_forces(stats, coef, normalize: bool = True) -> ProbeResult | None:
+    """What the probes of ``stats`` explain of the residual of ``coef``'s terms.
+
+    The terms kept by the fit (``coef != 0``) are refitted by least squares on the
+    Gram statistics with the probes (balanced as the fit balances), alone and with
+    every probe; when the probes explain enough to warn, they are named one at a
+    time (see :class:`ProbeResult`). ``None`` when ``stats`` has no probes, the fit
+    kept no term, or the data hold fewer than :data:`ROWS_PER_PROBE` independent
+    equations per probe beyond the kept terms.
+    """
+    if stats.probe_gram is None:
+        return None
+    names = list(stats.probe_names)
+    n_features = len(coef)
+    total = n_features + len(names)
+    balanced = BalancedGram(
+        stats.probe_gram,
+        stats.n_rows,
+        total,
+        normalize=normalize,
+        project_psd=stats.corrected,
+    )
+    usable = balanced.identifiable().cpu().numpy()
+    support = np.flatnonzero(np.asarray(coef) != 0)
+    probes = [k for k in range(n_features, total) if usable[k]]
+    if not probes or not support.size:  # an empty model already warns
+        return None
+    independent = stats.n_rows * stats.gram.shape[0]
+    if stats.formulation == "weak" and stats.window:
+        independent *= window_stride(stats.window) / stats.window
+    if independent - support.size < ROWS_PER_PROBE * len(probes):
+        return None  # too few equations to tell a force from noise
+    every = np.concatenate([support, probes])
+    fits = balanced.problems([(support, total, 1.0), (every, total, 1.0)])[0]
+    base, probed = dense_residuals([datafit for datafit, _ in fits])
+    gain = base - probed
+    share = gain / base if base > 0 else 0.0
+    unnamed = ProbeResult(base, probed, share, {}, base)
+    if not unnamed.missing:
+        return unnamed
+    # forward selection: add the probe that explains most until the named ones
+    # explain all but NAMED_SHARE of what every probe explains
+    named, current = [], base
+    while len(named) < len(probes) and current - probed > NAMED_SHARE * gain:
+        rest = [k for k in probes if k not in named]
+        jobs = [(np.concatenate([support, named, [k]]), total, 1.0) for k in rest]
+        found = dense_residuals([datafit for datafit, _ in balanced.problems(jobs)[0]])
+        best = int(np.argmin(found))
+        named, current = named + [rest[best]], found[best]
+    ((datafit, to_coef),) = balanced.problems(
+        [(np.append(support, named), total, 1.0)]
+    )[0]
+    coefficients = to_coef(_least_squares(datafit)).cpu().numpy()[len(support) :]
+    return ProbeResult(
+        residual=base,
+        probed=probed,
+        share=share,
+        named={names[k - n_features]: float(c) for k, c in zip(named, coefficients)},
+        named_residual=dense_residuals([datafit])[0],
+    )
+
+
+def _least_squares(datafit):
+    """Minimum-norm least-squares solution of a scaled problem (eigenvalues below
+    ``NULL_RCOND`` times the largest treated as zero, as in the dense residual)."""
+    vals, vecs = torch.linalg.eigh(datafit.gram)
+    keep = vals > NULL_RCOND * float(vals[-1].clamp(min=0))
+    proj = vecs[:, keep].T @ datafit.rhs
+    return vecs[:, keep] @ (proj / vals[keep])
+
+
+def warn_unmodelled(result: ProbeResult | None, stacklevel: int = 2) -> bool:
+    """Warn when ``result`` says a missing force explains much of the residual.
+
+    Returns whether it warned.
+    """
+    if result is None or not result.missing:
+        return False
+    which = ", ".join(f"{name} = {c:.3g}" for name, c in result.named.items())
+    negative = any(c < 0 for c in result.named.values())
+    advice = (
+        " A negative coefficient is a force that adds energy: check tau's sign and "
+        "whether tau is recorded late or early against q (lagsindy.estimate_delay)."
+        if negative
+        else ""
+    )
+    warnings.warn(
+        f"friction or damping missing from the model explains {result.share:.0%} of "
+        "what the model leaves unexplained (least-squares relative residual of the "
+        f"kept terms {result.residual:.3g}, {result.named_residual:.3g} with "
+        f"{which}): the Lagrangian's coefficients are likely biased by it. Refit "
+        "with dissipation=DissipationLibrary(['viscous', 'coulomb']), or run "
+        "lagsindy.diagnose, which also tests an input delay and missing terms, to "
+        f"find and add the effect.{advice}",
+        UnmodelledForceWarning,
+        stacklevel=stacklevel + 1,
+    )
+    return True

@@ -1,0 +1,174 @@
+"""Fits with forces and no dissipation library report friction and damping they miss
+(lagsindy.formulation.probes)."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy
+from lagsindy.formulation import UnmodelledForceWarning
+from lagsindy.formulation import probes as probes_module
+from lagsindy.formulation.probes import (
+    EXPLAINED_FLOOR,
+    ProbeResult,
+    warn_unmodelled,
+    without_probes,
+)
+from lagsindy.systems import (
+    cart_pendulum,
+    double_pendulum,
+    make_dataset,
+    single_pendulum,
+)
+
+
+def _data(system):
+    return make_dataset(
+        system, n_trajectories=4, duration=3.0, excitation="sincos", noise=1e-3,
+        protocol="sensor", random_state=0,
+    )  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def damped():
+    system = double_pendulum().with_damping(viscous={"theta1": 0.3})
+    return system, _data(system)
+
+
+def _fit(system, data, library=None, **params):
+    """The fit, its warnings, and the probe result it computed."""
+    seen = []
+    original = probes_module.probe_forces
+
+    def spy(*args, **kwargs):
+        seen.append(original(*args, **kwargs))
+        return seen[-1]
+
+    import lagsindy.estimator as estimator_module
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(estimator_module, "probe_forces", spy)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            est = LagrangianSINDy(library or system.paper_library(), **params).fit(
+                data.X, data.tau, groups=data.groups
+            )
+    return est, caught, seen[-1] if seen else None
+
+
+def _unmodelled(caught):
+    return [str(w.message) for w in caught if w.category is UnmodelledForceWarning]
+
+
+def test_missing_joint_damping_is_reported_with_its_coefficient(damped):
+    """Viscous damping 0.3 at joint 1, fitted without a dissipation library: the
+    conservative fit was 35-41 % low without a word; now the fit names the force."""
+    est, caught, result = _fit(*damped)
+    # measured: the kept terms' least-squares residual 0.134 -> 3.1e-4 with the
+    # probes (share 0.998); viscous(theta1) alone named, refitted at 0.29977
+    assert result.share == pytest.approx(0.998, abs=0.002)
+    assert list(result.named) == ["viscous(theta1)"]
+    assert result.named["viscous(theta1)"] == pytest.approx(0.3, rel=1e-3)
+    (message,) = _unmodelled(caught)
+    assert "viscous(theta1) = 0.3" in message
+    assert "dissipation=DissipationLibrary" in message
+    assert "adds energy" not in message
+    # the general "not a model of these data" warning is not repeated
+    assert not any("sum of squares unexplained" in str(w.message) for w in caught)
+
+
+def test_missing_coulomb_friction_is_named():
+    system = cart_pendulum().with_damping(coulomb={"x": 0.2})
+    est, caught, result = _fit(system, _data(system))
+    # measured: share 0.986, coulomb(x) refitted at 0.1994
+    assert result.share == pytest.approx(0.986, abs=0.005)
+    assert list(result.named) == ["coulomb(x)"]
+    assert result.named["coulomb(x)"] == pytest.approx(0.2, rel=0.01)
+    assert len(_unmodelled(caught)) == 1
+
+
+def test_two_missing_forces_are_both_named():
+    """Probes are named one at a time until they explain what every probe explains:
+    the best one alone (viscous(theta1), residual 0.040) is not enough here."""
+    system = double_pendulum().with_damping(
+        viscous={"theta1": 0.3}, coulomb={"theta2": 0.2}
+    )
+    est, caught, result = _fit(system, _data(system))
+    # measured: residual 0.158 -> 0.00484 with viscous(theta1) = 0.2933 and
+    # coulomb(theta2) = 0.1989 (0.00475 with every probe)
+    assert list(result.named) == ["viscous(theta1)", "coulomb(theta2)"]
+    np.testing.assert_allclose(list(result.named.values()), [0.3, 0.2], rtol=0.03)
+    assert result.named_residual == pytest.approx(0.00484, rel=0.02)
+    (message,) = _unmodelled(caught)
+    assert "viscous(theta1) = 0.293, coulomb(theta2) = 0.199" in message
+
+
+def test_a_conservative_system_is_not_reported():
+    system = double_pendulum()
+    est, caught, result = _fit(system, _data(system))
+    # measured: share 0.0037 (over 58 fits of right models up to noise 0.1: <= 0.40)
+    assert result.share < 0.02
+    assert not _unmodelled(caught)
+
+
+def test_probes_leave_the_fit_unchanged(damped):
+    """The Lagrangian is fitted on the same columns as without probes: the weak
+    form's Gram blocks are the same numbers, so the coefficients are equal."""
+    system, data = damped
+    est, _, result = _fit(system, data)
+    with without_probes():
+        plain, caught, none = _fit(system, data)
+    assert none is None and not _unmodelled(caught)
+    np.testing.assert_array_equal(est.coef_, plain.coef_)
+    assert est.residual_ == plain.residual_
+
+
+def test_a_dissipation_library_turns_the_probes_off(damped):
+    system, data = damped
+    est, caught, result = _fit(system, data, dissipation=DissipationLibrary())
+    assert result is None and not _unmodelled(caught)
+    # with the library the damping is fitted (measured 0.2998)
+    assert est.dissipation_coef_[0] == pytest.approx(0.3, rel=1e-3)
+
+
+def test_passive_fits_have_no_probes(damped):
+    system, data = damped
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        LagrangianSINDy(system.paper_library(), fixed_term="theta1_dot**2").fit(
+            data.X, groups=data.groups
+        )
+    assert not _unmodelled(caught)
+
+
+def test_too_few_equations_are_not_probed():
+    """3 weak-form windows of a pendulum and a 2-term model: two probes fitted its
+    residual exactly (3e-15) and the fit warned of a friction force it cannot see."""
+    data = make_dataset(single_pendulum(), n_trajectories=3, duration=1.0,
+                        random_state=0)  # fmt: skip
+    library = CandidateLibrary.from_terms(["theta"], ["theta_dot**2", "theta**2"])
+    est, caught, result = _fit(single_pendulum(), data, library=library)
+    assert est.formulation_ == "weak" and result is None
+    assert not _unmodelled(caught)
+
+
+def test_the_warning_needs_a_share_and_an_amount():
+    big = ProbeResult(0.1, 0.01, 0.9, {"viscous(q)": 0.5}, 0.01)
+    assert big.missing
+    # half of the residual, but the probes explain less than the floor of tau's
+    # sum of squares (1 % of its RMS): not reported
+    tiny = ProbeResult(1.8 * EXPLAINED_FLOOR, 0.9 * EXPLAINED_FLOOR, 0.5, {}, 0.0)
+    assert not tiny.missing
+    assert ProbeResult(0.1, 0.06, 0.4, {"viscous(q)": 0.5}, 0.06).missing is False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert warn_unmodelled(tiny) is False
+        assert warn_unmodelled(None) is False
+
+
+def test_negative_damping_points_at_sign_and_delay():
+    result = ProbeResult(0.1, 0.01, 0.9, {"viscous(q)": -0.5}, 0.01)
+    with pytest.warns(UnmodelledForceWarning, match="adds energy") as record:
+        assert warn_unmodelled(result) is True
+    assert "estimate_delay" in str(record[0].message)
