@@ -26,6 +26,7 @@ _EXPORTS = {
     "MechanicalModel": "dynamics",
     "SingularMassMatrixError": "dynamics",
     "Refinement": "refine",
+    "UnmodelledForceWarning": "formulation",
     "WindowWarning": "formulation",
     "bootstrap": "uncertainty",
     "derivatives": "differentiation",

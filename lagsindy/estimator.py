@@ -29,6 +29,7 @@ from .cases import Problem, SparseSolve, solve_case
 from .formulation import feature_operator, gram_statistics
 from .formulation.probes import (
     PROBE_KINDS,
+    PROBED_CASES,
     probe_forces,
     probing,
     split_probes,
@@ -377,8 +378,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         stats, solution = _fit_windows(
             self, Xa, Xt, tau, tau_t, library, diss, groups, case
         )
-        fitted = _fitted_state(self, library, diss, case, stats, solution, y, tau)
-        fitted.mass_check = fitted.checked_mass(Xt, stacklevel=3)
+        fitted = _fitted_state(self, library, diss, case, stats, solution, y, tau, Xt)
         self._publish(fitted)
         return self
 
@@ -703,7 +703,7 @@ def _statistics(est, Xt, tau_t, library, diss, groups, case):
     :mod:`lagsindy.formulation.probes`)."""
     n_features = len(library.terms_) + len(diss[0])
     probes = []
-    if case == "forces" and est.dissipation is None and probing():
+    if case in PROBED_CASES and est.dissipation is None and probing():
         from .dissipation import DissipationLibrary
 
         probes = _build_dissipation(DissipationLibrary(PROBE_KINDS), library)[0]
@@ -725,7 +725,8 @@ def _statistics(est, Xt, tau_t, library, diss, groups, case):
         dt=est.dt,
         noise_cov=est.noise_cov,
     )
-    return split_probes(ladder, n_features, [t.name for t in probes])
+    names = [t.name for t in probes]
+    return split_probes(ladder, n_features, names, int(tau_t is not None))
 
 
 def _solve(case, problem):
@@ -807,7 +808,7 @@ def _problem(est, stats, library, diss, Xa, Xt, tau) -> Problem:
 
 
 def _fitted_state(
-    est, library, diss, case, stats, solution, y, tau
+    est, library, diss, case, stats, solution, y, tau, Xt
 ) -> FittedLagrangian:
     """The fitted state from a case's solution, with the fit's checks and warnings."""
     n_terms, coef, result = len(library.terms_), solution.coef, solution.result
@@ -843,7 +844,12 @@ def _fitted_state(
         residual=result.cost,
         tau_1d=tau is not None and np.asarray(y).ndim == 1,
     )
-    if not warn_unmodelled(probe_forces(stats, coef, est.normalize), stacklevel=4):
+    fitted.mass_check = fitted.checked_mass(Xt, stacklevel=4)
+    probed = probe_forces(
+        stats, coef, est.normalize, fixed if case == "fixed" else None
+    )
+    sign = -1.0 if fitted.mass_check.negative > 0.5 else 1.0
+    if not warn_unmodelled(probed, sign, stacklevel=4):
         fitted.warn_unexplained(stacklevel=4)
     return fitted
 

@@ -787,8 +787,11 @@ def test_diagnose_command_finds_damping(tmp_path, capsys):
         )
         == 0
     )
-    # the undamped model's coefficients move with the window (0.2 damping is missing)
-    assert "run lagsindy.diagnose" in capsys.readouterr().err
+    # the undamped model's coefficients move with the window (0.2 damping is
+    # missing), and the probes name the damping; both point at the command
+    err = capsys.readouterr().err
+    assert "run `lagsindy diagnose`" in err and "lagsindy.diagnose" not in err
+    assert "viscous(theta) = 0.2" in err
     assert main(["diagnose", str(csv), "--model", str(first), "--passive"]) == 2
     err = capsys.readouterr().err
     assert "error:" in err and len(err.strip().splitlines()) == 1

@@ -1,6 +1,7 @@
 """Fits with forces and no dissipation library report friction and damping they miss
 (lagsindy.formulation.probes)."""
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -11,6 +12,7 @@ from lagsindy.formulation import UnmodelledForceWarning
 from lagsindy.formulation import probes as probes_module
 from lagsindy.formulation.probes import (
     EXPLAINED_FLOOR,
+    RESIDUAL_FLOOR,
     ProbeResult,
     warn_unmodelled,
     without_probes,
@@ -132,13 +134,53 @@ def test_a_dissipation_library_turns_the_probes_off(damped):
     assert est.dissipation_coef_[0] == pytest.approx(0.3, rel=1e-3)
 
 
-def test_passive_fits_have_no_probes(damped):
-    system, data = damped
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        LagrangianSINDy(system.paper_library(), fixed_term="theta1_dot**2").fit(
-            data.X, groups=data.groups
-        )
+def _passive(system, seed=0):
+    return make_dataset(
+        system, n_trajectories=4, duration=3.0, excitation=None, noise=1e-3,
+        protocol="sensor", random_state=seed,
+    )  # fmt: skip
+
+
+def _fit_passive(system, data):
+    seen = []
+    original = probes_module.probe_forces
+
+    def spy(*args, **kwargs):
+        seen.append(original(*args, **kwargs))
+        return seen[-1]
+
+    import lagsindy.estimator as estimator_module
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(estimator_module, "probe_forces", spy)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            est = LagrangianSINDy(system.paper_library()).fit(
+                data.X, groups=data.groups
+            )
+    return est, caught, seen[-1] if seen else None
+
+
+def test_passive_damping_is_reported_in_the_fits_scale():
+    """Case III: the fixed term's column is the target, and the coefficient is in
+    the scale where it is 1 (theta_dot**2 = 1 is twice the physical 0.5)."""
+    system = single_pendulum().with_damping(viscous={"theta": 0.05})
+    est, caught, result = _fit_passive(system, _passive(system))
+    assert est.case_ == "fixed" and result.passive
+    # measured: share 0.9929; viscous(theta) = 0.1002 in the scale theta_dot**2 = 1
+    assert result.share == pytest.approx(0.993, abs=0.003)
+    assert est.coef_table().set_index("term")["coefficient"]["theta_dot**2"] == 1.0
+    assert result.named == pytest.approx({"viscous(theta)": 0.1}, rel=0.02)
+    (message,) = _unmodelled(caught)
+    assert "relative to the fixed term's column" in message
+    assert "does not lose energy" in message and "tau" not in message
+
+
+def test_a_conservative_passive_system_is_not_reported():
+    system = double_pendulum()
+    est, caught, result = _fit_passive(system, _passive(system))
+    # measured: share 0.0099 (right passive models up to noise 0.1: <= 0.37)
+    assert result.share < 0.02
     assert not _unmodelled(caught)
 
 
@@ -154,17 +196,32 @@ def test_too_few_equations_are_not_probed():
 
 
 def test_the_warning_needs_a_share_and_an_amount():
-    big = ProbeResult(0.1, 0.01, 0.9, {"viscous(q)": 0.5}, 0.01)
-    assert big.missing
-    # half of the residual, but the probes explain less than the floor of tau's
-    # sum of squares (1 % of its RMS): not reported
-    tiny = ProbeResult(1.8 * EXPLAINED_FLOOR, 0.9 * EXPLAINED_FLOOR, 0.5, {}, 0.0)
-    assert not tiny.missing
-    assert ProbeResult(0.1, 0.06, 0.4, {"viscous(q)": 0.5}, 0.06).missing is False
+    big = ProbeResult(0.1, 0.01, 0.9, {"viscous(q)": -0.5}, 0.01)
+    assert big.reported() and big.reported(-1.0)  # above the floor: any sign
+    assert not ProbeResult(0.1, 0.06, 0.4, {"viscous(q)": 0.5}, 0.06).missing
+    # below EXPLAINED_FLOOR: only dissipative forces (against the kinetic sign)
+    small = ProbeResult(1.8 * EXPLAINED_FLOOR, 0.9 * EXPLAINED_FLOOR, 0.5, {}, 0.0)
+    assert small.missing and not small.reported()
+    damping = dataclasses.replace(small, named={"viscous(q)": 0.1, "coulomb(q)": 0.2})
+    assert damping.reported() and not damping.reported(-1.0)
+    mixed = dataclasses.replace(small, named={"viscous(q)": -0.1, "coulomb(q)": 0.2})
+    assert not mixed.reported()
+    rounding = ProbeResult(
+        1.8 * RESIDUAL_FLOOR, 0.9 * RESIDUAL_FLOOR, 0.5, {"viscous(q)": 0.1}, 0.0
+    )
+    assert not rounding.missing
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert warn_unmodelled(tiny) is False
+        assert warn_unmodelled(mixed) is False
+        assert warn_unmodelled(rounding) is False
         assert warn_unmodelled(None) is False
+
+
+def test_the_warning_class_is_public():
+    import lagsindy
+
+    assert lagsindy.UnmodelledForceWarning is UnmodelledForceWarning
+    assert issubclass(UnmodelledForceWarning, UserWarning)
 
 
 def test_negative_damping_points_at_sign_and_delay():

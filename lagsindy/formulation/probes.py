@@ -2,13 +2,16 @@
 
 A conservative fit of damped data absorbs the damping into wrong Lagrangian
 coefficients and leaves the rest in its residual, without any sign of it in the
-coefficients themselves (a double pendulum with viscous damping at one joint was
-fitted 35-41 % low, relative residual 0.46). So a fit with measured forces and no
-``dissipation`` adds one viscous and one Coulomb column per coordinate (the *probes*)
-to its Gram statistics, fits the Lagrangian on the other columns only, and then
-refits the kept terms by least squares with and without the probes. When the
-probes explain at least :data:`UNMODELLED_SHARE` of what the model leaves, the fit
-warns (:class:`UnmodelledForceWarning`) and names them.
+coefficients themselves (a forced double pendulum with viscous damping at one joint
+was fitted 35-41 % low, relative residual 0.46); a passive model without it does not
+lose energy as the recording does. So a fit with no ``dissipation``, with measured
+forces (case I) or passive with a fixed scale (case III), adds one viscous and one
+Coulomb column per coordinate (the *probes*) to its Gram statistics, fits the
+Lagrangian on the other columns only, and then refits the kept terms by least
+squares with and without the probes (against tau, or in case III against the fixed
+term's column). When the probes explain at least :data:`UNMODELLED_SHARE` of what
+the model leaves, and enough of it (:meth:`ProbeResult.reported`), the fit warns
+(:class:`UnmodelledForceWarning`) and names them.
 
 The probes cost a few columns of the statistics and a few small eigenvalue
 decompositions; the Lagrangian is fitted on the same columns as without them.
@@ -30,6 +33,9 @@ from .weak import window_stride
 # Kinds of the probe forces (see lagsindy.dissipation.DissipationLibrary).
 PROBE_KINDS = ("viscous", "coulomb")
 
+# Cases whose fits are probed: with forces (I) and passive with a fixed scale (III).
+PROBED_CASES = ("forces", "fixed")
+
 # Share of the kept terms' least-squares residual that the probes must explain for
 # the fit to warn. Measured on simulations with the weak form (10 trajectories of
 # 5 s; single, double and cart pendulums; noise up to 0.1): right models gave at most
@@ -37,9 +43,15 @@ PROBE_KINDS = ("viscous", "coulomb")
 # damping of 0.01-0.3 gave 0.47-1.0 except where noise dominated the residual.
 UNMODELLED_SHARE = 0.5
 
-# The probes must explain at least this share of tau's sum of squares: a missing force
-# under 1 % of tau's RMS is not reported (it also keeps smoothing errors of noisy
-# states out: 86 % of a residual of 1.7e-5 in one measured single pendulum fit).
+# What the probes explain (a share of tau's sum of squares, or of the fixed term's
+# column's in case III): below RESIDUAL_FLOOR it is rounding; from EXPLAINED_FLOOR
+# (a force of 1 % of tau's RMS) it is reported whatever the coefficients' signs;
+# in between only when every named force is dissipative (positive against a positive
+# kinetic energy). Small damping matters: the measured single pendulum's explains
+# 5.8e-5 (viscous 0.112; diagnose then cuts its rollout error three-fold), while
+# noise 0.02 on q, q_dot and q_ddot drew fits of 1.4e-5 to 2.2e-5 from pairs of
+# opposite signs (viscous -0.003 with Coulomb 0.005) or a negative Coulomb force.
+RESIDUAL_FLOOR = 1e-7
 EXPLAINED_FLOOR = 1e-4
 
 # Independent equations the check needs per probe beyond the kept terms (3 weak-form
@@ -103,6 +115,9 @@ class ProbeResult:
     named_residual : float
         The relative residual with the kept terms and the named probes
         (``residual`` when none is named).
+    passive : bool
+        Case III: the residuals are relative to the fixed term's column, and the
+        coefficients in the scale where its coefficient is 1.
     """
 
     residual: float
@@ -110,18 +125,32 @@ class ProbeResult:
     share: float
     named: dict
     named_residual: float
+    passive: bool = False
 
     @property
     def missing(self) -> bool:
+        """The probes explain enough to be named (see :meth:`reported`)."""
         gain = self.residual - self.probed
-        return gain >= EXPLAINED_FLOOR and self.share >= UNMODELLED_SHARE
+        return gain >= RESIDUAL_FLOOR and self.share >= UNMODELLED_SHARE
+
+    def reported(self, kinetic_sign: float = 1.0) -> bool:
+        """Whether the fit warns: :attr:`missing`, and either the probes explain at
+        least :data:`EXPLAINED_FLOOR` or every named force is dissipative (its
+        coefficient has the sign ``kinetic_sign`` of the model's kinetic energy)."""
+        if not self.missing:
+            return False
+        if self.residual - self.probed >= EXPLAINED_FLOOR:
+            return True
+        signs = [kinetic_sign * c > 0 for c in self.named.values()]
+        return bool(signs) and all(signs)
 
 
-def split_probes(ladder, n_features: int, names) -> list:
+def split_probes(ladder, n_features: int, names, n_targets: int = 1) -> list:
     """The ladder's statistics without the probe columns, the full Gram kept aside.
 
     ``ladder`` holds functions returning :class:`GramStatistics` whose columns are
-    the ``n_features`` candidates, then one per probe in ``names``, then the target.
+    the ``n_features`` candidates, then one per probe in ``names``, then
+    ``n_targets`` targets (tau; none in case III).
     Each returned function gives statistics of the candidates and target only (what
     the fit sees), with ``probe_gram`` and ``probe_names`` set.
     """
@@ -130,7 +159,8 @@ def split_probes(ladder, n_features: int, names) -> list:
 
     def split(build):
         full = build()
-        keep = list(range(n_features)) + [full.gram.shape[-1] - 1]
+        width = full.gram.shape[-1]
+        keep = list(range(n_features)) + list(range(width - n_targets, width))
         index = torch.as_tensor(keep, device=full.gram.device)
         gram = full.gram.index_select(-1, index).index_select(-2, index)
         return dataclasses.replace(
@@ -140,8 +170,11 @@ def split_probes(ladder, n_features: int, names) -> list:
     return [lambda build=build: split(build) for build in ladder]
 
 
-def probe_forces(stats, coef, normalize: bool = True) -> ProbeResult | None:
+def probe_forces(stats, coef, normalize: bool = True, fixed=None) -> ProbeResult | None:
     """What the probes of ``stats`` explain of the residual of ``coef``'s terms.
+
+    With ``fixed`` (case III: the index of the term whose coefficient is 1), that
+    term's column is the target; otherwise tau, after the probes.
 
     The terms kept by the fit (``coef != 0``) are refitted by least squares on the
     Gram statistics with the probes (balanced as the fit balances), alone and with
@@ -164,6 +197,8 @@ def probe_forces(stats, coef, normalize: bool = True) -> ProbeResult | None:
     )
     usable = balanced.identifiable().cpu().numpy()
     support = np.flatnonzero(np.asarray(coef) != 0)
+    target, sign = (total, 1.0) if fixed is None else (int(fixed), -1.0)
+    support = support[support != target]
     probes = [k for k in range(n_features, total) if usable[k]]
     if not probes or not support.size:  # an empty model already warns
         return None
@@ -173,11 +208,12 @@ def probe_forces(stats, coef, normalize: bool = True) -> ProbeResult | None:
     if independent - support.size < ROWS_PER_PROBE * len(probes):
         return None  # too few equations to tell a force from noise
     every = np.concatenate([support, probes])
-    fits = balanced.problems([(support, total, 1.0), (every, total, 1.0)])[0]
+    fits = balanced.problems([(support, target, sign), (every, target, sign)])[0]
     base, probed = dense_residuals([datafit for datafit, _ in fits])
     gain = base - probed
     share = gain / base if base > 0 else 0.0
-    unnamed = ProbeResult(base, probed, share, {}, base)
+    passive = fixed is not None
+    unnamed = ProbeResult(base, probed, share, {}, base, passive)
     if not unnamed.missing:
         return unnamed
     # forward selection: add the probe that explains most until the named ones
@@ -185,12 +221,12 @@ def probe_forces(stats, coef, normalize: bool = True) -> ProbeResult | None:
     named, current = [], base
     while len(named) < len(probes) and current - probed > NAMED_SHARE * gain:
         rest = [k for k in probes if k not in named]
-        jobs = [(np.concatenate([support, named, [k]]), total, 1.0) for k in rest]
+        jobs = [(np.concatenate([support, named, [k]]), target, sign) for k in rest]
         found = dense_residuals([datafit for datafit, _ in balanced.problems(jobs)[0]])
         best = int(np.argmin(found))
         named, current = named + [rest[best]], found[best]
     ((datafit, to_coef),) = balanced.problems(
-        [(np.append(support, named), total, 1.0)]
+        [(np.append(support, named), target, sign)]
     )[0]
     coefficients = to_coef(_least_squares(datafit)).cpu().numpy()[len(support) :]
     return ProbeResult(
@@ -199,6 +235,7 @@ def probe_forces(stats, coef, normalize: bool = True) -> ProbeResult | None:
         share=share,
         named={names[k - n_features]: float(c) for k, c in zip(named, coefficients)},
         named_residual=dense_residuals([datafit])[0],
+        passive=passive,
     )
 
 
@@ -211,29 +248,45 @@ def _least_squares(datafit):
     return vecs[:, keep] @ (proj / vals[keep])
 
 
-def warn_unmodelled(result: ProbeResult | None, stacklevel: int = 2) -> bool:
-    """Warn when ``result`` says a missing force explains much of the residual.
-
-    Returns whether it warned.
+def warn_unmodelled(
+    result: ProbeResult | None, kinetic_sign: float = 1.0, stacklevel: int = 2
+) -> bool:
+    """Warn when ``result`` says a missing force explains much of the residual
+    (:meth:`ProbeResult.reported`). Returns whether it warned.
     """
-    if result is None or not result.missing:
+    if result is None or not result.reported(kinetic_sign):
         return False
     which = ", ".join(f"{name} = {c:.3g}" for name, c in result.named.items())
-    negative = any(c < 0 for c in result.named.values())
-    advice = (
-        " A negative coefficient is a force that adds energy: check tau's sign and "
-        "whether tau is recorded late or early against q (lagsindy.estimate_delay)."
-        if negative
-        else ""
-    )
+    if result.passive:
+        measure = (
+            "least-squares residual of the kept terms relative to the fixed term's "
+            "column"
+        )
+        scale = " in the fit's scale"
+        harm = (
+            "the model does not lose energy as the recording does, and its "
+            "coefficients may be biased by it"
+        )
+        tests, advice = "missing terms", ""
+    else:
+        measure, scale = "relative least-squares residual of the kept terms", ""
+        harm = "the Lagrangian's coefficients are likely biased by it"
+        tests = "an input delay and missing terms"
+        negative = any(kinetic_sign * c < 0 for c in result.named.values())
+        advice = (
+            " A negative coefficient is a force that adds energy: check tau's sign "
+            "and whether tau is recorded late or early against q "
+            "(lagsindy.estimate_delay)."
+            if negative
+            else ""
+        )
     warnings.warn(
         f"friction or damping missing from the model explains {result.share:.0%} of "
-        "what the model leaves unexplained (least-squares relative residual of the "
-        f"kept terms {result.residual:.3g}, {result.named_residual:.3g} with "
-        f"{which}): the Lagrangian's coefficients are likely biased by it. Refit "
-        "with dissipation=DissipationLibrary(['viscous', 'coulomb']), or run "
-        "lagsindy.diagnose, which also tests an input delay and missing terms, to "
-        f"find and add the effect.{advice}",
+        f"what the model leaves unexplained ({measure}: {result.residual:.3g}, and "
+        f"{result.named_residual:.3g} with {which}{scale}): {harm}. Refit with "
+        "dissipation=DissipationLibrary(['viscous', 'coulomb']), or run "
+        f"lagsindy.diagnose, which also tests {tests}, to find and add the "
+        f"effect.{advice}",
         UnmodelledForceWarning,
         stacklevel=stacklevel + 1,
     )
