@@ -78,7 +78,8 @@ def _add_derivative_options(p):
         "--dt",
         type=float,
         default=None,
-        help="sampling interval in seconds when the CSV has no 't' column",
+        help="sampling interval in seconds when the CSV has no 't' column (default: "
+        "none; without 't' and --dt the command stops and asks for one)",
     )
 
 
@@ -100,7 +101,8 @@ def _add_fit_options(p, *, required):
         "--coordinates",
         required=required,
         default=None,
-        help="position columns, e.g. x,theta",
+        help="position columns, e.g. x,theta"
+        + ("" if required else " (default: the model's, with --model)"),
     )
     p.add_argument(
         "--angles",
@@ -110,7 +112,8 @@ def _add_fit_options(p, *, required):
     p.add_argument(
         "--input",
         default=None,
-        help="generalized-force columns, one per coordinate, e.g. tau_x,tau_theta",
+        help="generalized-force columns, one per coordinate, e.g. tau_x,tau_theta "
+        "(default: tau_<coordinate> when the CSV has all of them, else passive data)",
     )
     p.add_argument(
         "--passive", action="store_true", help="ignore input columns (case III)"
@@ -168,10 +171,16 @@ def _add_fit_options(p, *, required):
         help="relative hard threshold between stages (default 0.05)",
     )
     p.add_argument(
-        "--seed", type=int, default=0, help="random seed (case III search, case II)"
+        "--seed",
+        type=int,
+        default=0,
+        help="random seed (case III search, case II) (default 0)",
     )
     p.add_argument(
-        "--precision", type=int, default=4, help="digits in the printed Lagrangian"
+        "--precision",
+        type=int,
+        default=4,
+        help="digits in the printed Lagrangian (default 4)",
     )
     p.add_argument(
         "--formulation",
@@ -201,7 +210,7 @@ def _add_fit_options(p, *, required):
         "are shifted by it (linear interpolation per trajectory; the first SECONDS "
         "of each trajectory hold the first input). 'auto': estimate it by held-out "
         "fits over whole-sample shifts (lagsindy.delay.estimate_delay; slow: about "
-        "40 fits)",
+        "40 fits) (default: none, the inputs act when recorded)",
     )
 
 
@@ -329,7 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--x0",
         action="append",
         default=None,
-        help="with --model: initial state q...,q_dot... (repeat for more)",
+        help="with --model, and then required: initial state q...,q_dot... (repeat "
+        "for more)",
     )
     sim.add_argument(
         "--seed",
@@ -394,7 +404,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SAMPLES",
         help="then refine the kept coefficients by the error of rollouts of SAMPLES "
         "samples from the measured states (lagsindy.refine; the saved model is the "
-        "refined one, the held-out score is the sparse fit's)",
+        "refined one, the held-out score is the sparse fit's) (default: no "
+        "refinement)",
     )
     _add_derivative_options(fit)
     fit.add_argument(
@@ -417,7 +428,12 @@ def build_parser() -> argparse.ArgumentParser:
         "report; --plot saves the residual figure.",
     )
     diag.add_argument("data", help="CSV file")
-    diag.add_argument("--model", default=None, help="a saved model (JSON) to diagnose")
+    diag.add_argument(
+        "--model",
+        default=None,
+        help="a saved model (JSON) to diagnose (default: fit the CSV first, with the "
+        "options below)",
+    )
     _add_fit_options(diag, required=False)
     diag.add_argument(
         "--min-explained",
@@ -448,10 +464,16 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="bootstrap the final model with N resamples of whole trajectories (time "
         "blocks with fewer than 10) and print each term's and effect's interval "
-        "(resamples seeded by --seed)",
+        "(resamples seeded by --seed) (default: no bootstrap)",
     )
-    diag.add_argument("--plot", default=None, help="save the residual figure (PNG)")
-    diag.add_argument("--out-model", default=None, help="save the final model (JSON)")
+    diag.add_argument(
+        "--plot", default=None, help="save the residual figure (PNG) (default: none)"
+    )
+    diag.add_argument(
+        "--out-model",
+        default=None,
+        help="save the final model (JSON) (default: not saved)",
+    )
     _add_derivative_options(diag)
     diag.add_argument(
         "--quiet",
