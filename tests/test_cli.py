@@ -492,6 +492,9 @@ def _bad_files(d):
     text.loc[3, "x"] = "oops"
     text.to_csv(d / "text.csv", index=False)
     (d / "empty.csv").write_text("")
+    lines = (d / "data.csv").read_text().splitlines()
+    lines[5] = ",".join(lines[5].split(",")[:3])  # data row 4 cut after 3 fields
+    (d / "short.csv").write_text("\n".join(lines) + "\n")
     (d / "header.csv").write_text("t,x\n")
     df[["x", "theta"]].to_csv(d / "no_t.csv", index=False)
     (d / "bad.json").write_text('{"format": "lagsindy-model"')
@@ -510,6 +513,10 @@ BAD = [
         "no column 'phi'",
     ),
     (["fit", "{d}/nan.csv", "--coordinates", "x,theta", "--out", "{d}/o.json"], "NaN"),
+    (
+        ["fit", "{d}/short.csv", "--coordinates", "x,theta", "--out", "{d}/o.json"],
+        r"on line 6 \(line 6 holds 3 of the header's \d+ fields: a row cut short\?\)",
+    ),
     (
         ["fit", "{d}/text.csv", "--coordinates", "x,theta", "--out", "{d}/o.json"],
         "not numeric",

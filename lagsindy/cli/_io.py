@@ -97,11 +97,28 @@ def _numeric(df, columns, source):
         finite = np.isfinite(out[:, j])
         if not finite.all():
             row = int(np.flatnonzero(~finite)[0])
+            fields = _short_row(df, row)
+            short = (
+                f" ({_line(row)} holds {fields} of the header's {df.shape[1]} fields: "
+                "a row cut short?)"
+                if fields is not None
+                else ""
+            )
             raise CLIError(
                 f"column {c!r} of {source} has {int((~finite).sum())} NaN or infinite "
-                f"value(s), the first on {_line(row)}; drop or fill those rows"
+                f"value(s), the first on {_line(row)}{short}; drop or fill those rows"
             )
     return out
+
+
+def _short_row(df, row):
+    """The fields of data row ``row`` when it ends early (every column from some
+    point on is empty while the header has more), else None."""
+    empty = df.iloc[row].isna().to_numpy()
+    if not empty[-1]:
+        return None
+    fields = int(np.flatnonzero(~empty)[-1]) + 1 if (~empty).any() else 0
+    return fields if fields < df.shape[1] else None
 
 
 def _is_float(v):
