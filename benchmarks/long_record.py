@@ -1,12 +1,11 @@
 """One long record at 1 kHz: the default (weak) fit's time and peak memory.
 
-A single forced cart-pendulum trajectory sampled at 1 kHz (sensor noise 1e-4 on the
-positions, exact derivatives of the noisy record are not used: the simulator's
-noisy states), paper library, estimator defaults. Each size runs in a fresh process
-(``run_in``), so its peak resident set size (``ru_maxrss``) is its own: data,
-imports and the fit. ``--baseline PATH`` times another checkout on the sizes up to
-``--baseline-max`` samples (older code built one dense band per segment, whose
-memory grows with the square of its length).
+A single forced cart-pendulum trajectory sampled at 1 kHz (the simulator's states
+with sensor noise 1e-4), paper library, estimator defaults. Each size runs in a
+fresh process (``run_in``), so its peak resident set size (``ru_maxrss``) is its
+own: data, imports and the fit. ``--baseline PATH`` times another checkout on the
+sizes up to ``--baseline-max`` samples (older code built one dense band per
+segment, whose memory grows with the square of its length).
 
     python -m benchmarks.long_record
     python -m benchmarks.long_record --baseline /tmp/before --baseline-max 50000
@@ -16,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import sys
 import time
@@ -24,6 +24,7 @@ from . import _common
 
 SIZES = (20_000, 50_000, 100_000, 200_000)
 QUICK_SIZES = (5_000, 20_000)
+TINY_SIZES = (2_000,)  # LAGSINDY_BENCH_TINY=1: the tests
 
 
 def measure(spec):
@@ -84,6 +85,8 @@ def main(argv=None):
         print(json.dumps(measure(json.loads(args._measure))))
         return 0
     sizes = QUICK_SIZES if args.quick else SIZES
+    if os.environ.get("LAGSINDY_BENCH_TINY", "") not in ("", "0"):
+        sizes = TINY_SIZES
     codes = [("this", None)]
     if args.baseline:
         codes.append(("baseline", args.baseline))
@@ -105,7 +108,8 @@ def main(argv=None):
         "torch, the simulation and the fit; 'RSS before' is the peak before the fit."
         + (f" 'baseline' imports lagsindy from `{args.baseline}`." if codes[1:] else "")
         + "\n\n| samples | code | fit wall | fit CPU | RSS before | peak RSS | "
-        "coefficient error | window | warnings |\n|---|---|---|---|---|---|---|---|---|\n"
+        "coefficient error | window | warnings |\n"
+        "|---|---|---|---|---|---|---|---|---|\n"
     )
     for label, r in rows:
         if "error" in r:

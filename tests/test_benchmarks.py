@@ -35,6 +35,16 @@ def _check_header(text):
     assert "- machine: " in text and "torch threads" in text
 
 
+def test_long_record_tiny(tiny_results):
+    from benchmarks import long_record
+
+    assert long_record.main(["--quick"]) == 0
+    text = (tiny_results / "long_record_quick.md").read_text()
+    _check_header(text)
+    row = next(line for line in text.splitlines() if line.startswith("| 2000 |"))
+    assert "| this |" in row and "MiB" in row and "error:" not in row
+
+
 def test_runner_discovers_every_public_main():
     found = runner.discover()
     assert {"paper_tables", "sindy_pi", "speed"} <= set(found)
