@@ -732,6 +732,7 @@ def _statistics(est, Xt, tau_t, library, diss, groups, case):
 def _solve(case, problem):
     """Run the case; warn when the data leave combinations of terms undetermined."""
     solution = solve_case(case, problem)
+    solution.row_scale = problem.balanced.row_scale
     if case != "acceleration":
         free = np.flatnonzero(problem.identifiable)
         allowed = 1 if case == "fixed" else 0
@@ -846,7 +847,11 @@ def _fitted_state(
     )
     fitted.mass_check = fitted.checked_mass(Xt, stacklevel=4)
     probed = probe_forces(
-        stats, coef, est.normalize, fixed if case == "fixed" else None
+        stats,
+        coef,
+        est.normalize,
+        fixed if case == "fixed" else None,
+        solution.row_scale,
     )
     sign = -1.0 if fitted.mass_check.negative > 0.5 else 1.0
     if not warn_unmodelled(probed, sign, stacklevel=4):

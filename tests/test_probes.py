@@ -217,6 +217,42 @@ def test_the_warning_needs_a_share_and_an_amount():
         assert warn_unmodelled(None) is False
 
 
+def test_probes_weight_the_equations_as_the_fit_did(damped):
+    """The check reuses the fit's row scales instead of balancing again (the
+    balance iterations were 1 of its 1.6 ms)."""
+    import torch
+
+    from lagsindy.formulation.scaling import BalancedGram
+
+    gram = torch.tensor(np.diag([1.0, 4.0, 9.0])).repeat(2, 1, 1)
+    gram[1] *= 100.0
+    fresh = BalancedGram(gram, 10, 2)
+    given = BalancedGram(gram, 10, 2, row_scale=fresh.row_scale)
+    torch.testing.assert_close(given.gram, fresh.gram, rtol=0, atol=0)
+    other = BalancedGram(gram, 10, 2, row_scale=torch.ones(2, dtype=gram.dtype))
+    assert not torch.allclose(other.gram, fresh.gram)
+
+    seen = []
+    original = probes_module.probe_forces
+
+    def spy(stats, coef, normalize=True, fixed=None, row_scale=None):
+        seen.append(row_scale)
+        return original(stats, coef, normalize, fixed, row_scale)
+
+    import lagsindy.estimator as estimator_module
+
+    system, data = damped
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(estimator_module, "probe_forces", spy)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            LagrangianSINDy(system.paper_library()).fit(
+                data.X, data.tau, groups=data.groups
+            )
+    (rows,) = seen
+    assert rows is not None and rows.shape == (2,) and bool((rows > 0).all())
+
+
 def test_the_warning_class_is_public():
     import lagsindy
 

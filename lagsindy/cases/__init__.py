@@ -92,13 +92,15 @@ class Solution:
     """Coefficients over all features, the staged result, and how the scale was set.
 
     ``fixed`` is the index of the term whose coefficient is 1 in the returned scale
-    (case III), ``normalization`` ``"term"`` or ``"mass"`` (case III) or ``None``.
+    (case III), ``normalization`` ``"term"`` or ``"mass"`` (case III) or ``None``;
+    ``row_scale`` the balanced problem's row scales (set by the estimator).
     """
 
     coef: np.ndarray
     result: object
     fixed: int | None = None
     normalization: str | None = None
+    row_scale: object = None
 
 
 def _cases():

@@ -170,11 +170,15 @@ def split_probes(ladder, n_features: int, names, n_targets: int = 1) -> list:
     return [lambda build=build: split(build) for build in ladder]
 
 
-def probe_forces(stats, coef, normalize: bool = True, fixed=None) -> ProbeResult | None:
+def probe_forces(
+    stats, coef, normalize: bool = True, fixed=None, row_scale=None
+) -> ProbeResult | None:
     """What the probes of ``stats`` explain of the residual of ``coef``'s terms.
 
     With ``fixed`` (case III: the index of the term whose coefficient is 1), that
-    term's column is the target; otherwise tau, after the probes.
+    term's column is the target; otherwise tau, after the probes. ``row_scale``:
+    the fit's row scales (the coordinates' equations weighted as the fit weighted
+    them; without it they are balanced again, with the probes).
 
     The terms kept by the fit (``coef != 0``) are refitted by least squares on the
     Gram statistics with the probes (balanced as the fit balances), alone and with
@@ -194,6 +198,7 @@ def probe_forces(stats, coef, normalize: bool = True, fixed=None) -> ProbeResult
         total,
         normalize=normalize,
         project_psd=stats.corrected,
+        row_scale=row_scale,
     )
     usable = balanced.identifiable().cpu().numpy()
     support = np.flatnonzero(np.asarray(coef) != 0)

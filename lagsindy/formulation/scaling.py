@@ -74,6 +74,9 @@ class BalancedGram:
     project_psd : bool, default=False
         Replace the combined Gram matrix by its nearest positive semi-definite
         matrix (after a noise correction has been subtracted).
+    row_scale : Tensor of shape (n_dof,), default=None
+        Row scales to use instead of balancing (with ``normalize``): those of
+        another fit of the same rows.
     """
 
     def __init__(
@@ -83,13 +86,16 @@ class BalancedGram:
         n_features: int,
         normalize: bool = True,
         project_psd: bool = False,
+        row_scale=None,
     ):
         self.n_features = int(n_features)
         n_dof = gram.shape[0]
         mean_sq = torch.diagonal(gram, dim1=1, dim2=2)[:, : self.n_features] / n_samples
         mean_sq = torch.clamp(mean_sq, min=0)
         rows = torch.ones(n_dof, dtype=gram.dtype, device=gram.device)
-        if normalize and self.n_features:
+        if normalize and row_scale is not None:
+            rows = row_scale
+        elif normalize and self.n_features:
             rows = torch.as_tensor(
                 _balance_rows(to_numpy(mean_sq)), dtype=gram.dtype, device=gram.device
             )
