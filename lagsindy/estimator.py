@@ -698,8 +698,8 @@ def _tensors(Xa, tau, device, dtype):
 
 
 def _statistics(est, Xt, tau_t, library, diss, groups, case):
-    """Gram statistics of every feature in the formulation ``est`` asks for (with
-    forces and no dissipation library, and probe forces set aside: see
+    """Gram statistics of every feature in the formulation ``est`` asks for; in the
+    probed cases without a dissipation library, with probe forces set aside (see
     :mod:`lagsindy.formulation.probes`)."""
     n_features = len(library.terms_) + len(diss[0])
     probes = []

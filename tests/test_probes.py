@@ -196,18 +196,18 @@ def test_too_few_equations_are_not_probed():
 
 
 def test_the_warning_needs_a_share_and_an_amount():
-    big = ProbeResult(0.1, 0.01, 0.9, {"viscous(q)": -0.5}, 0.01)
+    big = ProbeResult(0.1, 0.01, {"viscous(q)": -0.5}, 0.01)
     assert big.reported() and big.reported(-1.0)  # above the floor: any sign
-    assert not ProbeResult(0.1, 0.06, 0.4, {"viscous(q)": 0.5}, 0.06).missing
+    assert not ProbeResult(0.1, 0.06, {"viscous(q)": 0.5}, 0.06).missing
     # below EXPLAINED_FLOOR: only dissipative forces (against the kinetic sign)
-    small = ProbeResult(1.8 * EXPLAINED_FLOOR, 0.9 * EXPLAINED_FLOOR, 0.5, {}, 0.0)
+    small = ProbeResult(1.6 * EXPLAINED_FLOOR, 0.7 * EXPLAINED_FLOOR, {}, 0.0)
     assert small.missing and not small.reported()
     damping = dataclasses.replace(small, named={"viscous(q)": 0.1, "coulomb(q)": 0.2})
     assert damping.reported() and not damping.reported(-1.0)
     mixed = dataclasses.replace(small, named={"viscous(q)": -0.1, "coulomb(q)": 0.2})
     assert not mixed.reported()
     rounding = ProbeResult(
-        1.8 * RESIDUAL_FLOOR, 0.9 * RESIDUAL_FLOOR, 0.5, {"viscous(q)": 0.1}, 0.0
+        1.8 * RESIDUAL_FLOOR, 0.9 * RESIDUAL_FLOOR, {"viscous(q)": 0.1}, 0.0
     )
     assert not rounding.missing
     with warnings.catch_warnings():
@@ -261,7 +261,7 @@ def test_the_warning_class_is_public():
 
 
 def test_negative_damping_points_at_sign_and_delay():
-    result = ProbeResult(0.1, 0.01, 0.9, {"viscous(q)": -0.5}, 0.01)
+    result = ProbeResult(0.1, 0.01, {"viscous(q)": -0.5}, 0.01)
     with pytest.warns(UnmodelledForceWarning, match="adds energy") as record:
         assert warn_unmodelled(result) is True
     assert "estimate_delay" in str(record[0].message)

@@ -27,7 +27,7 @@ import warnings
 import numpy as np
 import torch
 
-from .scaling import NULL_RCOND, BalancedGram, dense_residuals
+from .scaling import BalancedGram, dense_residuals, dense_solution
 from .weak import window_stride
 
 # Kinds of the probe forces (see lagsindy.dissipation.DissipationLibrary).
@@ -105,8 +105,6 @@ class ProbeResult:
         Relative residual of the kept terms refitted by least squares.
     probed : float
         The same with every probe force added.
-    share : float
-        ``(residual - probed) / residual``.
     named : dict of str to float
         Only when :attr:`missing`: the probes that explain it, with their
         coefficients refitted with the kept terms. They are chosen one at a time,
@@ -122,16 +120,24 @@ class ProbeResult:
 
     residual: float
     probed: float
-    share: float
     named: dict
     named_residual: float
     passive: bool = False
 
     @property
+    def gain(self) -> float:
+        """What every probe explains: ``residual - probed``."""
+        return self.residual - self.probed
+
+    @property
+    def share(self) -> float:
+        """The share of ``residual`` the probes explain."""
+        return self.gain / self.residual if self.residual > 0 else 0.0
+
+    @property
     def missing(self) -> bool:
         """The probes explain enough to be named (see :meth:`reported`)."""
-        gain = self.residual - self.probed
-        return gain >= RESIDUAL_FLOOR and self.share >= UNMODELLED_SHARE
+        return self.gain >= RESIDUAL_FLOOR and self.share >= UNMODELLED_SHARE
 
     def reported(self, kinetic_sign: float = 1.0) -> bool:
         """Whether the fit warns: :attr:`missing`, and either the probes explain at
@@ -139,7 +145,7 @@ class ProbeResult:
         coefficient has the sign ``kinetic_sign`` of the model's kinetic energy)."""
         if not self.missing:
             return False
-        if self.residual - self.probed >= EXPLAINED_FLOOR:
+        if self.gain >= EXPLAINED_FLOOR:
             return True
         signs = [kinetic_sign * c > 0 for c in self.named.values()]
         return bool(signs) and all(signs)
@@ -215,16 +221,14 @@ def probe_forces(
     every = np.concatenate([support, probes])
     fits = balanced.problems([(support, target, sign), (every, target, sign)])[0]
     base, probed = dense_residuals([datafit for datafit, _ in fits])
-    gain = base - probed
-    share = gain / base if base > 0 else 0.0
     passive = fixed is not None
-    unnamed = ProbeResult(base, probed, share, {}, base, passive)
+    unnamed = ProbeResult(base, probed, {}, base, passive)
     if not unnamed.missing:
         return unnamed
     # forward selection: add the probe that explains most until the named ones
     # explain all but NAMED_SHARE of what every probe explains
     named, current = [], base
-    while len(named) < len(probes) and current - probed > NAMED_SHARE * gain:
+    while len(named) < len(probes) and current - probed > NAMED_SHARE * unnamed.gain:
         rest = [k for k in probes if k not in named]
         jobs = [(np.concatenate([support, named, [k]]), target, sign) for k in rest]
         found = dense_residuals([datafit for datafit, _ in balanced.problems(jobs)[0]])
@@ -233,24 +237,15 @@ def probe_forces(
     ((datafit, to_coef),) = balanced.problems(
         [(np.append(support, named), target, sign)]
     )[0]
-    coefficients = to_coef(_least_squares(datafit)).cpu().numpy()[len(support) :]
+    w, named_residual = dense_solution(datafit)
+    coefficients = to_coef(w).cpu().numpy()[len(support) :]
     return ProbeResult(
         residual=base,
         probed=probed,
-        share=share,
         named={names[k - n_features]: float(c) for k, c in zip(named, coefficients)},
-        named_residual=dense_residuals([datafit])[0],
+        named_residual=named_residual,
         passive=passive,
     )
-
-
-def _least_squares(datafit):
-    """Minimum-norm least-squares solution of a scaled problem (eigenvalues below
-    ``NULL_RCOND`` times the largest treated as zero, as in the dense residual)."""
-    vals, vecs = torch.linalg.eigh(datafit.gram)
-    keep = vals > NULL_RCOND * float(vals[-1].clamp(min=0))
-    proj = vecs[:, keep].T @ datafit.rhs
-    return vecs[:, keep] @ (proj / vals[keep])
 
 
 def warn_unmodelled(

@@ -246,10 +246,24 @@ def dense_residual(datafit: GramQuadratic) -> float:
     return _unexplained(vals, vecs, datafit)
 
 
+def dense_solution(datafit: GramQuadratic):
+    """The minimum-norm unpenalised least-squares solution (in ``datafit``'s scaled
+    variables) and its :func:`dense_residual`, from one eigen-decomposition."""
+    vals, vecs = torch.linalg.eigh(datafit.gram)
+    keep, proj = _projection(vals, vecs, datafit)
+    return vecs[:, keep] @ (proj / vals[keep]), _unexplained(vals, vecs, datafit)
+
+
+def _projection(vals, vecs, datafit):
+    """The eigenvalues kept (above ``NULL_RCOND`` times the largest) and the
+    right-hand side's coordinates along their eigenvectors."""
+    keep = vals > NULL_RCOND * float(vals[-1].clamp(min=0))
+    return keep, vecs[:, keep].T @ datafit.rhs
+
+
 def _unexplained(vals, vecs, datafit) -> float:
     """:func:`dense_residual` from the eigen-decomposition of ``datafit.gram``."""
-    keep = vals > NULL_RCOND * float(vals[-1].clamp(min=0))
-    proj = vecs[:, keep].T @ datafit.rhs
+    keep, proj = _projection(vals, vecs, datafit)
     explained = float((proj * proj / vals[keep]).sum())
     return max(0.0, 1.0 - explained / datafit.const)
 
