@@ -46,6 +46,7 @@ from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 pat
     MASS_BAD_FRACTION,
     FittedLagrangian,
     MassCheck,
+    degrees_hint,
     feature_index,
     mass_matrix_check,
 )
@@ -758,7 +759,10 @@ def _fit_windows(est, Xa, Xt, tau, tau_t, library, diss, groups, case):
             problem = dataclasses.replace(problem, fixed_term=scale)
         return _solve(case, problem)
 
-    return choose_window(ladder, solve, search=search, verbose=est.verbose)
+    def hint():  # more advice for a window warning, only when it warns
+        return degrees_hint(library, Xt)
+
+    return choose_window(ladder, solve, search=search, verbose=est.verbose, hint=hint)
 
 
 def _problem(est, stats, library, diss, Xa, Xt, tau) -> Problem:
@@ -855,7 +859,8 @@ def _fitted_state(
     )
     sign = -1.0 if fitted.mass_check.negative > 0.5 else 1.0
     if not warn_unmodelled(probed, sign, stacklevel=4):
-        fitted.warn_unexplained(stacklevel=4)
+        fitted.warn_unexplained(stacklevel=4, Xt=Xt)
+        fitted.warn_poor_accelerations(Xt, solution.score, stacklevel=4)
     return fitted
 
 

@@ -32,6 +32,18 @@ MASS_BAD_FRACTION = 0.01
 # one force 0.91, swapped force columns 0.73, a library without the double
 # pendulum's coupling 0.87.
 UNEXPLAINED_FORCES = 0.5
+# In-sample R^2 of the accelerations below which a passive (case III) fit warns.
+# Right models of simulated single, double and cart pendulums (sensor noise up to
+# 0.03 and the paper's noise up to 0.1, 3 seeds each) scored 0.83-1.0, the real
+# single, double and triple pendulum recordings 0.9994-0.9999; a single pendulum
+# recorded in degrees -0.09 (and no other warning but the test windows').
+POOR_ACCELERATIONS = 0.5
+# Rows (evenly spaced) on which that R^2 is computed.
+ACCELERATION_ROWS = 2000
+# Angles inside sin/cos beyond this many turns make a failing fit ask whether they
+# are in degrees. Driven pendulums of the tests that flip over reach 1.3-1.5 turns
+# in radians; a swing of +-13 degrees, given in degrees, already reaches 2.
+DEGREES_TURNS = 2
 
 
 @dataclass
@@ -64,6 +76,31 @@ class MassCheck:
     def ok(self) -> bool:
         """True when M is definite at all but at most 1 % of the samples."""
         return self.fraction <= MASS_BAD_FRACTION
+
+
+def degrees_hint(library, Xt) -> str:
+    """A sentence naming the coordinates inside ``sin``/``cos`` terms whose values
+    in ``Xt`` go beyond ``DEGREES_TURNS`` turns, as angles in degrees do; ``""`` if
+    none."""
+    inside = set()
+    for term in library.terms_:
+        for atom in term.atoms(sp.sin, sp.cos):
+            inside |= {str(s_) for s_ in atom.free_symbols}
+    names = list(library.coordinates_)
+    big = []
+    for j, name in enumerate(names):
+        if name in inside:
+            peak = float(Xt[:, j].abs().max())
+            if peak > DEGREES_TURNS * 2 * np.pi:
+                big.append(f"{name} reaches {peak:.3g}")
+    if not big:
+        return ""
+    return (
+        f" The angles inside sin/cos go beyond {DEGREES_TURNS} turns "
+        f"({', '.join(big)}): if "
+        "they are in degrees, convert them to radians (numpy.deg2rad), with their "
+        "velocities and accelerations."
+    )
 
 
 def mass_matrix_check(mass, coordinates, rtol: float = 1e-10) -> MassCheck:
@@ -347,7 +384,7 @@ class FittedLagrangian:
                 "accelerations there (rollouts fail)."
                 + advice
                 + " With forces, check that the data excite every coordinate. "
-                "Test est.mass_check_.ok.",
+                "Test est.mass_check_.ok." + degrees_hint(self.library, Xt),
                 UserWarning,
                 stacklevel=stacklevel + 1,
             )
@@ -366,8 +403,9 @@ class FittedLagrangian:
             )
         return check
 
-    def warn_unexplained(self, stacklevel: int = 2):
-        """Warn when a fit with forces leaves most of them unexplained."""
+    def warn_unexplained(self, stacklevel: int = 2, Xt=None):
+        """Warn when a fit with forces leaves most of them unexplained (with the
+        data ``Xt``, the message says whether its angles look like degrees)."""
         if self.case != "forces" or self.residual is None:
             return
         if self.residual > UNEXPLAINED_FORCES:
@@ -379,10 +417,56 @@ class FittedLagrangian:
                 f"{self.coordinates} with the sign of positive work on q, that the "
                 "library holds the terms the system needs, and run "
                 "lagsindy.diagnose for friction or damping; very noisy accelerations "
-                "also do this.",
+                "also do this."
+                + ("" if Xt is None else degrees_hint(self.library, Xt)),
                 UserWarning,
                 stacklevel=stacklevel + 1,
             )
+
+    def acceleration_r2(self, Xt) -> float | None:
+        """Variance-weighted R^2 of the passive model's accelerations on (up to
+        ``ACCELERATION_ROWS`` evenly spaced) rows of ``Xt``, against its measured
+        ``qddot``; ``None`` where those do not vary, ``-inf`` where the
+        predictions are not finite."""
+        d = self.n_dof
+        rows = torch.linspace(
+            0, Xt.shape[0] - 1, min(Xt.shape[0], ACCELERATION_ROWS), device=Xt.device
+        ).long()
+        true = to_numpy(Xt[rows, 2 * d : 3 * d])
+        total = float(((true - true.mean(0)) ** 2).sum())
+        if not total > 0:
+            return None
+        with np.errstate(all="ignore"):
+            error = float(((true - self.accelerations(Xt[rows])) ** 2).sum())
+        return 1.0 - error / total if np.isfinite(error) else -np.inf
+
+    def warn_poor_accelerations(self, Xt, r2=None, stacklevel: int = 2):
+        """Warn when a passive fit predicts its own data's accelerations poorly.
+
+        Only for case III, and only where the mass check did not warn already (the
+        model then predicts no accelerations at all). ``r2``: the R^2 when already
+        known (case III's search scores its models), else :meth:`acceleration_r2`.
+        Returns the R^2 (``None`` when not computed).
+        """
+        if self.case != "fixed" or not self.coef.any():
+            return None
+        if self.mass_check is not None and not self.mass_check.ok:
+            return None
+        if r2 is None:
+            r2 = self.acceleration_r2(Xt)
+        if r2 is not None and r2 < POOR_ACCELERATIONS:
+            warnings.warn(
+                f"the learned model predicts the measured accelerations with R^2 = "
+                f"{r2:.2f} on its own data (a right model of a noisy recording "
+                f"scores above {POOR_ACCELERATIONS}): it is likely not a model of "
+                "these data. Check that the library holds the terms the system "
+                "needs, run lagsindy.diagnose for friction or damping, and check "
+                "the accelerations in X (very noisy ones also do this)."
+                + degrees_hint(self.library, Xt),
+                UserWarning,
+                stacklevel=stacklevel + 1,
+            )
+        return r2
 
     def coef_table(self):
         """The coefficients as a DataFrame (see ``LagrangianSINDy.coef_table``)."""

@@ -93,7 +93,8 @@ class Solution:
 
     ``fixed`` is the index of the term whose coefficient is 1 in the returned scale
     (case III), ``normalization`` ``"term"`` or ``"mass"`` (case III) or ``None``;
-    ``row_scale`` the balanced problem's row scales (set by the estimator).
+    ``row_scale`` the balanced problem's row scales (set by the estimator);
+    ``score`` the acceleration R^2 that case III's search scored the model with.
     """
 
     coef: np.ndarray
@@ -101,6 +102,7 @@ class Solution:
     fixed: int | None = None
     normalization: str | None = None
     row_scale: object = None
+    score: float | None = None
 
 
 def _cases():

@@ -138,11 +138,11 @@ def fit_fixed(problem: Problem) -> Solution:
     # so that rounding (e.g. the order of the rows) cannot pick between them.
     top = max(s_[0] for s_ in scored)
     near = [s_ for s_ in scored if 1 - s_[0] <= SELECTION_TIE * (1 - top) + 1e-9]
-    _, kind, r, coef, result = min(
+    score, kind, r, coef, result = min(
         near,
         key=lambda s_: (int((s_[3] != 0).sum()), -1 if s_[1] == "mass" else s_[2]),
     )
-    return Solution(coef, result, r, kind)
+    return Solution(coef, result, r, kind, score=score)
 
 
 def _rank(p: Problem, candidates, traces) -> list:
