@@ -233,7 +233,8 @@ def test_angles_are_unwrapped_per_trajectory():
         np.testing.assert_allclose(
             derivatives(noisy_free, t, angles=spec, method="savgol"), X
         )
-    wrong = derivatives(noisy_free, t, method="savgol")
+    with pytest.warns(UserWarning, match=r"\[0\] look like wrapped angles"):
+        wrong = derivatives(noisy_free, t, method="savgol")
     assert np.max(np.abs(wrong[:, 2])) > 100  # the wraps look like huge velocities
     # two trajectories: each is unwrapped from its own first sample
     both = derivatives(

@@ -139,8 +139,9 @@ def test_weak_form_refuses_a_trajectory_with_a_gap():
     keep[150:170] = False  # 0.2 s lost in the first trajectory
     X, tau, t, groups = data.X[keep], data.tau[keep], data.t[keep], data.groups[keep]
     est = LagrangianSINDy(system.paper_library(), formulation="weak")
-    with pytest.raises(ValueError, match="jumps between rows 149 and 150"):
+    with pytest.raises(ValueError, match="jumps between rows 149 and 150") as info:
         est.fit(X, tau, groups=groups)
+    assert "wrapped" not in str(info.value)  # a gap, not a wrap
     est.fit(X, tau, groups=split_gaps(t, groups))  # the segments fit
     table = est.coef_table().set_index("term")["coefficient"]
     assert table["cos(theta)"] == pytest.approx(9.81, rel=0.01)
@@ -284,3 +285,59 @@ def test_banded_fast_trace_matches_the_exact_one():
             lam = kappa / banded.s_max
             exact = banded.gcv(lam, q, Bty.astype(complex))
             np.testing.assert_allclose(banded.gcv_fast(lam, q, Bty), exact, rtol=5e-6)
+
+
+def _wrapped_pendulum():
+    """A driven pendulum that turns over (theta reaches 15 rad), wrapped to
+    (-pi, pi] as an encoder or atan2 reports it."""
+    from lagsindy.systems import make_dataset, single_pendulum
+
+    data = make_dataset(
+        single_pendulum(), n_trajectories=10, duration=5.0, excitation="sincos",
+        random_state=0,
+    )  # fmt: skip
+    q = (data.X[:, :1] + np.pi) % (2 * np.pi) - np.pi
+    return data, q
+
+
+def test_wrapped_angles_are_reported_by_derivatives():
+    data, q = _wrapped_pendulum()
+    # Within the trajectories theta wraps twice (rows 4197 and 4359 of trajectory
+    # 8); the jump at row 4000 is the start of trajectory 8.
+    with pytest.warns(UserWarning, match=r"\[0\] look like wrapped angles") as rec:
+        derivatives(q, data.t, groups=data.groups)
+    message = str(rec[0].message)
+    assert (
+        "2 time(s), before row(s) 4197 (t = 1.97), 4359" in message
+        and "(angles=[0])" in message
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        X = derivatives(q, data.t, groups=data.groups, angles=[0])  # unwrapped
+        # Unwrapped, the positions are the simulated ones again (to 1e-4 rad).
+        assert np.abs(X[:, 0] - data.X[:, 0]).max() < 1e-4
+        # One turn of range is not enough: the jump must be inside a trajectory.
+        t = np.arange(len(q)) * 0.01
+        labels = np.arange(len(q)) // 4197
+        derivatives(np.where(labels[:, None] == 0, 0.1, 2 * np.pi - 0.1), t,
+                    groups=labels)  # fmt: skip
+        # A coordinate that spans more than a turn jumps for another reason, as
+        # does one whose jump less a turn is unlike its other steps (0.97 here).
+        derivatives(np.where(labels[:, None] == 0, 0.0, 7.0), t)
+        step = np.where(labels == 0, 0.1 * np.sin(t), 5.31 + 0.1 * np.sin(t))
+        assert np.ptp(step) < 2 * np.pi
+        derivatives(step[:, None], t)
+
+
+def test_weak_form_names_a_wrapped_angle_where_it_jumps():
+    from lagsindy import LagrangianSINDy
+    from lagsindy.systems import single_pendulum
+
+    data, q = _wrapped_pendulum()
+    X = np.array(data.X)
+    X[:, 0] = q[:, 0]  # the exact derivatives, of the continuous angle
+    est = LagrangianSINDy(single_pendulum().paper_library(), formulation="weak")
+    with pytest.raises(ValueError, match="jumps between rows 4196 and 4197") as info:
+        est.fit(X, data.tau, groups=data.groups)
+    assert "coordinate(s) [0] are angles" in str(info.value)
+    assert "wrapped to (-pi, pi]" in str(info.value)

@@ -68,6 +68,10 @@ _CLI_WORDING = (
         "or fixed_term=None to search them all",
         "or leave out --fixed-term to search them all",
     ),
+    (
+        "unwrap them per trajectory first (angles=",
+        "unwrap them per trajectory first (--angles with the names of columns ",
+    ),
 )
 
 

@@ -21,6 +21,8 @@ from .records import (
     _warn_gaps,
     _warn_glitches,
     _warn_skips,
+    _warn_wrapped,
+    _wrapped_columns,
 )
 
 METHODS = ("pspline", "spline", "savgol", "finite_difference")
@@ -177,6 +179,9 @@ def derivatives(
         _warn_glitches(glitches, times)
     if skips:
         _warn_skips(skips, times)
+    wrapped = _wrapped_columns(q, segments, mask)
+    if wrapped:
+        _warn_wrapped(wrapped, times)
     need = _MIN_SAMPLES[method]
     for key, sl in segments:
         if sl.stop - sl.start < need:

@@ -227,6 +227,55 @@ def _warn_skips(rows, times, stacklevel=3):
     )
 
 
+# A step between consecutive samples larger than this, in a coordinate whose values
+# stay within one turn, is read as an angle wrapped to (-pi, pi] or [0, 2 pi): a
+# wrap jumps by 2 pi minus the true step.
+_WRAP_STEP = 1.5 * math.pi
+_TURN = 2 * math.pi * (1 + 1e-9)
+
+
+def _wrapped_columns(q, segments, mask) -> list:
+    """Coordinates (not in ``mask``) that look like wrapped angles.
+
+    Returns ``(column, rows)`` for each coordinate whose values span at most one
+    turn and that jumps by more than ``_WRAP_STEP`` between consecutive samples of
+    a segment, where the jump less a turn is a step like the segment's others (at
+    most twice the largest of them); ``rows`` are the rows after each jump.
+    """
+    out = []
+    for j in np.flatnonzero(~mask):
+        col = q[:, j]
+        if col.size < 2 or np.ptp(col) > _TURN:
+            continue
+        rows = []
+        for _, sl in segments:
+            step = np.abs(np.diff(col[sl]))
+            jump = step > _WRAP_STEP
+            if jump.any():
+                usual = 2 * step[~jump].max() if (~jump).any() else np.inf
+                wrap = jump & (np.abs(step - 2 * np.pi) <= usual)
+                rows.append(sl.start + 1 + np.flatnonzero(wrap))
+        rows = np.concatenate(rows) if rows else np.zeros(0, dtype=int)
+        if rows.size:
+            out.append((int(j), rows))
+    return out
+
+
+def _warn_wrapped(wrapped, times, stacklevel=3):
+    columns = [j for j, _ in wrapped]
+    j, rows = wrapped[0]
+    warnings.warn(
+        f"coordinate(s) {columns} look like wrapped angles: their values stay within "
+        "one turn and jump by more than 1.5 pi between consecutive samples (column "
+        f"{j}: {len(rows)} time(s), before row(s) {_describe_rows(list(rows), times)})."
+        " Differentiated as they are, each jump becomes a spike in the velocity and "
+        "acceleration. If they are angles, unwrap them per trajectory first "
+        f"(angles={columns})",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+
+
 def _warn_glitches(glitches, times, stacklevel=3):
     warnings.warn(
         f"{len(glitches)} row(s) come less than {_GLITCH_FRACTION:g} median steps "
@@ -329,6 +378,18 @@ def check_weak_form_segments(X, n_dof: int, segments, dt: float) -> None:
     if first is not None:
         k, s = first
         rows = np.asarray(segments[k]).astype(np.intp)
+        step = np.abs(q[rows[s + 1]] - q[rows[s]])
+        wrapped = [
+            j for j in np.flatnonzero(step > _WRAP_STEP) if np.ptp(q[:, j]) <= _TURN
+        ]
+        hint = (
+            f". If coordinate(s) {[int(j) for j in wrapped]} are angles, they jump there "
+            "by nearly 2 pi within one turn: wrapped to (-pi, pi]? Unwrap them per "
+            "trajectory (numpy.unwrap, or derivatives(..., angles=[...])) and "
+            "recompute the derivatives"
+            if wrapped
+            else ""
+        )
         raise ValueError(
             "formulation='weak' integrates over consecutive rows as if they were "
             f"dt = {dt:.4g} s apart, but trajectory {k} (rows {rows[0]}-"
@@ -337,5 +398,5 @@ def check_weak_form_segments(X, n_dof: int, segments, dt: float) -> None:
             "in the time stamps. Cut the trajectories at their gaps and pass the "
             "segments as groups (groups = lagsindy.differentiation.split_gaps(t, "
             "groups), or derivatives(..., return_groups=True)), or fit with "
-            "formulation='strong'"
+            "formulation='strong'" + hint
         )
