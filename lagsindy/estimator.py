@@ -24,7 +24,7 @@ from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
 from ._params import cache_param_names
-from ._torch import resolve_device, resolve_dtype, to_tensor
+from ._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
 from .cases import Problem, SparseSolve, solve_case
 from .formulation import feature_operator, gram_statistics
 from .formulation.probes import (
@@ -46,7 +46,6 @@ from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 pat
     MASS_BAD_FRACTION,
     FittedLagrangian,
     MassCheck,
-    degrees_hint,
     feature_index,
     mass_matrix_check,
 )
@@ -759,10 +758,7 @@ def _fit_windows(est, Xa, Xt, tau, tau_t, library, diss, groups, case):
             problem = dataclasses.replace(problem, fixed_term=scale)
         return _solve(case, problem)
 
-    def hint():  # more advice for a window warning, only when it warns
-        return degrees_hint(library, Xt)
-
-    return choose_window(ladder, solve, search=search, verbose=est.verbose, hint=hint)
+    return choose_window(ladder, solve, search=search, verbose=est.verbose)
 
 
 def _problem(est, stats, library, diss, Xa, Xt, tau) -> Problem:
@@ -850,6 +846,8 @@ def _fitted_state(
         tau_1d=tau is not None and np.asarray(y).ndim == 1,
     )
     fitted.mass_check = fitted.checked_mass(Xt, stacklevel=4)
+    norms = stats.gram.diagonal(dim1=1, dim2=2).sum(0).clamp(min=0).sqrt()
+    fitted.warn_angle_polynomials(Xt, to_numpy(norms)[:n_terms], stacklevel=4)
     probed = probe_forces(
         stats,
         coef,

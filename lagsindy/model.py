@@ -44,6 +44,10 @@ ACCELERATION_ROWS = 2000
 # are in degrees. Driven pendulums of the tests that flip over reach 1.3-1.5 turns
 # in radians; a swing of +-13 degrees, given in degrees, already reaches 2.
 DEGREES_TURNS = 2
+# ... counting the terms whose part of the Euler-Lagrange residual (|c_k| times their
+# column's norm) is at least this share of the largest term's (an unpenalized term
+# kept at 1e-6 is not one).
+ANGLE_POLYNOMIAL_SHARE = 0.01
 
 
 @dataclass
@@ -78,21 +82,35 @@ class MassCheck:
         return self.fraction <= MASS_BAD_FRACTION
 
 
-def degrees_hint(library, Xt) -> str:
-    """A sentence naming the coordinates inside ``sin``/``cos`` terms whose values
-    in ``Xt`` go beyond ``DEGREES_TURNS`` turns, as angles in degrees do; ``""`` if
-    none."""
+def _trig_coordinates(library) -> set:
+    """Names of the coordinates that appear inside a ``sin`` or ``cos`` term."""
     inside = set()
     for term in library.terms_:
         for atom in term.atoms(sp.sin, sp.cos):
             inside |= {str(s_) for s_ in atom.free_symbols}
-    names = list(library.coordinates_)
-    big = []
-    for j, name in enumerate(names):
-        if name in inside:
+    return inside
+
+
+def _beyond_turns(library, Xt, names) -> dict:
+    """``{name: peak}`` of the coordinates ``names`` whose values in ``Xt`` go
+    beyond ``DEGREES_TURNS`` turns."""
+    out = {}
+    for j, name in enumerate(library.coordinates_):
+        if name in names:
             peak = float(Xt[:, j].abs().max())
             if peak > DEGREES_TURNS * 2 * np.pi:
-                big.append(f"{name} reaches {peak:.3g}")
+                out[name] = peak
+    return out
+
+
+def degrees_hint(library, Xt) -> str:
+    """A sentence naming the coordinates inside ``sin``/``cos`` terms whose values
+    in ``Xt`` go beyond ``DEGREES_TURNS`` turns, as angles in degrees do; ``""`` if
+    none."""
+    big = [
+        f"{name} reaches {peak:.3g}"
+        for name, peak in _beyond_turns(library, Xt, _trig_coordinates(library)).items()
+    ]
     if not big:
         return ""
     return (
@@ -467,6 +485,43 @@ class FittedLagrangian:
                 stacklevel=stacklevel + 1,
             )
         return r2
+
+    def warn_angle_polynomials(self, Xt, norms=None, stacklevel: int = 2):
+        """Warn when the learned Lagrangian uses an angle (a coordinate inside
+        ``sin``/``cos`` in the library) outside ``sin``/``cos`` while its values
+        go beyond ``DEGREES_TURNS`` turns, as angles in degrees make a pendulum
+        look like a harmonic oscillator. With ``norms`` (the terms'
+        Euler-Lagrange column norms), only terms whose part ``|c_k| norms_k`` is at
+        least ``ANGLE_POLYNOMIAL_SHARE`` of the largest count. Returns the names
+        flagged."""
+        big = _beyond_turns(self.library, Xt, _trig_coordinates(self.library))
+        if not big:
+            return []
+        size = np.abs(self.coef) * (1.0 if norms is None else np.asarray(norms))
+        counted = (size > 0) & (size >= ANGLE_POLYNOMIAL_SHARE * size.max())
+        outside = set()
+        for term, c in zip(self.library.terms_, counted):
+            if c:
+                bare = term.xreplace(
+                    {a: sp.Dummy() for a in term.atoms(sp.sin, sp.cos)}
+                )
+                outside |= {str(s_) for s_ in bare.free_symbols}
+        flagged = [name for name in big if name in outside]
+        if flagged:
+            shown = ", ".join(f"{n} (reaches {big[n]:.3g})" for n in flagged)
+            warnings.warn(
+                f"the learned Lagrangian uses {shown} outside sin/cos, as a "
+                f"polynomial, while it goes beyond {DEGREES_TURNS} turns: such a "
+                "potential is not periodic in the angle. Angles in degrees give "
+                "this (a pendulum then looks like a harmonic oscillator about its "
+                "mean angle): if they are in degrees, convert them to radians "
+                "(numpy.deg2rad), with their velocities and accelerations, and fit "
+                "again. Otherwise the term likely stands in for an effect the model "
+                "misses (friction, a spring): run lagsindy.diagnose.",
+                UserWarning,
+                stacklevel=stacklevel + 1,
+            )
+        return flagged
 
     def coef_table(self):
         """The coefficients as a DataFrame (see ``LagrangianSINDy.coef_table``)."""

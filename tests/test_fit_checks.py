@@ -5,6 +5,7 @@ import warnings
 
 import numpy as np
 import pytest
+import sympy as sp
 import torch
 
 from lagsindy import LagrangianSINDy
@@ -97,25 +98,47 @@ def test_forced_fit_in_degrees_asks_about_degrees(n_trajectories):
         single_pendulum(), n_trajectories=n_trajectories, duration=4.0,
         excitation="sincos", random_state=0,
     )  # fmt: skip
-    _, caught, _ = _fit(_degrees(data.X, [0]), data.groups, tau=data.tau)
-    # 6 trajectories: a harmonic oscillator in degrees leaves 0.15 of the forces
-    # unexplained (below the 0.5 that warns), and only the test windows disagree;
-    # 10: 0.95 unexplained. Either warning asks about degrees.
-    kind = WindowWarning if n_trajectories == 6 else UserWarning
-    warned = [w for w in caught if w.category is kind]
-    assert warned and "numpy.deg2rad" in str(warned[0].message)
+    est, caught, _ = _fit(_degrees(data.X, [0]), data.groups, tau=data.tau)
+    messages = [str(w.message) for w in caught]
+    polynomial = [m for m in messages if "outside sin/cos, as a polynomial" in m]
+    if n_trajectories == 6:
+        # A harmonic oscillator in degrees (theta**2 and theta_dot**2) leaves 0.15
+        # of the forces unexplained, below the 0.5 that warns; only the test
+        # windows disagree, and the polynomial in theta says why.
+        assert not est.lagrangian_.atoms(sp.sin, sp.cos)
+        assert polynomial and "theta (reaches 77.5)" in polynomial[0]
+        assert not [m for m in messages if "unexplained" in m]
+    else:
+        # 0.95 unexplained: that warning carries the degrees hint.
+        unexplained = [m for m in messages if "unexplained" in m]
+        assert unexplained and "numpy.deg2rad" in unexplained[0]
+    # The test windows' warning never guesses at units (a double pendulum that
+    # flips over reaches 3 turns in radians, and noise moves its windows).
+    windows = [w for w in caught if w.category is WindowWarning]
+    assert all("degrees" not in str(w.message) for w in windows)
 
 
-def test_window_warning_within_two_turns_has_no_degrees_hint():
-    # Unmodelled damping moves the coefficients with the window; theta stays
-    # within 1.35 rad.
-    system = single_pendulum().with_damping(viscous={"theta": 0.1})
+def test_angle_polynomials_are_flagged_only_beyond_two_turns():
+    system = single_pendulum()
     data = make_dataset(
         system, n_trajectories=6, duration=4.0, excitation="sincos", random_state=0
     )
-    _, caught, _ = _fit(data.X, data.groups, tau=data.tau)
-    windows = [w for w in caught if w.category is WindowWarning]
-    assert windows and "degrees" not in str(windows[0].message)
+    est = LagrangianSINDy(system.paper_library()).fit(
+        data.X, data.tau, groups=data.groups
+    )
+    fitted = est.fitted_
+    names = [str(t) for t in fitted.library.terms_]
+    X = torch.as_tensor(np.asarray(data.X, dtype=float))
+    X[:, 0] = 13.0  # beyond two turns
+    assert fitted.warn_angle_polynomials(X) == []  # cos(theta): inside only
+    fitted.coef = np.zeros(len(names))
+    fitted.coef[names.index("theta_dot**2")] = 1.0
+    assert fitted.warn_angle_polynomials(X) == []  # a rotor: no angle at all
+    fitted.coef[names.index("theta**2")] = -0.1
+    with pytest.warns(UserWarning, match=r"uses theta \(reaches 13\) outside"):
+        assert fitted.warn_angle_polynomials(X) == ["theta"]
+    X[:, 0] = 12.5  # within two turns: a torsion spring, say
+    assert fitted.warn_angle_polynomials(X) == []
 
 
 def test_degrees_hint_names_only_angles_inside_sin_and_cos_beyond_two_turns():

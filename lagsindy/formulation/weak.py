@@ -471,7 +471,7 @@ def window_change(a, b) -> float:
     return float(np.linalg.norm(a - b) / scale) if scale > 0 else 0.0
 
 
-def choose_window(ladder, solve, *, search=False, verbose=0, hint=None):
+def choose_window(ladder, solve, *, search=False, verbose=0):
     """Solve on each window of ``ladder`` until the next window confirms the result.
 
     ``ladder`` holds functions returning the Gram statistics of each window;
@@ -482,8 +482,7 @@ def choose_window(ladder, solve, *, search=False, verbose=0, hint=None):
     ``WINDOW_CHANGE``) is kept, with the warnings of its own solve. When no pair
     agrees, the first window is kept and a :class:`WindowWarning` says how the
     coefficients moved: a misspecified model (a missing term or effect) depends on
-    the weighting of the residual, so a longer window is no better there. ``hint``:
-    a function returning more advice for that warning (called only when it warns).
+    the weighting of the residual, so a longer window is no better there.
 
     Returns
     -------
@@ -528,8 +527,7 @@ def choose_window(ladder, solve, *, search=False, verbose=0, hint=None):
             "(a term, friction, an input delay: run lagsindy.diagnose), or the "
             "derivatives carry smooth errors (estimated by smoothing) that bias "
             "short windows: then record longer trajectories or pass a longer "
-            "window= and check that the coefficients settle."
-            + (hint() if hint is not None else ""),
+            "window= and check that the coefficients settle.",
             WindowWarning,
             stacklevel=4,
         )
