@@ -494,7 +494,11 @@ class FittedLagrangian:
         Euler-Lagrange column norms), only terms whose part ``|c_k| norms_k`` is at
         least ``ANGLE_POLYNOMIAL_SHARE`` of the largest count. Returns the names
         flagged."""
-        big = _beyond_turns(self.library, Xt, _trig_coordinates(self.library))
+        # The data first: the library's trig atoms (sympy) only when needed.
+        big = _beyond_turns(self.library, Xt, set(self.library.coordinates_))
+        if big:
+            trig = _trig_coordinates(self.library)
+            big = {name: peak for name, peak in big.items() if name in trig}
         if not big:
             return []
         size = np.abs(self.coef) * (1.0 if norms is None else np.asarray(norms))
