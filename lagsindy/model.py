@@ -82,6 +82,12 @@ class MassCheck:
         return self.fraction <= MASS_BAD_FRACTION
 
 
+def _even_rows(Xt, limit: int):
+    """Indices of at most ``limit`` evenly spaced rows of ``Xt`` (all when fewer)."""
+    n = Xt.shape[0]
+    return torch.linspace(0, n - 1, min(n, limit), device=Xt.device).long()
+
+
 def _trig_coordinates(library) -> set:
     """Names of the coordinates that appear inside a ``sin`` or ``cos`` term."""
     inside = set()
@@ -368,9 +374,7 @@ class FittedLagrangian:
         d = self.n_dof
         if op.n_terms == 0:
             return MassCheck(1.0, list(self.coordinates), 0)
-        rows = torch.linspace(
-            0, Xt.shape[0] - 1, min(Xt.shape[0], 500), device=Xt.device
-        ).long()
+        rows = _even_rows(Xt, 500)
         q, qd = Xt[rows, :d], Xt[rows, d : 2 * d]
         mass = torch.einsum("skij,k->sij", op.mass_matrices(q, qd), coef[: op.n_terms])
         return mass_matrix_check(mass, self.coordinates)
@@ -446,17 +450,17 @@ class FittedLagrangian:
         ``ACCELERATION_ROWS`` evenly spaced) rows of ``Xt``, against its measured
         ``qddot``; ``None`` where those do not vary, ``-inf`` where the
         predictions are not finite."""
+        from .cases.fixed import r2_scores  # the score case III's search uses
+
         d = self.n_dof
-        rows = torch.linspace(
-            0, Xt.shape[0] - 1, min(Xt.shape[0], ACCELERATION_ROWS), device=Xt.device
-        ).long()
+        rows = _even_rows(Xt, ACCELERATION_ROWS)
         true = to_numpy(Xt[rows, 2 * d : 3 * d])
-        total = float(((true - true.mean(0)) ** 2).sum())
-        if not total > 0:
+        if not np.any(true != true[0]):
             return None
-        with np.errstate(all="ignore"):
-            error = float(((true - self.accelerations(Xt[rows])) ** 2).sum())
-        return 1.0 - error / total if np.isfinite(error) else -np.inf
+        pred = self.accelerations(Xt[rows])
+        if not np.all(np.isfinite(pred)):
+            return -np.inf
+        return float(r2_scores(true, pred[None])[0])
 
     def warn_poor_accelerations(self, Xt, r2=None, stacklevel: int = 2):
         """Warn when a passive fit predicts its own data's accelerations poorly.

@@ -186,3 +186,18 @@ def test_a_singular_mass_matrix_is_reported_once():
     singular = [m for m in messages if "singular or indefinite" in m]
     assert singular and "numpy.deg2rad" in singular[0]
     assert not [m for m in messages if "predicts the measured accelerations" in m]
+
+
+def test_non_finite_accelerations_score_minus_infinity_and_warn(passive, monkeypatch):
+    est, _, _ = _fit(passive.X, passive.groups, fixed_term="mass")
+    Xt = torch.as_tensor(np.asarray(passive.X, dtype=float))
+    fitted = est.fitted_
+    monkeypatch.setattr(
+        type(fitted),
+        "accelerations",
+        lambda self, X, tau=None: np.full((len(X), 1), np.nan),
+    )
+    assert fitted.acceleration_r2(Xt) == -np.inf  # not nan, which would not warn
+    # (a NaN prediction; an infinite one gives -inf by itself)
+    with pytest.warns(UserWarning, match="R\\^2 = -inf"):
+        fitted.warn_poor_accelerations(Xt)

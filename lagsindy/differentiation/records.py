@@ -243,10 +243,15 @@ def _wrapped_columns(q, segments, mask) -> list:
     most twice the largest of them); ``rows`` are the rows after each jump.
     """
     out = []
+    inside = np.zeros(max(q.shape[0] - 1, 0), dtype=bool)  # steps within a segment
+    for _, sl in segments:
+        inside[sl.start : sl.stop - 1] = True
     for j in np.flatnonzero(~mask):
         col = q[:, j]
         if col.size < 2 or np.ptp(col) > _TURN:
             continue
+        if not np.any(inside & (np.abs(np.diff(col)) > _WRAP_STEP)):
+            continue  # most data: no jump at all, no loop over the segments
         rows = []
         for _, sl in segments:
             step = np.abs(np.diff(col[sl]))
