@@ -233,3 +233,25 @@ def test_evenly_spaced_subsample_rows(case_iii_problem):
         want = np.unique(np.linspace(0, n - 1, size).round().astype(np.int64))
         np.testing.assert_array_equal(rows, np.arange(n) if n <= size else want)
         assert rows.size == min(n, size)  # no repeats were there to drop
+
+
+def test_search_scores_on_the_scoring_subsample():
+    """The search scores its shortlist on SCORING_ROWS rows (2000, as many as the
+    fit's own acceleration check), not on the traces' SELECTION_ROWS."""
+    from conftest import first_problem
+
+    from lagsindy import LagrangianSINDy, model
+    from lagsindy.cases import fixed
+    from lagsindy.systems import cart_pendulum, make_dataset
+
+    system = cart_pendulum()
+    data = make_dataset(system, n_trajectories=6, excitation=None, random_state=0)
+    p = first_problem(
+        LagrangianSINDy(system.paper_library()), data.X, groups=data.groups
+    )
+    assert model.ACCELERATION_ROWS == fixed.SCORING_ROWS == 2000
+    assert p.Xt.shape[0] > fixed.SCORING_ROWS  # a subsample is drawn
+    solution = fixed.fit_fixed(p)
+    rows = p.solver.subsample_rows(p.Xt.shape[0], fixed.SCORING_ROWS)
+    want = fixed.acceleration_r2s(p, [solution.coef], p.Xt[torch.as_tensor(rows)])[0]
+    assert solution.score == want

@@ -252,3 +252,74 @@ def test_a_residual_at_the_floor_needs_no_bound(monkeypatch):
     f, r, s, c, first = again[int(np.flatnonzero(at_floor)[0])]
     coef, res = p.solver.solve(p.balanced, f, r, s, p.penalty, 1.0, 0, first=first)
     assert res is first
+
+
+def test_mass_problem_batched_with_the_ranking_equals_its_own_solve(
+    monkeypatch, case_iii_problem
+):
+    """solve_many's extra problems (the mass normalization's first problem, solved
+    in the ranking's batch) give the outcome of their own staged solve, and the
+    search uses that result for the mass normalization's first start."""
+    from lagsindy.cases import fixed, sparse
+
+    p = case_iii_problem
+    free, pivot, t_scaled = fixed._mass_start(p)
+    datafit, features, weights, _ = fixed._pivot_problem(p, free, pivot, t_scaled)
+    jobs = [(free[free != r], r, -1.0, True, None) for r in free[:4]]
+    calls = []
+
+    def counted(datafits, **kwargs):
+        calls.append((len(datafits), kwargs["shared"] is None))
+        return staged_fista_batch(datafits, **kwargs)
+
+    monkeypatch.setattr(sparse, "staged_fista_batch", counted)
+    extra = [(datafit, features, weights)]
+    for starts in (1, None):
+        calls.clear()
+        out = p.solver.solve_many(p.balanced, jobs, p.penalty, 1.0, starts, extra)
+        assert len(out) == len(jobs) + 1
+        assert calls[0] == (5, True)  # one batch, on each problem's own matrix
+        want = p.solver.stages(
+            datafit, features, weights, 0, reference=1.0, starts=starts
+        )
+        got = out[-1]
+        np.testing.assert_array_equal(got.support, want.support)
+        # measured: 2.2e-16 relative
+        np.testing.assert_allclose(got.coef.numpy(), want.coef.numpy(), rtol=1e-10)
+        assert got.cost == pytest.approx(want.cost, rel=1e-10)
+        for (coef, res), (f, r, s, c, _) in zip(out, jobs):
+            want_c, _ = p.solver.solve(p.balanced, f, r, s, p.penalty, 1.0, 0, starts)
+            np.testing.assert_allclose(coef, want_c, rtol=1e-9, atol=1e-14)
+    # A problem of another size is solved on its own, after the batch.
+    calls.clear()
+    small = [
+        (free[(free != r) & (free != free[-1])], r, -1.0, True, None) for r in free[:2]
+    ]
+    out = p.solver.solve_many(p.balanced, small, p.penalty, 1.0, 1, extra)
+    assert calls == [(2, False)] and len(out) == 3
+    np.testing.assert_array_equal(out[-1].support, want.support)
+
+    # The search hands the batched one-start result to the mass solve.
+    firsts = []
+    solve_mass = fixed.solve_mass
+    monkeypatch.setattr(
+        fixed, "solve_mass", lambda *a: firsts.append(a[2:]) or solve_mass(*a)
+    )
+    fixed.fit_fixed(p)
+    assert len(firsts) == 1 and firsts[0][0] is not None
+    assert firsts[0][0].stages  # a staged result, in the problem's variables
+
+    # Given that result, the mass solve runs only the later starts.
+    lams = []
+    staged = sparse.SparseSolve.staged
+    monkeypatch.setattr(
+        sparse.SparseSolve,
+        "staged",
+        lambda self, d, lam, *a, **k: lams.append(lam) or staged(self, d, lam, *a, **k),
+    )
+    first = p.solver.solve_many(p.balanced, jobs, p.penalty, 1.0, 1, extra)[-1]
+    coef, _, _ = solve_mass(p, 0, first)
+    assert p.solver.lam not in lams
+    lams.clear()
+    np.testing.assert_allclose(solve_mass(p, 0)[0], coef, rtol=1e-10, atol=1e-14)
+    assert p.solver.lam in lams

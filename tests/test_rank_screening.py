@@ -90,7 +90,8 @@ def test_ranking_keeps_the_shortlist_of_every_candidate(
         return solve_many(balanced, jobs, *args, **kwargs)
 
     monkeypatch.setattr(p.solver, "solve_many", spy)
-    ranked = fixed._rank(p, candidates, traces)
+    ranked, mass_first = fixed._rank(p, candidates, traces)
+    assert mass_first is None  # no mass problem was given
     monkeypatch.undo()
     every = _solve_all(p, candidates, traces)
     costs = np.array([res.cost for _, res in every])

@@ -241,7 +241,7 @@ class SparseSolve:
             remap_stages(result.stages, free, to_numpy(scale), balanced.n_features)
         return coef, result
 
-    def solve_many(self, balanced, jobs, penalty, reference, starts=None):
+    def solve_many(self, balanced, jobs, penalty, reference, starts=None, extra=()):
         """:meth:`solve` of several problems, their staged solves batched.
 
         ``jobs`` holds one ``(free, target, sign, constrain, first)`` tuple per
@@ -251,14 +251,23 @@ class SparseSolve:
         together, one batch per start of the path; the outcome is that of
         :meth:`solve` on each, up to rounding.
 
+        ``extra`` holds ``(datafit, features, weights)`` problems that are not cut
+        from ``balanced`` (case III's mass normalization); their outcome is that of
+        :meth:`stages` (``verbose`` 0, ``constrain`` true), up to rounding. When
+        they have as many features as the jobs they join the batch, which then
+        iterates on each problem's own matrix instead of one shared matrix (the
+        same work, one batch fewer).
+
         Returns
         -------
-        list of (coef, result)
-            As :meth:`solve` returns, in the order of ``jobs``.
+        list
+            As :meth:`solve` returns, ``(coef, result)``, in the order of ``jobs``;
+            then the :meth:`stages` result of each of ``extra``, in its variables.
         """
         starts = LAM_STARTS if starts is None else starts
         gram = balanced.gram
-        if len(jobs) <= 1 or gram.device.type != "cpu" or gram.dtype != torch.float64:
+        n_jobs = len(jobs) + len(extra)
+        if n_jobs <= 1 or gram.device.type != "cpu" or gram.dtype != torch.float64:
             return [
                 self.solve(
                     balanced,
@@ -273,6 +282,15 @@ class SparseSolve:
                     first=first,
                 )
                 for free, target, sign, constrain, first in jobs
+            ] + [
+                self.stages(datafit, features, weights, 0, reference=reference)
+                for datafit, features, weights in extra
+            ]
+        sizes = {len(job[0]) for job in jobs} | {len(e[1]) for e in extra}
+        if len(sizes) > 1:  # the extra problems on their own
+            return self.solve_many(balanced, jobs, penalty, reference, starts) + [
+                self.stages(datafit, features, weights, 0, reference=reference)
+                for datafit, features, weights in extra
             ]
         prepared = []
         pairs, union, block = balanced.problems([job[:3] for job in jobs])
@@ -282,20 +300,31 @@ class SparseSolve:
             prepared.append(
                 (np.asarray(free), datafit, to_coef, weights, nonneg, first)
             )
+        for datafit, features, weights in extra:  # to_coef None: results as they are
+            nonneg = self.nonneg(features, weights.device)
+            prepared.append(
+                (np.asarray(features), datafit, None, weights, nonneg, None)
+            )
         return self._batch(balanced, prepared, reference, starts, union, block)
 
     def _batch(self, balanced, prepared, reference, starts, union, block):
         """The staged solves (every start) of ``prepared`` problems of ``balanced``.
 
         ``union`` holds the problems' columns and ``block`` its scaled Gram block
-        (:meth:`BalancedGram.problems`).
+        (:meth:`BalancedGram.problems`). Problems without a ``to_coef`` (the extra
+        problems of :meth:`solve_many`) bring their own matrices.
         """
         n_features = balanced.n_features
         n = len(prepared)
         # Every problem's Gram matrix is a block of one scaled Gram matrix: the
-        # batched iterations multiply by that matrix once for all of them.
-        common = to_numpy(block)
-        index = [np.searchsorted(union, job[0]) for job in prepared]
+        # batched iterations multiply by that matrix once for all of them. With
+        # extra problems, each multiplies by its own (one matrix holding them all,
+        # block-diagonally, made the dense steps of the batch, e.g. the refit's
+        # eigendecompositions, 8 times the work).
+        shared = None
+        if all(job[2] is not None for job in prepared):
+            index = [np.searchsorted(union, job[0]) for job in prepared]
+            shared = to_numpy(block), index
         paths = [[] for _ in range(n)]
         open_ = list(range(n))
         bounds = [None] * n
@@ -316,7 +345,7 @@ class SparseSolve:
                 reference=reference,
                 **self._schedule(),
                 nonneg=[prepared[j][4] for j in run],
-                shared=(common, [index[j] for j in run]),
+                shared=None if shared is None else (shared[0], [index[j] for j in run]),
                 w0=None if k == 0 else [paths[j][-1].first_stage for j in run],
             )
             fresh = dict(zip(run, solved))
@@ -341,6 +370,9 @@ class SparseSolve:
         out = []
         for (free, datafit, to_coef, _, _, first), path in zip(prepared, paths):
             result = _sparsest_near_best(path)
+            if to_coef is None:
+                out.append(result)
+                continue
             coef = np.zeros(n_features)
             coef[free] = to_numpy(to_coef(result.coef))
             if result is not first:  # ``first``'s records were mapped by its own solve
