@@ -31,6 +31,7 @@ from .formulation.probes import (
     PROBE_KINDS,
     PROBED_CASES,
     probe_forces,
+    probe_term,
     probing,
     split_probes,
     warn_unmodelled,
@@ -853,7 +854,7 @@ def _fitted_state(
         stats,
         coef,
         est.normalize,
-        fixed if case == "fixed" else None,
+        probe_term(case, coef[:n_terms], fixed),
         solution.row_scale,
     )
     sign = -1.0 if fitted.mass_check.negative > 0.5 else 1.0

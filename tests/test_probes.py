@@ -157,7 +157,7 @@ def test_passive_damping_is_reported_in_the_fits_scale():
     assert est.coef_table().set_index("term")["coefficient"]["theta_dot**2"] == 1.0
     assert result.named == pytest.approx({"viscous(theta)": 0.1}, rel=0.02)
     (message,) = _unmodelled(caught)
-    assert "relative to the fixed term's column" in message
+    assert "relative to the column of the term whose coefficient is 1" in message
     assert "does not lose energy" in message and "tau" not in message
 
 
@@ -265,3 +265,48 @@ def test_negative_damping_points_at_sign_and_delay():
     with pytest.warns(UnmodelledForceWarning, match="adds energy") as record:
         assert warn_unmodelled(result) is True
     assert "estimate_delay" in str(record[0].message)
+
+
+def test_case_ii_reports_missing_damping_in_its_own_scale():
+    """Case II (``case="acceleration"``) is probed as case III is, against its unit
+    term's column; before, a damped pendulum fitted by case II warned of nothing.
+    A unit term of coefficient -1 reports the coefficients in the fit's scale."""
+    system = single_pendulum().with_damping(viscous={"theta": 0.05})
+    data = _passive(system)
+    calls = []
+    original = probes_module.probe_forces
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(
+            probes_module, "probe_forces", lambda *a: calls.append(a) or original(*a)
+        )
+        est, caught, result = _fit(system, data, passive=True, case="acceleration")
+    assert est.case_ == "acceleration" and result.passive
+    coef = est.coef_table().set_index("term")["coefficient"]
+    assert coef["theta_dot**2"] == 1.0  # the unit term: the probes' target
+    # measured: share 0.615 (case II's strong form keeps the accelerations' noise;
+    # case III's weak form 0.993); viscous(theta) = 0.1034 where theta_dot**2 = 1
+    assert result.share == pytest.approx(0.615, abs=0.02)
+    assert result.named == pytest.approx({"viscous(theta)": 0.1}, rel=0.05)
+    (message,) = _unmodelled(caught)
+    assert "relative to the column of the term whose coefficient is 1" in message
+
+    # The same model with the opposite sign (unit term -1): the force flips with it.
+    from lagsindy.formulation.probes import probe_term
+
+    (stats, coef, normalize, fixed, row_scale) = calls[-1]
+    assert fixed == probe_term("acceleration", coef, None)
+    flipped = original(stats, -coef, normalize, fixed, row_scale)
+    assert flipped.named == pytest.approx({"viscous(theta)": -0.1}, rel=0.05)
+    assert flipped.share == result.share
+
+
+def test_probe_term_picks_the_passive_fits_unit_term():
+    from lagsindy.formulation.probes import probe_term
+
+    # raw coefficients may exceed 1: the gauge sets the largest *scaled* one
+    coef = np.array([0.0, 4.0, -1.0, 1.0, 0.2])
+    assert probe_term("acceleration", coef, None) == 2  # the first of +-1
+    assert probe_term("fixed", coef, 4) == 4  # case III: its fixed term
+    assert probe_term("forces", coef, None) is None
+    assert probe_term("acceleration", np.zeros(3), None) is None
+    assert probe_term("acceleration", np.array([0.5, -0.7]), None) == 1  # no unit

@@ -5,11 +5,12 @@ coefficients and leaves the rest in its residual, without any sign of it in the
 coefficients themselves (a forced double pendulum with viscous damping at one joint
 was fitted 35-41 % low, relative residual 0.46); a passive model without it does not
 lose energy as the recording does. So a fit with no ``dissipation``, with measured
-forces (case I) or passive with a fixed scale (case III), adds one viscous and one
-Coulomb column per coordinate (the *probes*) to its Gram statistics, fits the
-Lagrangian on the other columns only, and then refits the kept terms by least
-squares with and without the probes (against tau, or in case III against the fixed
-term's column). When the probes explain at least :data:`UNMODELLED_SHARE` of what
+forces (case I) or passive (case III with a fixed scale, and case II), adds one
+viscous and one Coulomb column per coordinate (the *probes*) to its Gram
+statistics, fits the Lagrangian on the other columns only, and then refits the kept
+terms by least squares with and without the probes (against tau; passive, against
+the column of the term whose coefficient is 1: case III's fixed term, case II's
+unit term). When the probes explain at least :data:`UNMODELLED_SHARE` of what
 the model leaves, and enough of it (:meth:`ProbeResult.reported`), the fit warns
 (:class:`UnmodelledForceWarning`) and names them.
 
@@ -33,8 +34,10 @@ from .weak import window_stride
 # Kinds of the probe forces (see lagsindy.dissipation.DissipationLibrary).
 PROBE_KINDS = ("viscous", "coulomb")
 
-# Cases whose fits are probed: with forces (I) and passive with a fixed scale (III).
-PROBED_CASES = ("forces", "fixed")
+# Cases whose fits are probed: with forces (I) and passive (III, and II, whose fits
+# on damped data warned of nothing: a double pendulum with viscous damping 0.3 at
+# one joint, which case III reports, gave no warning in case II).
+PROBED_CASES = ("forces", "fixed", "acceleration")
 
 # Share of the kept terms' least-squares residual that the probes must explain for
 # the fit to warn. Measured on simulations with the weak form (10 trajectories of
@@ -114,8 +117,9 @@ class ProbeResult:
         The relative residual with the kept terms and the named probes
         (``residual`` when none is named).
     passive : bool
-        Case III: the residuals are relative to the fixed term's column, and the
-        coefficients in the scale where its coefficient is 1.
+        Passive fits: the residuals are relative to the column of the term whose
+        coefficient is 1 (case III's fixed term, case II's unit term), and the
+        coefficients in the fit's scale.
     """
 
     residual: float
@@ -176,13 +180,27 @@ def split_probes(ladder, n_features: int, names, n_targets: int = 1) -> list:
     return [lambda build=build: split(build) for build in ladder]
 
 
+def probe_term(case, coef, fixed):
+    """The index of the term whose column is the probes' target in a passive fit:
+    case III's ``fixed`` term, case II's unit term (the first of coefficient +-1,
+    where its gauge puts the largest scaled term); ``None`` with forces."""
+    if case == "fixed":
+        return fixed
+    if case != "acceleration" or not np.any(coef):
+        return None
+    unit = np.flatnonzero(np.abs(coef) == 1.0)
+    return int(unit[0]) if unit.size else int(np.argmax(np.abs(coef)))
+
+
 def probe_forces(
     stats, coef, normalize: bool = True, fixed=None, row_scale=None
 ) -> ProbeResult | None:
     """What the probes of ``stats`` explain of the residual of ``coef``'s terms.
 
-    With ``fixed`` (case III: the index of the term whose coefficient is 1), that
-    term's column is the target; otherwise tau, after the probes. ``row_scale``:
+    With ``fixed`` (passive fits: the index of the term whose coefficient is 1, or
+    -1 in case II; see :func:`probe_term`), that term's column is the target and
+    the named coefficients are in ``coef``'s scale; otherwise tau, after the
+    probes. ``row_scale``:
     the fit's row scales (the coordinates' equations weighted as the fit weighted
     them; without it they are balanced again, with the probes).
 
@@ -239,6 +257,8 @@ def probe_forces(
     )[0]
     w, named_residual = dense_solution(datafit)
     coefficients = to_coef(w).cpu().numpy()[len(support) :]
+    if passive:  # fitted where coef[fixed] is +1: back to coef's own scale
+        coefficients = coefficients * float(coef[fixed])
     return ProbeResult(
         residual=base,
         probed=probed,
@@ -259,8 +279,8 @@ def warn_unmodelled(
     which = ", ".join(f"{name} = {c:.3g}" for name, c in result.named.items())
     if result.passive:
         measure = (
-            "least-squares residual of the kept terms relative to the fixed term's "
-            "column"
+            "least-squares residual of the kept terms relative to the column of the "
+            "term whose coefficient is 1"
         )
         scale = " in the fit's scale"
         harm = (
