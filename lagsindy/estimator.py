@@ -133,9 +133,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         paper; a step that makes FISTA diverge is halved automatically.
     threshold : float, default=0.05
         Hard threshold between stages, relative to the largest scaled coefficient: a
-        term contributing less than ``threshold`` times the dominant term is dropped
-        without a warning: a link 100 times lighter than the rest needs e.g. 1e-3
-        (m2 = 0.01 m1: a 1.6 % residual, joint 1's torques at R^2 = -783).
+        term contributing less than ``threshold`` times the dominant term is dropped;
+        a link 100 times lighter than the rest needs e.g. 1e-3 (a fit with forces
+        warns when a coordinate's accelerations are then predicted poorly).
     dissipation_threshold : float, default=1e-3
         The hard threshold for dissipation terms. Friction and damping forces are
         usually a few percent of the conservative ones, so they get a lower threshold;
@@ -860,7 +860,7 @@ def _fitted_state(
     sign = -1.0 if fitted.mass_check.negative > 0.5 else 1.0
     if not warn_unmodelled(probed, sign, stacklevel=4):
         fitted.warn_unexplained(stacklevel=4, Xt=Xt)
-        fitted.warn_poor_accelerations(Xt, solution.score, stacklevel=4)
+        fitted.warn_poor_accelerations(Xt, solution.score, stacklevel=4, tau=tau)
     return fitted
 
 

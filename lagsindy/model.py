@@ -464,17 +464,47 @@ class FittedLagrangian:
             return -np.inf
         return float(r2_scores(true, pred[None])[0])
 
-    def warn_poor_accelerations(self, Xt, r2=None, stacklevel: int = 2):
-        """Warn when a passive fit predicts its own data's accelerations poorly.
+    def coordinate_acceleration_r2(self, Xt, tau) -> dict:
+        """``{coordinate: R^2}`` of the forced model's accelerations ``M(c)^+ (tau -
+        h(c))`` on (up to ``ACCELERATION_ROWS`` evenly spaced) rows of ``Xt``,
+        against its measured ``qddot``, one coordinate at a time; coordinates whose
+        ``qddot`` does not vary are left out, ``-inf`` where the predictions are
+        not finite."""
+        d = self.n_dof
+        rows = _even_rows(Xt, ACCELERATION_ROWS)
+        true = to_numpy(Xt[rows, 2 * d : 3 * d])
+        varies = np.any(true != true[0], axis=0)
+        if not varies.any():
+            return {}
+        from .cases.fixed import r2_scores
 
-        Only for case III, and only where the mass check did not warn already (the
-        model then predicts no accelerations at all). ``r2``: the R^2 when already
-        known (case III's search scores its models), else :meth:`acceleration_r2`.
-        Returns the R^2 (``None`` when not computed).
+        tau = np.asarray(tau, dtype=float).reshape(-1, d)[rows.cpu().numpy()]
+        pred = self.accelerations(Xt[rows], tau)
+        if not np.all(np.isfinite(pred)):
+            return {self.coordinates[i]: -np.inf for i in np.flatnonzero(varies)}
+        return {
+            self.coordinates[i]: float(r2_scores(true[:, [i]], pred[None, :, [i]])[0])
+            for i in np.flatnonzero(varies)
+        }
+
+    def warn_poor_accelerations(self, Xt, r2=None, stacklevel: int = 2, tau=None):
+        """Warn when a fit predicts its own data's accelerations poorly.
+
+        Case III: the variance-weighted R^2 (``r2`` when already known, as case
+        III's search scores its models, else :meth:`acceleration_r2`). Case I
+        (with ``tau``): each coordinate's R^2 (:meth:`coordinate_acceleration_r2`),
+        since a light link's large accelerations can hide another coordinate's
+        failure in a weighted one. Not where the mass check already warned (the
+        model then predicts no accelerations at all). Returns the R^2 (case I: the
+        dict; ``None`` when not computed).
         """
-        if self.case != "fixed" or not self.coef.any():
+        if not self.coef.any():
             return None
         if self.mass_check is not None and not self.mass_check.ok:
+            return None
+        if self.case == "forces" and tau is not None:
+            return self._warn_poor_forced(Xt, tau, stacklevel + 1)
+        if self.case != "fixed":
             return None
         if r2 is None:
             r2 = self.acceleration_r2(Xt)
@@ -491,6 +521,30 @@ class FittedLagrangian:
                 stacklevel=stacklevel + 1,
             )
         return r2
+
+    def _warn_poor_forced(self, Xt, tau, stacklevel):
+        """:meth:`warn_poor_accelerations` of case I."""
+        scores = self.coordinate_acceleration_r2(Xt, tau)
+        poor = {name: r2 for name, r2 in scores.items() if r2 < POOR_ACCELERATIONS}
+        if poor:
+            which = ", ".join(
+                f"{name} with R^2 = {r2:.2f}" for name, r2 in poor.items()
+            )
+            warnings.warn(
+                f"the learned model predicts the measured accelerations of {which} "
+                f"on its own data, from the measured forces (a right model of noisy "
+                f"data scores above {POOR_ACCELERATIONS} on each coordinate): it is "
+                "likely not a model of these data. A term that the data need may "
+                "have been dropped as small next to the largest (a link much lighter "
+                "than the others, a weak coupling): refit with a lower threshold, "
+                "e.g. threshold=1e-3. Also check that the library holds the terms "
+                "the system needs, run lagsindy.diagnose for friction or damping, "
+                "and check the accelerations in X (very noisy ones also do this)."
+                + degrees_hint(self.library, Xt),
+                UserWarning,
+                stacklevel=stacklevel + 1,
+            )
+        return scores
 
     def warn_angle_polynomials(self, Xt, norms=None, stacklevel: int = 2):
         """Warn when the learned Lagrangian uses an angle (a coordinate inside
