@@ -490,8 +490,9 @@ class FittedLagrangian:
     def warn_poor_accelerations(self, Xt, r2=None, stacklevel: int = 2, tau=None):
         """Warn when a fit predicts its own data's accelerations poorly.
 
-        Case III: the variance-weighted R^2 (``r2`` when already known, as case
-        III's search scores its models, else :meth:`acceleration_r2`). Case I
+        Passive fits (cases III and II): the variance-weighted R^2 (``r2`` when
+        already known, as case III's search scores its models, else
+        :meth:`acceleration_r2`). Case I
         (with ``tau``): each coordinate's R^2 (:meth:`coordinate_acceleration_r2`),
         since a light link's large accelerations can hide another coordinate's
         failure in a weighted one. Not where the mass check already warned (the
@@ -504,7 +505,7 @@ class FittedLagrangian:
             return None
         if self.case == "forces" and tau is not None:
             return self._warn_poor_forced(Xt, tau, stacklevel + 1)
-        if self.case != "fixed":
+        if self.case not in ("fixed", "acceleration"):
             return None
         if r2 is None:
             r2 = self.acceleration_r2(Xt)

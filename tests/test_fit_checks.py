@@ -276,3 +276,22 @@ def test_forced_acceleration_check_skips_constant_and_flags_non_finite(monkeypat
     assert fitted.coordinate_acceleration_r2(Xt, data.tau) == {"theta": -np.inf}
     with pytest.warns(UserWarning, match="accelerations of theta with R\\^2 = -inf"):
         fitted.warn_poor_accelerations(Xt, tau=data.tau)
+
+
+def test_case_ii_fit_that_predicts_nothing_warns():
+    """Case II (fitted through the accelerations) gets the passive R^2 check too:
+    with the accelerations shuffled, its model explains none of them (measured
+    R^2 about 0; rounding decides its sign) and says so; before, only case III
+    said so."""
+    system = single_pendulum()
+    data = make_dataset(
+        system, n_trajectories=4, duration=3.0, excitation=None, random_state=0
+    )
+    X = np.array(data.X)
+    X[:, 2] = np.random.default_rng(0).permutation(X[:, 2])
+    with pytest.warns(UserWarning, match="accelerations with R\\^2 = -?0.00 "):
+        est = LagrangianSINDy(
+            system.paper_library(), case="acceleration", formulation="strong"
+        ).fit(X)
+    assert est.case_ == "acceleration"
+    assert est.score(X) == pytest.approx(0.0, abs=0.01)
