@@ -297,7 +297,11 @@ def test_mass_problem_batched_with_the_ranking_equals_its_own_solve(
     ]
     out = p.solver.solve_many(p.balanced, small, p.penalty, 1.0, 1, extra)
     assert calls == [(2, False)] and len(out) == 3
-    np.testing.assert_array_equal(out[-1].support, want.support)
+    # ... with the starts asked for (one here: the ranking's first start)
+    one = p.solver.stages(datafit, features, weights, 0, 1, reference=1.0)
+    np.testing.assert_array_equal(out[-1].support, one.support)
+    assert out[-1].cost == pytest.approx(one.cost, rel=1e-12)
+    assert len(out[-1].stages) == len(one.stages)
 
     # The search hands the batched one-start result to the mass solve.
     firsts = []

@@ -186,7 +186,7 @@ def _rank(p: Problem, candidates, traces, mass=None):
         for r in candidates
     }
     solved = {}
-    extra = [] if mass is None else [mass[:3]]  # with the first batch
+    with_first = [] if mass is None else [mass[:3]]  # solved in the first batch
 
     def run(batch, extra=()):
         with warnings.catch_warnings():
@@ -198,7 +198,7 @@ def _rank(p: Problem, candidates, traces, mass=None):
         return out[len(batch) :]
 
     if len(candidates) <= SELECTION_TOP:
-        mass_first = run(list(candidates), extra)
+        mass_first = run(list(candidates), with_first)
     else:
         g, _ = p.balanced.block(free_all)
         bound = dict(zip(free_all.tolist(), fixed_term_bounds(g).tolist()))
@@ -209,7 +209,7 @@ def _rank(p: Problem, candidates, traces, mass=None):
         # are not worth a second batch.
         mass_first = run(
             first if len(first) <= RANK_ALL * len(candidates) else list(candidates),
-            extra,
+            with_first,
         )
         costs = sorted(res.cost for _, res in solved.values())
         cut = np.inf  # fewer solved than the shortlist holds: every other may enter

@@ -266,6 +266,13 @@ class SparseSolve:
         """
         starts = LAM_STARTS if starts is None else starts
         gram = balanced.gram
+
+        def alone():  # the extra problems, each solved on its own
+            return [
+                self.stages(datafit, features, weights, 0, starts, reference=reference)
+                for datafit, features, weights in extra
+            ]
+
         n_jobs = len(jobs) + len(extra)
         if n_jobs <= 1 or gram.device.type != "cpu" or gram.dtype != torch.float64:
             return [
@@ -282,16 +289,11 @@ class SparseSolve:
                     first=first,
                 )
                 for free, target, sign, constrain, first in jobs
-            ] + [
-                self.stages(datafit, features, weights, 0, reference=reference)
-                for datafit, features, weights in extra
-            ]
+            ] + alone()
         sizes = {len(job[0]) for job in jobs} | {len(e[1]) for e in extra}
         if len(sizes) > 1:  # the extra problems on their own
-            return self.solve_many(balanced, jobs, penalty, reference, starts) + [
-                self.stages(datafit, features, weights, 0, reference=reference)
-                for datafit, features, weights in extra
-            ]
+            batched = self.solve_many(balanced, jobs, penalty, reference, starts)
+            return batched + alone()
         prepared = []
         pairs, union, block = balanced.problems([job[:3] for job in jobs])
         for (free, _, _, constrain, first), (datafit, to_coef) in zip(jobs, pairs):
