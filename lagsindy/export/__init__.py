@@ -34,8 +34,9 @@ from .python_code import load_python, python_source
 FORMATS = ("python", "c")
 
 
-def export_source(source, format: str = "python", *, name: str = "model",
-                  input_matrix=None, date=None):
+def export_source(
+    source, format: str = "python", *, name: str = "model", input_matrix=None, date=None
+):
     """The text of an export, without writing files (see :func:`export_model`).
 
     Returns
@@ -50,8 +51,9 @@ def export_source(source, format: str = "python", *, name: str = "model",
     return c_sources(eq, name)
 
 
-def export_model(source, path, format: str | None = None, *, input_matrix=None,
-                 date=None):
+def export_model(
+    source, path, format: str | None = None, *, input_matrix=None, date=None
+):
     """Write a model's equations of motion as standalone Python or C.
 
     Parameters
@@ -103,8 +105,9 @@ def export_model(source, path, format: str | None = None, *, input_matrix=None,
         if not path.suffix:
             path = path.with_suffix(".py")
         path.write_text(
-            export_source(source, "python", name=name, input_matrix=input_matrix,
-                          date=date),
+            export_source(
+                source, "python", name=name, input_matrix=input_matrix, date=date
+            ),
             encoding="utf-8",
         )
         return path

@@ -56,8 +56,12 @@ def _terms_function(prefix, n, mass, rest, printer) -> list:
         f"    const double {sym} = {printer.doprint(value)};"
         for sym, value in replacements
     ]
-    lines += [f"    m[{k}] = {printer.doprint(e)};" for k, e in enumerate(reduced[: n * n])]
-    lines += [f"    r[{k}] = {printer.doprint(e)};" for k, e in enumerate(reduced[n * n :])]
+    lines += [
+        f"    m[{k}] = {printer.doprint(e)};" for k, e in enumerate(reduced[: n * n])
+    ]
+    lines += [
+        f"    r[{k}] = {printer.doprint(e)};" for k, e in enumerate(reduced[n * n :])
+    ]
     lines += ["    (void)q;", "    (void)qd;", "}"]
     return lines
 
@@ -84,7 +88,9 @@ def _generalized_lines(eq: ModelEquations) -> list:
             for j, b in enumerate(row)
             if float(b) != 0.0
         ]
-        lines.append(f"        r[{i}] = {' + '.join(parts) if parts else '0.0'} - r[{i}];")
+        lines.append(
+            f"        r[{i}] = {' + '.join(parts) if parts else '0.0'} - r[{i}];"
+        )
     return lines
 
 
@@ -215,8 +221,8 @@ def _header(eq: ModelEquations, name: str) -> str:
         'extern "C" {',
         "#endif",
         "",
-        "/* Accelerations qdd (N_DOF) at state x under inputs u. Returns 0, or -1 where",
-        " * the mass matrix is singular (qdd is then NaN). */",
+        "/* Accelerations qdd (N_DOF) at state x under inputs u. Returns 0, or -1",
+        " * where the mass matrix is singular (qdd is then NaN). */",
         f"int {p}_forward_dynamics(const double *x, const double *u, double *qdd);",
         "",
         "/* The same for count states (x: count x 2 N_DOF, u: count x N_INPUTS or",
@@ -224,7 +230,7 @@ def _header(eq: ModelEquations, name: str) -> str:
         f"int {p}_forward_dynamics_batch(size_t count, const double *x, "
         "const double *u, double *qdd);",
         "",
-        "/* xdot = [q_dot, q_ddot] (2 N_DOF): the right-hand side for an integrator. */",
+        "/* xdot = [q_dot, q_ddot] (2 N_DOF), the right-hand side for integrators. */",
         f"int {p}_state_derivative(const double *x, const double *u, double *xdot);",
         "",
         "/* Generalized forces tau = M qdd + r (N_DOF) that produce qdd. */",
@@ -278,8 +284,10 @@ def c_sources(eq: ModelEquations, name: str = "model") -> tuple[str, str]:
     lines += _terms_function(p, n, mass, rest, printer)
     lines += [""]
     lines += _energy_function(p, n, energy, printer)
-    source = "\n".join(lines) + "\n" + _SOLVE.format(
-        p=p, generalized="\n".join(_generalized_lines(eq))
+    source = (
+        "\n".join(lines)
+        + "\n"
+        + _SOLVE.format(p=p, generalized="\n".join(_generalized_lines(eq)))
     )
     return source, _header(eq, name)
 

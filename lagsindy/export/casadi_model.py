@@ -152,7 +152,11 @@ def casadi_functions(eq: ModelEquations, name: str = "model") -> CasadiModel:
             f"{name}_forward_dynamics", [x, u], [acc], names["x"], ["q_ddot"]
         ),
         state_derivative=ca.Function(
-            f"{name}_state_derivative", [x, u], [ca.vertcat(qd, acc)], names["x"], ["x_dot"]
+            f"{name}_state_derivative",
+            [x, u],
+            [ca.vertcat(qd, acc)],
+            names["x"],
+            ["x_dot"],
         ),
         inverse_dynamics=ca.Function(
             f"{name}_inverse_dynamics",

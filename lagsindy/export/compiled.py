@@ -29,7 +29,9 @@ def find_compiler() -> str | None:
     return None
 
 
-def compile_c(source, output=None, *, compiler: str | None = None, flags=("-O2",)) -> Path:
+def compile_c(
+    source, output=None, *, compiler: str | None = None, flags=("-O2",)
+) -> Path:
     """Build a shared library from an exported ``.c`` file.
 
     Runs ``<compiler> -O2 -shared -fPIC -o <output> <source> -lm``.
@@ -55,8 +57,8 @@ def compile_c(source, output=None, *, compiler: str | None = None, flags=("-O2",
         When no compiler is found or the build fails (with the compiler's message).
     """
     source = Path(source)
-    output = Path(output) if output is not None else source.with_name(
-        f"lib{source.stem}.so"
+    output = (
+        Path(output) if output is not None else source.with_name(f"lib{source.stem}.so")
     )
     compiler = compiler or find_compiler()
     if compiler is None:
@@ -88,6 +90,12 @@ class CModel:
     name : str
         The name the model was exported under (its functions' prefix).
 
+    Notes
+    -----
+    A process loads a shared library once per path: a library rebuilt at the same
+    path is not reloaded (the dynamic loader returns the first one). Build each
+    version of a model under its own file name.
+
     Attributes
     ----------
     n_dof, n_inputs : int
@@ -105,7 +113,10 @@ class CModel:
         void = ctypes.c_void_p
         signatures = {
             "forward_dynamics": (ctypes.c_int, [void, void, void]),
-            "forward_dynamics_batch": (ctypes.c_int, [ctypes.c_size_t, void, void, void]),
+            "forward_dynamics_batch": (
+                ctypes.c_int,
+                [ctypes.c_size_t, void, void, void],
+            ),
             "state_derivative": (ctypes.c_int, [void, void, void]),
             "inverse_dynamics": (None, [void, void, void, void]),
             "mass_matrix": (None, [void, void, void]),
@@ -124,7 +135,7 @@ class CModel:
         return a.reshape(-1, width), a.shape[:-1]
 
     def forward_dynamics(self, x, u=None) -> np.ndarray:
-        """Accelerations at states ``x`` (..., 2 n_dof) under inputs ``u`` (..., n_inputs)."""
+        """Accelerations at states ``x`` (..., 2 n_dof) under inputs ``u``."""
         n = self.n_dof
         x, shape = self._rows(x, 2 * n, "x")
         if u is not None:
@@ -143,7 +154,10 @@ class CModel:
 
     def _each(self, function, arrays, width_out):
         n = self.n_dof
-        rows = [self._rows(a, n, "q, q_dot and q_ddot")[0] for a in np.broadcast_arrays(*arrays)]
+        rows = [
+            self._rows(a, n, "q, q_dot and q_ddot")[0]
+            for a in np.broadcast_arrays(*arrays)
+        ]
         shape = np.broadcast_shapes(*(np.shape(a)[:-1] for a in arrays))
         out = np.empty((rows[0].shape[0], width_out))
         for s in range(rows[0].shape[0]):
@@ -152,7 +166,9 @@ class CModel:
 
     def inverse_dynamics(self, q, q_dot, q_ddot) -> np.ndarray:
         """Generalized forces ``M q_ddot + r``, shape (..., n_dof)."""
-        out, shape = self._each(self.functions["inverse_dynamics"], [q, q_dot, q_ddot], self.n_dof)
+        out, shape = self._each(
+            self.functions["inverse_dynamics"], [q, q_dot, q_ddot], self.n_dof
+        )
         return out.reshape(shape + (self.n_dof,))
 
     def mass_matrix(self, q, q_dot) -> np.ndarray:

@@ -97,7 +97,10 @@ def elimination_lines(n, mass, rhs, indent="    "):
 def _forward_function(name, args, inputs, mass, rest, printer, doc):
     """``def name(q.., v.., g..)`` returning ``(x0, .., ok)``: accelerations."""
     n = len(rest)
-    lines = [f"def {name}({', '.join(map(str, list(args) + inputs))}):", f'    """{doc}"""']
+    lines = [
+        f"def {name}({', '.join(map(str, list(args) + inputs))}):",
+        f'    """{doc}"""',
+    ]
     body, values = _cse_lines(mass + rest, printer)
     lines += body
     m_names = []
@@ -336,17 +339,31 @@ def python_source(eq: ModelEquations, name: str = "model") -> str:
     ]
     numpy_printer, math_printer = NumpyExactPrinter(), MathExactPrinter()
     lines += _terms_function(
-        "_terms", args, mass, rest, numpy_printer,
+        "_terms",
+        args,
+        mass,
+        rest,
+        numpy_printer,
         "Mass matrix entries (row-major) and r, on numpy arrays.",
     )
     lines += ["", ""]
     lines += _forward_function(
-        "_forward_block", args, gs, mass, rest, numpy_printer,
+        "_forward_block",
+        args,
+        gs,
+        mass,
+        rest,
+        numpy_printer,
         "Accelerations (no pivoting) and whether the pivots share a sign; arrays.",
     )
     lines += ["", ""]
     lines += _forward_function(
-        "_forward_float", args, gs, mass, rest, math_printer,
+        "_forward_float",
+        args,
+        gs,
+        mass,
+        rest,
+        math_printer,
         "Accelerations (no pivoting) and whether the pivots share a sign; floats.",
     )
     lines += ["", ""]

@@ -24,7 +24,10 @@ COULOMB = 0.07
 # Uniform ranges of the random states (positions, velocities, accelerations,
 # generalized forces): the elastic pendulum's radius stays positive (its mass
 # matrix is singular at r = 0), the spherical pendulum's theta away from the pole.
-POSITIONS = {"elastic_pendulum": {"r": (0.5, 1.5)}, "spherical_pendulum": {"theta": (0.3, 2.8)}}
+POSITIONS = {
+    "elastic_pendulum": {"r": (0.5, 1.5)},
+    "spherical_pendulum": {"theta": (0.3, 2.8)},
+}
 
 
 def model_document(name: str, damped: bool) -> dict:
