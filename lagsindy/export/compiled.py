@@ -90,18 +90,18 @@ class CModel:
     name : str
         The name the model was exported under (its functions' prefix).
 
-    Notes
-    -----
-    A process loads a shared library once per path: a library rebuilt at the same
-    path is not reloaded (the dynamic loader returns the first one). Build each
-    version of a model under its own file name.
-
     Attributes
     ----------
     n_dof, n_inputs : int
     functions : dict
         The raw ctypes functions by short name (``"forward_dynamics"``...), whose
         arguments are pointers to doubles (``ctypes.c_void_p``).
+
+    Notes
+    -----
+    A process loads a shared library once per path: a library rebuilt at the same
+    path is not reloaded (the dynamic loader returns the first one). Build each
+    version of a model under its own file name.
     """
 
     def __init__(self, library, name: str):
@@ -140,8 +140,12 @@ class CModel:
         x, shape = self._rows(x, 2 * n, "x")
         if u is not None:
             u = np.asarray(u, dtype=float)
-            if self.n_inputs == 1 and (u.ndim == 0 or u.shape[-1] != 1):
+            if self.n_inputs == 1 and (u.ndim == 0 or u.ndim == len(shape)):
                 u = u[..., None]
+            if u.shape[-1] != self.n_inputs:
+                raise ValueError(
+                    f"u must have shape (..., {self.n_inputs}), got {u.shape}"
+                )
             u = np.ascontiguousarray(np.broadcast_to(u, shape + (self.n_inputs,)))
             u = u.reshape(-1, self.n_inputs)
         out = np.empty((x.shape[0], n))

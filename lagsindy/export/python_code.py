@@ -197,9 +197,11 @@ def _stack(values, shape):
     return out
 
 
-def _generalized_forces(u):
+def _generalized_forces(u, lead):
+    """B u for inputs u of shape (..., N_INPUTS); with one input, u may also have
+    the states' leading shape (``lead`` axes) or be a number."""
     u = numpy.asarray(u, dtype=float)
-    if N_INPUTS == 1 and (u.ndim == 0 or u.shape[-1] != 1):
+    if N_INPUTS == 1 and (u.ndim == 0 or u.ndim == lead):
         u = u[..., None]
     if u.shape[-1] != N_INPUTS:
         raise ValueError(f"u must have shape (..., {N_INPUTS}), got {u.shape}")
@@ -227,8 +229,10 @@ def _forward_one(x, u):
         if len(u) != N_INPUTS:
             raise ValueError(f"u must have {N_INPUTS} entries, got {len(u)}")
         g = _generalized_float(*u)
-    xs = x.tolist()
-    out = _forward_float(*xs, *g)
+    try:
+        out = _forward_float(*x.tolist(), *g)
+    except (ZeroDivisionError, OverflowError):
+        out = (False,)
     if out[-1]:
         return numpy.array(out[:-1])
     return _solve_rows(x[None], numpy.array(g))[0]
@@ -258,7 +262,7 @@ def forward_dynamics(x, u=None):
     if u is None:
         g = numpy.zeros(N_DOF)
     else:
-        g = _generalized_forces(u)
+        g = _generalized_forces(u, x.ndim - 1)
     shape = numpy.broadcast_shapes(x.shape[:-1], g.shape[:-1])
     x = numpy.broadcast_to(x, shape + (2 * N_DOF,)).reshape(-1, 2 * N_DOF)
     g = numpy.broadcast_to(g, shape + (N_DOF,)).reshape(-1, N_DOF)
@@ -266,8 +270,12 @@ def forward_dynamics(x, u=None):
     for start in range(0, x.shape[0], BLOCK):
         xb = numpy.ascontiguousarray(x[start : start + BLOCK].T)
         gb = numpy.ascontiguousarray(g[start : start + BLOCK].T)
-        *acc, ok = _forward_block(*xb, *gb)
         block = out[start : start + BLOCK]
+        try:
+            with numpy.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                *acc, ok = _forward_block(*xb, *gb)
+        except (ZeroDivisionError, OverflowError):  # a constant zero pivot
+            acc, ok = (), False
         for i, a in enumerate(acc):
             block[:, i] = a
         if not numpy.all(ok):
