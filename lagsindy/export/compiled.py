@@ -105,7 +105,7 @@ class CModel:
     """
 
     def __init__(self, library, name: str):
-        self.path = Path(library)
+        self.path = Path(library).resolve()  # a bare name would search the system
         self._lib = ctypes.CDLL(str(self.path))
         p = c_identifier(name)
         self.n_dof = int(getattr(self._lib, f"{p}_n_dof")())

@@ -119,3 +119,11 @@ def test_a_failed_build_says_why(tmp_path):
     bad.write_text("int f(void) { return }\n")
     with pytest.raises(RuntimeError, match="building .*bad.c failed"):
         compile_c(bad)
+
+
+def test_a_library_in_the_current_folder_loads(tmp_path, monkeypatch):
+    # ctypes searches the system's library path for a bare file name
+    monkeypatch.chdir(tmp_path)
+    source, _ = export_model(MechanicalModel("0.5*x_dot**2 - x**2", ["x"]), "spring.c")
+    model = CModel(compile_c(source), "spring")
+    np.testing.assert_allclose(model.forward_dynamics([0.5, 0.0], [1.0]), [0.0])
