@@ -96,23 +96,37 @@ def test_bad_shapes_raise(cart):
         m.mass_matrix(np.zeros(3), np.zeros(3))
 
 
-def _swap_model():
-    """Mass matrix [[0, 1], [1, 0]]: indefinite, with a zero first pivot."""
-    return MechanicalModel("x_dot*y_dot - 0.5*x**2 - 2*y**2", ["x", "y"])
-
-
-def test_a_zero_pivot_is_solved_with_pivoting():
-    m = load_python(export_source(_swap_model(), "python"))
+def test_indefinite_rows_are_solved_with_pivoting():
+    # M = [[x, 1], [1, 0]]: indefinite (det -1); its first pivot x vanishes at x = 0
+    # and is tiny at x = 1e-13, where elimination without pivoting loses digits
+    model = MechanicalModel(
+        "0.5*x*x_dot**2 + x_dot*y_dot - 0.5*x**2 - 2*y**2", ["x", "y"]
+    )
+    m = load_python(export_source(model, "python"))
     rng = np.random.default_rng(3)
     x = rng.uniform(-1, 1, (20, 4))
+    x[3, 0], x[5, 0] = 0.0, 1e-13
     u = rng.uniform(-1, 1, (20, 2))
     mass = m.mass_matrix(x[:, :2], x[:, 2:])
     rest = m.inverse_dynamics(x[:, :2], x[:, 2:], np.zeros((20, 2)))
     expected = np.linalg.solve(mass, (u - rest)[..., None])[..., 0]
-    np.testing.assert_allclose(m.forward_dynamics(x, u), expected, rtol=1e-14)
-    np.testing.assert_allclose(m.forward_dynamics(x[4], u[4]), expected[4], rtol=1e-14)
-    # here: qdd_x = u_y - 4 y, qdd_y = u_x - x
-    np.testing.assert_allclose(expected[:, 0], u[:, 1] - 4 * x[:, 1], atol=1e-14)
+    np.testing.assert_allclose(m.forward_dynamics(x, u), expected, rtol=1e-13)
+    for i in (3, 5):
+        np.testing.assert_allclose(
+            m.forward_dynamics(x[i], u[i]), expected[i], rtol=1e-13
+        )
+
+
+def test_a_constant_zero_pivot_is_solved_with_pivoting():
+    # M = [[0, 1], [1, 0]] everywhere: qdd_x = u_y - 4 y, qdd_y = u_x - x
+    model = MechanicalModel("x_dot*y_dot - 0.5*x**2 - 2*y**2", ["x", "y"])
+    m = load_python(export_source(model, "python"))
+    rng = np.random.default_rng(3)
+    x = rng.uniform(-1, 1, (20, 4))
+    u = rng.uniform(-1, 1, (20, 2))
+    expected = np.stack([u[:, 1] - 4 * x[:, 1], u[:, 0] - x[:, 0]], axis=1)
+    np.testing.assert_allclose(m.forward_dynamics(x, u), expected, atol=1e-14)
+    np.testing.assert_allclose(m.forward_dynamics(x[4], u[4]), expected[4], atol=1e-14)
 
 
 def test_a_singular_mass_matrix_raises():
