@@ -272,6 +272,38 @@ def _table(name: str, result: dict) -> list:
     return lines + [""]
 
 
+def _targets(results: dict) -> list:
+    """The issue's targets against the measurements (CPU time, then wall)."""
+    lines = [
+        "## Targets\n",
+        "| target | system | CPU | wall | met (CPU / wall) |",
+        "|---|---|---|---|---|",
+    ]
+    checks = (
+        ("C single call under 2 us, inside C", "C inside C", 2e-6, True),
+        (
+            "C single call under 2 us, from Python (ctypes)",
+            "C via ctypes, one",
+            2e-6,
+            True,
+        ),
+        ("numpy batched over 1e6 states/s", "exported numpy, batch", 1e-6, False),
+    )
+    for label, prefix, limit, is_time in checks:
+        for name, result in results.items():
+            row = next((r for r in result["rows"] if r[0].startswith(prefix)), None)
+            if row is None:
+                continue
+            wall, cpu = row[1]
+            shown = [_time(v) if is_time else f"{1.0 / v:.3g}/s" for v in (cpu, wall)]
+            met = ["yes" if v < limit else "no" for v in (cpu, wall)]
+            lines.append(
+                f"| {label} | {name.replace('_', ' ')} | {shown[0]} | {shown[1]} "
+                f"| {met[0]} / {met[1]} |"
+            )
+    return lines + [""]
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer states and calls")
@@ -316,11 +348,14 @@ def main(argv=None):
         "The C library is built with `cc -O2 -shared -fPIC`; 'C inside C' is a "
         "program calling the function in a loop over 64 states.\n",
     ]
+    results = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name in SYSTEMS:
-            result = _measure(name, Path(tmp), sizes)
-            lines += _table(name, result)
-            print("\n".join(_table(name, result)))
+            results[name] = _measure(name, Path(tmp), sizes)
+            print("\n".join(_table(name, results[name])))
+    lines += _targets(results)
+    for name in SYSTEMS:
+        lines += _table(name, results[name])
     lines.append(f"Load average (1 min) at the end: {os.getloadavg()[0]:.2f}.\n")
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines))

@@ -26,6 +26,7 @@ import sympy as sp
 from scipy.linalg import expm
 
 from .equations import model_equations
+from .printing import NumpyExactPrinter
 
 # |f(x_eq, u_eq)| above this fraction of ||A||_2 (the change of f per unit change
 # of the state) makes linearize warn that x_eq is not an equilibrium. The ratio is
@@ -94,8 +95,11 @@ def _jacobian_functions(eq):
     mass = [eq.mass[i, j] for i in range(n) for j in range(n)]
     exprs = mass + list(eq.rest)
     jac = [sp.diff(e, v) for e in exprs for v in x]
-    f = sp.lambdify(x, exprs + jac, modules="numpy", cse=True)
-    return f
+    # sympy's printer writes a Float made from a Python float with 15 significant
+    # digits (a learned coefficient's last bits); this one writes every bit
+    return sp.lambdify(
+        x, exprs + jac, modules="numpy", cse=True, printer=NumpyExactPrinter
+    )
 
 
 def linearize(

@@ -127,3 +127,20 @@ def test_bad_points_raise():
         linearize(cart_pendulum(), UPRIGHT, [0.0, 0.0])
     with pytest.raises(ValueError, match="finite"):
         linearize(cart_pendulum(), [0.0, np.nan, 0.0, 0.0])
+
+
+def test_coefficients_enter_to_the_last_bit():
+    import sympy as sp
+
+    from lagsindy import MechanicalModel
+
+    # a learned model's coefficients are sympy Floats made from Python floats
+    c, k = 0.12345678901234568, 9.876543210987654  # 17 significant digits
+    theta, theta_dot = sp.symbols("theta theta_dot", real=True)
+    lagrangian = sp.Float(c) * theta_dot**2 + sp.Float(k) * sp.cos(theta)
+    model = MechanicalModel(lagrangian, ["theta"])
+    lin = linearize(model, [0.0, 0.0])
+    # the mass 2c enters exactly (written with 15 digits, it is 6 units in the
+    # last place off); LAPACK divides by way of the pivot's reciprocal: 1 ulp
+    assert lin.B[1, 0] == 1 / (2 * c)
+    assert abs(lin.A[1, 0] + k / (2 * c)) <= 2 * np.spacing(k / (2 * c))

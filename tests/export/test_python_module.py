@@ -156,12 +156,23 @@ def test_the_header_records_the_provenance(cart):
 
 
 def test_numbers_are_written_exactly():
+    import sympy as sp
+
     c = 0.12345678901234568  # 17 significant digits
-    model = MechanicalModel(f"{c!r}*theta_dot**2 + 9.81*cos(theta)", ["theta"])
-    text = export_source(model, "python")
-    assert repr(2 * c) in text  # the mass, 2c, to the last bit
-    m = load_python(text)
-    assert m.mass_matrix([0.3], [0.0])[0, 0] == 2 * c
+    theta, theta_dot = sp.symbols("theta theta_dot", real=True)
+    # parsed from text, and as a learned model holds it (a Float of a Python float,
+    # which sympy's own printers write with 15 digits)
+    for lagrangian in (
+        f"{c!r}*theta_dot**2 + 9.81*cos(theta)",
+        sp.Float(c) * theta_dot**2 + sp.Float(9.81) * sp.cos(theta),
+    ):
+        model = MechanicalModel(lagrangian, ["theta"])
+        for fmt in ("python", "c"):
+            text = export_source(model, fmt)
+            text = text if fmt == "python" else text[0]
+            assert repr(2 * c) in text  # the mass, 2c, to the last bit
+        m = load_python(export_source(model, "python"))
+        assert m.mass_matrix([0.3], [0.0])[0, 0] == 2 * c
 
 
 def test_a_saved_model_exports_the_same_code(cart, tmp_path):
