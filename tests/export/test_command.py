@@ -117,3 +117,17 @@ def test_bad_options_raise_value_errors(saved, tmp_path):
     with pytest.raises(FileNotFoundError):
         run_export(missing)
     np.testing.assert_array_equal(parse_matrix("1,0;0,2"), [[1.0, 0.0], [0.0, 2.0]])
+
+
+def test_registering_the_command_imports_nothing_heavy():
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; from lagsindy.export.command import add_export_command; "
+        "print(sorted(m for m in ('numpy', 'sympy', 'torch', 'scipy') "
+        "if m in sys.modules))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
