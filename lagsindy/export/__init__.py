@@ -37,14 +37,14 @@ _EXPORTS = {
     "CasadiModel": "casadi_model",
     "CModel": "compiled",
     "compile_c": "compiled",
-    "discretize": "linearize",
-    "EQUILIBRIUM_RTOL": "linearize",
+    "discretize": "linearization",
+    "EQUILIBRIUM_RTOL": "linearization",
     "export_model": "files",
     "export_source": "files",
     "find_compiler": "compiled",
     "FORMATS": "files",
-    "Linearization": "linearize",
-    "linearize": "linearize",
+    "Linearization": "linearization",
+    "linearize": "linearization",
     "load_python": "python_code",
     "model_equations": "equations",
     "ModelEquations": "equations",
@@ -76,5 +76,5 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .compiled import CModel, compile_c, find_compiler  # noqa: F401
     from .equations import ModelEquations, model_equations  # noqa: F401
     from .files import FORMATS, export_model, export_source  # noqa: F401
-    from .linearize import EQUILIBRIUM_RTOL, Linearization, discretize, linearize  # noqa: F401
+    from .linearization import EQUILIBRIUM_RTOL, Linearization, discretize, linearize  # noqa: F401
     from .python_code import load_python, python_source  # noqa: F401

@@ -131,3 +131,17 @@ def test_registering_the_command_imports_nothing_heavy():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "[]"
+
+
+def test_every_public_name_is_its_object_after_every_submodule_loaded():
+    # a submodule named like a function would replace it on the package
+    import importlib
+    import pkgutil
+    import types
+
+    import lagsindy.export as export
+
+    for info in pkgutil.iter_modules(export.__path__):
+        importlib.import_module(f"lagsindy.export.{info.name}")
+    for name in export.__all__:
+        assert not isinstance(getattr(export, name), types.ModuleType), name
