@@ -333,6 +333,9 @@ def main(argv=None):
         if args.out
         else _common.RESULTS / ("export_quick.md" if args.quick else "export.md")
     )
+    import torch
+
+    torch.set_num_threads(1)  # before the header, which states the threads
     load = os.getloadavg()[0]
     lines = [
         _common.header(
@@ -346,7 +349,9 @@ def main(argv=None):
         "core spends, without the time other jobs held it) and of the wall-clock "
         "time; 'one call' is the cost of one state. "
         "The C library is built with `cc -O2 -shared -fPIC`; 'C inside C' is a "
-        "program calling the function in a loop over 64 states.\n",
+        "program calling the function in a loop over 64 states. Where the "
+        "machine is loaded, wall-clock times exceed CPU times by the load's "
+        "share of the cores.\n",
     ]
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
