@@ -411,8 +411,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         ----------
         fitted : FittedLagrangian
         **params
-            Hyperparameters (``lam``, ``fixed_term``, ...); the library is the
-            fitted state's, the dissipation library the one its terms come from.
+            Hyperparameters (``lam``, ``fixed_term``, ...; ``get_params()`` of
+            another estimator works); the library is the fitted state's, the
+            dissipation library (unless given) the one its terms come from;
+            ``feature_names_in`` sets ``feature_names_in_``.
 
         Returns
         -------
@@ -420,15 +422,18 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         """
         params = dict(params)
         feature_names_in = params.pop("feature_names_in", None)
-        est = cls(clone(fitted.library), **params)
+        params.pop("library", None)  # the fitted state's
+        dissipation = params.pop("dissipation", None)
+        est = _with_params(cls, fitted.library, params)
         est.n_features_in_ = 3 * fitted.n_dof
         if feature_names_in is not None:
             est.feature_names_in_ = np.asarray(feature_names_in, dtype=object)
-        if fitted.dissipation_terms:
-            dlib = fitted.dissipation_library
-            if dlib is None:
-                dlib = library_of(fitted.dissipation_terms, fitted.coordinates)
-            est.set_params(dissipation=clone(dlib))
+        if dissipation is None and fitted.dissipation_terms:
+            dissipation = fitted.dissipation_library or library_of(
+                fitted.dissipation_terms, fitted.coordinates
+            )
+        if dissipation is not None:
+            est.set_params(dissipation=clone(dissipation))
         return est._publish(fitted)
 
     def _publish(self, fitted: FittedLagrangian):
@@ -578,6 +583,26 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
 
 
+
+
+def _with_params(cls, library, params):
+    """``cls(library, **params)``, the parameters checked (they may come from a
+    file written by another version)."""
+    from sklearn.utils._param_validation import InvalidParameterError
+
+    known = set(cls().get_params(deep=False)) - {"library", "dissipation"}
+    unknown = sorted(set(params) - known)
+    if unknown:
+        raise ValueError(
+            f"unknown hyperparameters {unknown[:5]} (a model file from a newer "
+            "lagsindy version?)"
+        )
+    try:
+        est = cls(clone(library), **params)
+        est._validate_params()
+    except (InvalidParameterError, TypeError) as exc:
+        raise ValueError(f"the hyperparameters are not valid: {exc}") from None
+    return est
 
 
 # (set outside the class body: one line, not a step of the fit)

@@ -5,9 +5,11 @@
 * :mod:`~lagsindy.io.datasets`: the MultiArm pendulum recordings that ship with
   lagsindy.
 
-:func:`save_model` and :func:`load_model` are the entry points. The package never
-imports :mod:`lagsindy.estimator`: :func:`load_model` takes the estimator class from
-the public ``lagsindy`` namespace and hands it the file's hyperparameters and state.
+:func:`save_model` and :func:`load_model` are the entry points. The model document
+is read into a :class:`~lagsindy.model.FittedLagrangian` and hyperparameters
+(:mod:`~lagsindy.io.model_file` never imports the estimator); :func:`load_model`
+turns them into an estimator through the public
+:meth:`LagrangianSINDy.from_fitted <lagsindy.LagrangianSINDy.from_fitted>`.
 """
 
 from __future__ import annotations
@@ -158,10 +160,10 @@ def load_model(path):
     ValueError
         When the file is not a valid model file (the message names the problem).
     """
-    import lagsindy
+    from ..estimator import LagrangianSINDy
 
     params, fitted, names = read_model(path)
     try:
-        return lagsindy.LagrangianSINDy._from_saved(params, fitted, names)
+        return LagrangianSINDy.from_fitted(fitted, feature_names_in=names, **params)
     except ValueError as exc:
         raise ValueError(f"{Path(path)}: {exc}") from None
