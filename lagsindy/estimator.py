@@ -25,7 +25,6 @@ from . import pipeline
 from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .dissipation import library_of
-from .formulation.forms import StrongForm, WeakForm, make_formulation
 from .formulation.scaling import IdentifiabilityWarning  # noqa: F401 - 0.1 path
 from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 path
     FittedLagrangian,
@@ -360,9 +359,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Xa, tau, setup = self._setup(X, y)
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
-        ladder = pipeline.fit_statistics(
-            self._formulation(setup.case), setup, Xt, tau_t, groups
-        )
+        formulation = pipeline.formulation_of(self.get_params(deep=False), setup.case)
+        ladder = pipeline.fit_statistics(formulation, setup, Xt, tau_t, groups)
         stats, solution = pipeline.solve_ladder(
             ladder, setup, Xt, tau, verbose=self.verbose
         )
@@ -385,19 +383,6 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         dissipation = pipeline.build_dissipation(self.dissipation, library)
         params = self.get_params(deep=False)
         return Xa, tau, pipeline.make_setup(params, library, dissipation, case)
-
-    def _formulation(self, case):
-        """The formulation object of the parameters (case II: the strong form)."""
-        if case == "acceleration":
-            if self.formulation == "weak" or isinstance(self.formulation, WeakForm):
-                raise ValueError(
-                    "formulation='weak' is for cases I and III; case='acceleration' "
-                    "needs the strong form"
-                )
-            return StrongForm()
-        return make_formulation(
-            self.formulation, window=self.window, dt=self.dt, noise_cov=self.noise_cov
-        )
 
     @classmethod
     def from_fitted(cls, fitted: FittedLagrangian, **params):

@@ -31,6 +31,7 @@ from ._torch import to_numpy
 from .cases import Problem, SparseSolve, solve_case
 from .dissipation import DissipationLibrary, reduce_forces
 from .formulation import feature_operator
+from .formulation.forms import StrongForm, WeakForm, make_formulation
 from .formulation.probes import (
     PROBE_KINDS,
     PROBED_CASES,
@@ -52,6 +53,7 @@ __all__ = [
     "check_fit",
     "fit_statistics",
     "fitted_state",
+    "formulation_of",
     "problem",
     "solve",
     "solve_ladder",
@@ -206,7 +208,9 @@ def fit_statistics(formulation, setup: FitSetup, Xt, tau_t, groups) -> list:
 
 
 # -------------------------------------------------------------------------- solve
-def problem(stats, setup: FitSetup, Xt=None, tau=None, *, memo=None) -> Problem:
+def problem(
+    stats, setup: FitSetup, Xt=None, tau=None, *, memo=None, start=None
+) -> Problem:
     """Balance the statistics and collect what the case needs.
 
     ``Xt`` (the data) is needed by case III's search and case II; ``tau`` only to
@@ -246,18 +250,23 @@ def problem(stats, setup: FitSetup, Xt=None, tau=None, *, memo=None) -> Problem:
         names=setup.names,
         solver=setup.solver,
         fixed_term=setup.fixed_term,
+        start=start,
     )
     if memo is not None:
         out.memo = memo
     return out
 
 
-def solve(stats, setup: FitSetup, Xt=None, tau=None, *, memo=None, warn=True):
+def solve(
+    stats, setup: FitSetup, Xt=None, tau=None, *, memo=None, start=None, warn=True
+):
     """Solve the case on ``stats``: the :class:`~lagsindy.cases.Solution`.
 
+    ``memo``: what problems on the same data share (see
+    :class:`~lagsindy.cases.Problem`); ``start``: a warm start in coefficient units;
     ``warn``: warn when the data leave combinations of terms undetermined.
     """
-    p = problem(stats, setup, Xt, tau, memo=memo)
+    p = problem(stats, setup, Xt, tau, memo=memo, start=start)
     solution = solve_case(setup.case, p)
     solution.row_scale = p.balanced.row_scale
     if warn and setup.case != "acceleration":
@@ -462,6 +471,26 @@ def make_setup(params: dict, library, dissipation: Dissipation, case: str) -> Fi
     )
     check_known_terms(setup)
     return setup
+
+
+def formulation_of(params: dict, case: str = "forces"):
+    """The formulation object of an estimator's parameters (``get_params()``):
+    ``formulation`` (a name or an object) with the weak form's ``window``, ``dt`` and
+    ``noise_cov``; case II always the strong form."""
+    formulation = params.get("formulation", "auto")
+    if case == "acceleration":
+        if formulation == "weak" or isinstance(formulation, WeakForm):
+            raise ValueError(
+                "formulation='weak' is for cases I and III; case='acceleration' "
+                "needs the strong form"
+            )
+        return StrongForm()
+    return make_formulation(
+        formulation,
+        window=params.get("window", "auto"),
+        dt=params.get("dt"),
+        noise_cov=params.get("noise_cov", "auto"),
+    )
 
 
 def setup_of(est, **changes) -> FitSetup:

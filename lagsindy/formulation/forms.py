@@ -252,14 +252,16 @@ class WeakForm(BaseEstimator):
         return [_LazyWeak(build, dt, cov, w) for w, build in grams]
 
     def trajectory_statistics(
-        self, operator, X, tau=None, groups=None, *, extra=None
-    ) -> TrajectoryStatistics:
+        self, operator, X, tau=None, groups=None, *, extra=None, dts=None
+    ):
         """Statistics per trajectory: each trajectory's time-ordered segments (split
         where they jump) at least ``window`` samples long, summed per trajectory.
 
         ``window`` must be a number of samples and ``dt`` given here (use the values a
         fit chose: ``WeakForm(window=est.window_, dt=est.dt_,
         noise_cov=est.noise_cov_)``); the noise part is summed over every sample.
+        ``dts``: several sampling intervals at once (the integrands are evaluated
+        once): a list of :class:`TrajectoryStatistics`, one per value.
         """
         if not isinstance(self.window, Integral) or self.dt is None:
             raise ValueError(
@@ -284,7 +286,7 @@ class WeakForm(BaseEstimator):
         cov = None
         if self.noise_cov is not None and not isinstance(self.noise_cov, str):
             cov = torch.as_tensor(self.noise_cov, dtype=X.dtype, device=X.device)
-        gram, noise, n_win = operator.weak_grams(
+        build = operator.weak_grams(
             X,
             tau,
             {window: segments},
@@ -294,25 +296,32 @@ class WeakForm(BaseEstimator):
             extra=extra,
             per_segment=True,
             return_noise=True,
+            lazy=True,
         )[window]
         own = torch.as_tensor(owner, device=X.device)
-        grams = gram.new_zeros((len(rows), *gram.shape[1:]))
-        grams.index_add_(0, own, gram)
-        noise_t = None
-        if cov is not None:
-            noise_t = torch.zeros_like(grams)
-            noise_t.index_add_(0, own, noise)
-        n_rows = np.bincount(np.asarray(owner), weights=n_win, minlength=len(rows))
-        return TrajectoryStatistics(
-            grams,
-            noise_t,
-            n_rows.astype(np.int64),
-            rows,
-            "weak",
-            dt,
-            None if cov is None else cov.detach().cpu().numpy(),
-            window,
-        )
+        out = []
+        for value in [dt] if dts is None else dts:
+            gram, noise, n_win = build(dt=float(value))
+            grams = gram.new_zeros((len(rows), *gram.shape[1:]))
+            grams.index_add_(0, own, gram)
+            noise_t = None
+            if cov is not None:
+                noise_t = torch.zeros_like(grams)
+                noise_t.index_add_(0, own, noise)
+            n_rows = np.bincount(np.asarray(owner), weights=n_win, minlength=len(rows))
+            out.append(
+                TrajectoryStatistics(
+                    grams,
+                    noise_t,
+                    n_rows.astype(np.int64),
+                    rows,
+                    "weak",
+                    float(value),
+                    None if cov is None else cov.detach().cpu().numpy(),
+                    window,
+                )
+            )
+        return out[0] if dts is None else out
 
 
 class _LazyWeak:
