@@ -31,7 +31,7 @@ from ._torch import to_numpy
 from .cases import Problem, SparseSolve, solve_case
 from .dissipation import DissipationLibrary, reduce_forces
 from .formulation import feature_operator
-from .formulation.forms import StrongForm, WeakForm, make_formulation
+from .formulation.forms import StrongForm, WeakForm, make_formulation, with_window
 from .formulation.probes import (
     PROBE_KINDS,
     PROBED_CASES,
@@ -53,6 +53,7 @@ __all__ = [
     "check_fit",
     "fit_statistics",
     "fitted_state",
+    "fitted_formulation",
     "formulation_of",
     "problem",
     "solve",
@@ -272,8 +273,9 @@ def solve(
     if warn and setup.case != "acceleration":
         free = np.flatnonzero(p.identifiable)
         allowed = 1 if setup.case == "fixed" else 0
+        # (stacklevel: the caller of LagrangianSINDy.fit, through solve_ladder)
         warn_if_not_identifiable(
-            p.balanced, free, p.names, allowed=allowed, stacklevel=5
+            p.balanced, free, p.names, allowed=allowed, stacklevel=8
         )
     return solution
 
@@ -491,6 +493,16 @@ def formulation_of(params: dict, case: str = "forces"):
         dt=params.get("dt"),
         noise_cov=params.get("noise_cov", "auto"),
     )
+
+
+def fitted_formulation(est):
+    """The formulation a fitted estimator's fit used, with the test-function window
+    its fit chose (``window="auto"`` chose ``est.window_``): what refits of the same
+    configuration on other rows (folds, shifted inputs, resamples) should use. An
+    unfitted ``est``: the formulation of its parameters."""
+    form = formulation_of(est.get_params(deep=False), getattr(est, "case_", "forces"))
+    window = getattr(est, "window_", None)
+    return form if window is None else with_window(form, window)
 
 
 def setup_of(est, **changes) -> FitSetup:

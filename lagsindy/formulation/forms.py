@@ -356,7 +356,7 @@ class AutoForm(WeakForm):
                 "Pass time-ordered trajectories (groups=trajectory labels, dt=) to "
                 "get the weak form, or formulation='strong' to silence this.",
                 UserWarning,
-                stacklevel=4,
+                stacklevel=5,  # the caller of LagrangianSINDy.fit
             )
         return StrongForm().statistics(operator, X, tau, groups, extra=extra)
 
