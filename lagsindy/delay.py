@@ -558,7 +558,7 @@ def _one_blas_thread():
     return _CONTROLLER[0].limit(limits=1, user_api="blas")
 
 
-def _diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
+def diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
     """Estimate an input delay; ``(DelayEstimate, shifted tau)`` or None.
 
     For :func:`lagsindy.diagnose`: :func:`estimate_delay` (held-out force

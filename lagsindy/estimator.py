@@ -567,9 +567,6 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         return load_model(path)
 
 
-
-
-
 def _with_params(cls, library, params):
     """``cls(library, **params)``, the parameters checked (they may come from a
     file written by another version)."""

@@ -194,11 +194,7 @@ def fit_statistics(formulation, setup: FitSetup, Xt, tau_t, groups) -> list:
     :mod:`lagsindy.formulation.probes`)."""
     n_features = setup.n_features
     probes = []
-    if (
-        setup.case in PROBED_CASES
-        and setup.dissipation.library is None
-        and probing()
-    ):
+    if setup.case in PROBED_CASES and setup.dissipation.library is None and probing():
         probes = build_dissipation(DissipationLibrary(PROBE_KINDS), setup.library).terms
     operator = setup.operator(
         range(n_features + len(probes)), Xt.device, Xt.dtype, extra_forces=probes

@@ -19,9 +19,9 @@ from sklearn.model_selection import GroupKFold
 from .. import pipeline
 from .._torch import to_numpy
 from ..dissipation import DEFAULT_EPS, DissipationLibrary
+from ..formulation.forms import StrongForm, WeakForm
 from ..formulation.operator import EulerLagrangeOperator
 from ..formulation.probes import without_probes
-from ..formulation.forms import StrongForm, WeakForm
 from ..formulation.weak import (
     WINDOW_FIRST,
     estimate_noise_covariance,

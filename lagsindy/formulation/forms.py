@@ -388,5 +388,3 @@ def with_window(formulation, window, dt=None):
     if dt is not None:
         params["dt"] = float(dt)
     return type(formulation)(**params)
-
-

@@ -21,6 +21,7 @@ from ..library import CandidateLibrary
 
 __all__ = ["LibraryBaggingLagrangianSINDy"]
 
+
 @cache_param_names
 class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEstimator):
     """Library bagging (Ensemble-SINDy) for large candidate libraries.
