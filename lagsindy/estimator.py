@@ -26,6 +26,7 @@ from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .dissipation import library_of
 from .formulation.scaling import IdentifiabilityWarning  # noqa: F401 - 0.1 path
+from .io.model_file import read_model_file, write_model_file
 from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 path
     FittedLagrangian,
     MassCheck,
@@ -551,9 +552,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         See :func:`lagsindy.io.save_model`; read it back with :meth:`load`.
         Returns the :class:`pathlib.Path` written.
         """
-        from .io import save_model
-
-        return save_model(self, path)
+        return write_model_file(self, path)
 
     @classmethod
     def load(cls, path):
@@ -562,9 +561,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         See :func:`lagsindy.io.load_model`. Returns a fitted estimator that predicts
         like the saved one.
         """
-        from .io import load_model
-
-        return load_model(path)
+        params, fitted, names = read_model_file(path)
+        try:
+            return cls.from_fitted(fitted, feature_names_in=names, **params)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
 
 
 def _with_params(cls, library, params):

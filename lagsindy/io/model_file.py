@@ -49,10 +49,12 @@ the estimator (:mod:`lagsindy.io` turns the pair into one).
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import warnings
 from numbers import Integral, Real
+from pathlib import Path
 
 import numpy as np
 import sympy as sp
@@ -171,7 +173,7 @@ def model_to_dict(est) -> dict:
     """
     from sklearn.utils.validation import check_is_fitted
 
-    from .. import __version__
+    from .._version import __version__
 
     check_is_fitted(est)
     fitted = est.fitted_
@@ -614,3 +616,54 @@ def _index(library, text):
         raise ValueError(
             f"the model file names a term that is not among its terms: {exc}"
         ) from None
+
+
+# ----------------------------------------------------------------------------- files
+#: Largest model file :func:`read_model_file` reads, in bytes.
+MAX_FILE_BYTES = 20_000_000
+
+
+def write_model_file(est, path) -> Path:
+    """Write the model document of a fitted estimator (:func:`model_to_dict`) as a
+    JSON file, one field per line (readable and diff-friendly); the path written."""
+    doc = model_to_dict(est)
+    path = Path(path)
+    lines = [
+        f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in doc.items()
+    ]
+    path.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
+    return path
+
+
+def read_model_file(path):
+    """Read a model file: hyperparameters, fitted state and column names.
+
+    Raises ``FileNotFoundError`` when the file does not exist and ``ValueError``
+    (naming the file and the problem) when it is not a valid model file; nothing
+    in it is evaluated as code. See :func:`model_from_dict` for what is returned.
+    """
+    path = Path(path)
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise ValueError(
+            f"{path} has {size} bytes, more than a model file may have "
+            f"({MAX_FILE_BYTES})"
+        )
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+        doc = json.loads(
+            text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys
+        )
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not a text (UTF-8) model file") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ValueError(f"{path} is nested too deeply to be a model file") from None
+    except ValueError as exc:  # NaN/Infinity, repeated keys, oversized integers
+        raise ValueError(f"{path}: {exc}") from None
+    try:
+        return model_from_dict(doc)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
