@@ -18,10 +18,20 @@ kind               force for a unit coefficient         coefficient (units)
 ``drag``           ``-|qd_i| qd_i``                     force per velocity squared
 ``coulomb``        ``-tanh(qd_i / eps)``                force
 ``bias``           ``+1``                               force
+``stribeck``       ``-exp(-(qd_i/v_s)**2)``             force
+                   ``* tanh(qd_i/eps)``
 =================  ===================================  =========================
 
+Stribeck friction, ``-(mu_c + (mu_s - mu_c) exp(-(qd/v_s)**2)) tanh(qd/eps)``, is
+nonlinear in its parameters; with the Stribeck velocity ``v_s`` fixed it is Coulomb
+friction (coefficient ``mu_c``) plus the Stribeck *bump* (coefficient
+``mu_s - mu_c``, static friction above the kinetic, constrained >= 0). The
+``stribeck`` kind is the bump alone, fitted beside ``coulomb`` with the same ``eps``
+(``DissipationLibrary(["coulomb", "stribeck"], parameters={"v_s": 0.05})``);
+``diagnose`` proposes it only when named in its ``catalogue``.
+
 Only this module's records decide which kinds are *dissipative*: ``viscous``,
-``relative``, ``drag`` and ``coulomb`` oppose the motion for a positive
+``relative``, ``drag``, ``coulomb`` and ``stribeck`` oppose the motion for a positive
 coefficient, so fits constrain their coefficients to be non-negative; ``bias`` (a
 constant offset force) can feed energy in and is free in sign.
 
@@ -55,8 +65,11 @@ import re
 from collections.abc import Callable
 from dataclasses import dataclass
 
-#: Default smoothing velocity of Coulomb friction.
+#: Default smoothing velocity of Coulomb friction (and of the Stribeck bump).
 DEFAULT_EPS = 0.01
+#: Default Stribeck velocity of the ``stribeck`` kind, in the coordinate's velocity
+#: units.
+DEFAULT_STRIBECK_VELOCITY = 0.1
 
 # Candidate kinds of diagnose's catalogue that are not forces; a force kind cannot
 # take these names (nor "custom", the kind of a hand-made ForceTerm).
@@ -382,6 +395,28 @@ def _bias(q, qd):
     return (sp.Integer(1),), None
 
 
+def _stribeck(q, qd, *, eps, v_s):
+    import sympy as sp
+
+    v = qd[0]
+    eps, v_s = _positive("eps", eps), _positive("v_s", v_s)
+    return (-sp.exp(-((v / sp.Float(v_s)) ** 2)) * sp.tanh(v / sp.Float(eps)),), None
+
+
+def _read_stribeck(forces, q, qd):
+    import sympy as sp
+
+    force = sp.Add(*forces)
+    eps, _ = _velocity_scale(force, sp.tanh, qd[0], "tanh(qdot/eps)")
+    v_s, coeff = _velocity_scale(force, sp.exp, qd[0], "exp(-(qdot/v_s)**2)", 2)
+    if coeff >= 0:
+        raise ValueError("its force needs exactly one exp(-(qdot/v_s)**2)")
+    return {
+        "eps": _positive("the smoothing velocity eps", eps),
+        "v_s": _positive("the Stribeck velocity v_s", v_s),
+    }
+
+
 for _kind in (
     ForceKind(
         "viscous",
@@ -432,6 +467,17 @@ for _kind in (
         units_text="force units of {0}",
         wording="constant offset force",
         in_default_catalogue=True,
+    ),
+    # The Stribeck bump mu_s - mu_c >= 0 (static friction at least the kinetic).
+    ForceKind(
+        "stribeck",
+        _stribeck,
+        dissipative=True,
+        units="{F}",
+        units_text="force units of {0}",
+        wording="Stribeck friction",
+        parameters=(("eps", DEFAULT_EPS), ("v_s", DEFAULT_STRIBECK_VELOCITY)),
+        read_parameters=_read_stribeck,
     ),
 ):
     register(_kind)

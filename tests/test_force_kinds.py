@@ -331,3 +331,90 @@ def test_library_parameters_are_checked():
     assert term.eps == 0.5 and isinstance(term, ForceTerm)
     with pytest.raises(ValueError, match="dict of parameters"):
         DissipationLibrary((), coordinates=["x"], terms=[("coulomb", "x", 0.5)]).build()
+
+
+# -- Stribeck friction: a kind added as one record -----------------------------------
+
+EPS, V_S = 0.05, 0.3  # smoothing and Stribeck velocities of the data below
+
+
+def _stribeck_force(x, v):
+    # mu_c = 0.3, mu_s = 0.5: -(0.3 + 0.2 exp(-(v/V_S)**2)) tanh(v/EPS)
+    smooth = sp.tanh(v / sp.Float(EPS))
+    bump = sp.exp(-((v / sp.Float(V_S)) ** 2))
+    return -(sp.Float(0.3) + sp.Float(0.2) * bump) * smooth
+
+
+@pytest.fixture(scope="module")
+def stribeck_data():
+    system = _oscillator(_stribeck_force, "Stribeck oscillator")
+    return make_dataset(system, n_trajectories=4, excitation="paper", random_state=2)
+
+
+def _stribeck_fit(data, kinds):
+    return LagrangianSINDy(
+        CandidateLibrary.from_terms(["x"], ["x**2", "x_dot**2"]),
+        dissipation=DissipationLibrary(kinds, eps=EPS, parameters={"v_s": V_S}),
+        formulation="strong",
+    ).fit(data.X, data.tau, groups=data.groups)
+
+
+def test_stribeck_is_fitted_beside_coulomb_and_saved(stribeck_data, tmp_path):
+    est = _stribeck_fit(stribeck_data, ["coulomb", "stribeck"])
+    stribeck = est.dissipation_terms_[1]
+    assert stribeck.name == "stribeck(x)"
+    assert stribeck.parameters == pytest.approx({"eps": EPS, "v_s": V_S}, rel=1e-14)
+    # exact derivatives: exact to rounding (measured error 3.9e-14 and 6.6e-14)
+    np.testing.assert_allclose(est.dissipation_coef_, [0.3, 0.2], atol=2e-13)
+    np.testing.assert_allclose(est.coef_, [-2.0, 0.5], atol=3e-13)
+    path = est.save(tmp_path / "stribeck.json")
+    entry = json.loads(path.read_text())["dissipation"][1]
+    assert entry["kind"] == "stribeck" and "exp(" in entry["forces"][0]
+    loaded = LagrangianSINDy.load(path)
+    assert [t.name for t in loaded.dissipation_terms_] == ["coulomb(x)", "stribeck(x)"]
+    assert loaded.dissipation_terms_[1].parameters == pytest.approx(
+        {"eps": EPS, "v_s": V_S}, rel=1e-14
+    )
+    X = stribeck_data.X
+    np.testing.assert_array_equal(loaded.predict(X), est.predict(X))  # measured
+    assert loaded.dissipation.get_params()["parameters"] == {"v_s": {"x": V_S}}
+
+
+def test_diagnose_finds_stribeck_when_asked_and_reports_its_units(stribeck_data):
+    from lagsindy import diagnose
+    from lagsindy.diagnostics import DEFAULT_CATALOGUE
+
+    assert "stribeck" not in DEFAULT_CATALOGUE  # proposed only when named
+    est = _stribeck_fit(stribeck_data, ["coulomb"])
+    report = diagnose(
+        est,
+        stribeck_data.X,
+        stribeck_data.tau,
+        groups=stribeck_data.groups,
+        catalogue=["stribeck"],
+        eps={"x": EPS},
+        units={"x": ("m", "N")},
+    )
+    (step,) = report.steps
+    assert step.candidate.name == "stribeck(x)" and step.units == "N"
+    text = str(report)
+    assert "Stribeck friction" in text and "stribeck(x)" in text
+    # the candidate took v_s from the model's dissipation library
+    final = dict(zip(report.final.dissipation_terms_, report.final.dissipation_coef_))
+    (term,) = [t for t in final if t.kind == "stribeck"]
+    assert term.parameters == pytest.approx({"eps": EPS, "v_s": V_S}, rel=1e-14)
+    # the final refit is exact to rounding (measured relative error 1.5e-13)
+    assert final[term] == pytest.approx(0.2, rel=7e-13)
+
+
+def test_terms_of_one_coordinate_keep_their_own_parameters():
+    coords = ["x"]
+    terms = [
+        make_term("coulomb", "x", coords, eps=0.02),
+        make_term("stribeck", "x", coords, eps=0.05, v_s=0.4),
+    ]
+    lib = library_of(terms, coords)
+    # the coordinate's eps is the first term's; the Stribeck term keeps its own
+    assert lib.eps == {"x": 0.02}
+    assert lib.terms[1] == ("stribeck", "x", {"eps": 0.05, "v_s": 0.4})
+    assert lib.build().terms_ == terms
