@@ -418,3 +418,47 @@ def test_terms_of_one_coordinate_keep_their_own_parameters():
     assert lib.eps == {"x": 0.02}
     assert lib.terms[1] == ("stribeck", "x", {"eps": 0.05, "v_s": 0.4})
     assert lib.build().terms_ == terms
+
+
+@pytest.fixture(scope="module")
+def two_oscillators():
+    """A fitted model of two forced, uncoupled oscillators (x, y)."""
+    x, y, x_dot, y_dot = sp.symbols("x y x_dot y_dot", real=True)
+    system = System(
+        (x_dot**2 + y_dot**2) / 2 - 2 * x**2 - y**2,
+        ["x", "y"],
+        initial_ranges={"x": (-1, 1), "x_dot": (-1, 1), "y": (-1, 1), "y_dot": (-1, 1)},
+        paper_input=lambda t, w: np.stack([np.cos(w * t), np.sin(w * t)], axis=1),
+        name="two oscillators",
+    )
+    data = make_dataset(system, n_trajectories=3, excitation="paper", random_state=3)
+    library = CandidateLibrary.from_terms(["x", "y"], ["x**2", "y**2", "x_dot**2"])
+    library = library + CandidateLibrary.from_terms(["x", "y"], ["y_dot**2"])
+    dissipation = DissipationLibrary(["viscous"], eps=0.02, parameters={"v_s": 0.4})
+    est = LagrangianSINDy(library, dissipation=dissipation, formulation="strong")
+    return est.fit(data.X, data.tau)
+
+
+@pytest.mark.parametrize("kind", KIND_NAMES)
+def test_diagnoses_candidates_are_the_terms_its_refits_build(kind, two_oscillators):
+    # diagnose builds each candidate from the catalogue and refits with it through
+    # the model's dissipation library: both must give the very same term (diagnose's
+    # eps for the coordinate, the library's other parameters)
+    from lagsindy.diagnostics.catalogue import _catalogue
+    from lagsindy.diagnostics.scoring import _fit_model
+
+    est, eps = two_oscillators, {"x": 0.05, "y": 0.07}
+    candidates = _catalogue(est, [kind], None, [], None, eps)
+    record = force_kinds.get(kind)
+    present = {t.name for t in est.dissipation_terms_}  # viscous(x), viscous(y)
+    names = {f"{kind}({','.join(t)})" for t in record.targets(["x", "y"])}
+    assert {c.name for c in candidates} == names - present
+    refit = _fit_model(est, None, None, None, penalized=candidates, eps=eps, fit=False)
+    library = refit.dissipation.set_params(coordinates=["x", "y"]).build()
+    built = {t.name: t for t in library.terms_}
+    for cand in candidates:
+        assert built[cand.name] == cand.term
+        assert cand.term.parameters == {
+            name: eps[cand.coordinates[0]] if name == "eps" else 0.4
+            for name in record.parameter_names
+        }
