@@ -19,6 +19,8 @@ from sklearn.model_selection import GroupKFold
 from .. import pipeline
 from .._torch import to_numpy
 from ..dissipation import DEFAULT_EPS, DissipationLibrary
+from ..force_kinds import get as get_kind
+from ..force_kinds import names as kind_names
 from ..formulation.forms import StrongForm, WeakForm
 from ..formulation.operator import EulerLagrangeOperator
 from ..formulation.probes import without_probes
@@ -29,7 +31,6 @@ from ..formulation.weak import (
     negligible_noise,
     trajectory_segments,
 )
-from .catalogue import _DISSIPATIVE, _NONNEGATIVE
 
 # A refit whose mass matrix is singular or indefinite at more than this fraction of
 # the checked samples cannot predict accelerations: the fold (or model) is degenerate.
@@ -47,7 +48,7 @@ def _columns(est, candidates):
     and the number of Lagrangian columns.
     """
     cons = [c for c in candidates if c.kind == "conservative"]
-    diss = [c for c in candidates if c.kind in _DISSIPATIVE]
+    diss = [c for c in candidates if c.kind in kind_names()]
     gain = [c for c in candidates if c.kind == "gain"]
     lib_terms = list(est.library_.terms_) + [c.term for c in cons]
     forces = list(est.dissipation_terms_) + [c.term for c in diss]
@@ -62,7 +63,7 @@ def _columns(est, candidates):
     index.update({c.name: n_lib + n_force + k for k, c in enumerate(gain)})
     nonneg = np.zeros(n_features, dtype=bool)
     for k, f in enumerate(forces):
-        nonneg[n_lib + k] = f.kind in _NONNEGATIVE
+        nonneg[n_lib + k] = f.dissipative
     return op, index, nonneg, n_lib
 
 
@@ -404,7 +405,7 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=T
     if cons:
         library.set_params(terms=list(library.terms or []) + [c.term for c in cons])
         unpenalized += [str(c.term) for c in effects if c.kind == "conservative"]
-    diss = [c for c in list(effects) + list(penalized) if c.kind in _DISSIPATIVE]
+    diss = [c for c in list(effects) + list(penalized) if c.kind in kind_names()]
     if diss:
         base = est.dissipation
         dlib = (
@@ -418,18 +419,15 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=T
             for c in est.coordinates_
         }
         for c in diss:
-            if c.kind == "coulomb":
+            if "eps" in get_kind(c.kind).parameter_names:
                 merged[c.coordinates[0]] = (eps or {}).get(
                     c.coordinates[0], DEFAULT_EPS
                 )
         specs = list(dlib.terms or [])
-        specs += [
-            (c.kind, c.coordinates if c.kind == "relative" else c.coordinates[0])
-            for c in diss
-        ]
+        specs += [(c.kind, get_kind(c.kind).target(c.coordinates)) for c in diss]
         dlib.set_params(terms=specs, eps=merged)
         new.set_params(dissipation=dlib)
-        unpenalized += [c.name for c in effects if c.kind in _DISSIPATIVE]
+        unpenalized += [c.name for c in effects if c.kind in kind_names()]
     new.set_params(library=library, unpenalized=unpenalized or None)
     if est.case_ == "fixed":
         new.set_params(fixed_term=_normalization(est))

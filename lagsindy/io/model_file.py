@@ -68,7 +68,6 @@ from .._expr import (
     parse_expression,
     state_names,
 )
-from ..dissipation import DEFAULT_EPS
 
 FORMAT = "lagsindy-model"
 SCHEMA_VERSION = 1
@@ -542,7 +541,8 @@ def _same_forces(a, b, coords) -> bool:
 
 def _dissipation_entries(entries, coords, allowed):
     """Validate the ``dissipation`` field and rebuild its terms from kind and coordinates."""
-    from ..dissipation import KINDS, make_term
+    from ..dissipation import rebuild_term
+    from ..force_kinds import names as kind_names
 
     if len(entries) > MAX_TERMS:
         raise ValueError(f"the model file has {len(entries)} dissipation entries")
@@ -557,9 +557,9 @@ def _dissipation_entries(entries, coords, allowed):
                 f"{sorted(fields)}, got {got}"
             )
         kind = entry["kind"]
-        if kind not in KINDS:
+        if kind not in kind_names():
             raise ValueError(
-                f"{where}['kind'] must be one of {KINDS}, got {str(kind)[:40]!r}"
+                f"{where}['kind'] must be one of {kind_names()}, got {str(kind)[:40]!r}"
             )
         on = _check_strings(
             entry["coordinates"], f"{where}['coordinates']", limit=_MAX_NAME_LENGTH
@@ -582,18 +582,8 @@ def _dissipation_entries(entries, coords, allowed):
         (coefficient,) = _check_numbers(
             [entry["coefficient"]], f"{where}['coefficient']"
         )
-        eps = DEFAULT_EPS
-        if kind == "coulomb":
-            tanhs = [a for f in parsed for a in f.atoms(sp.tanh)]
-            if len(tanhs) != 1:
-                raise ValueError(
-                    f"{where} is a Coulomb term without one tanh(qdot/eps)"
-                )
-            eps = float(1 / tanhs[0].args[0].as_coeff_Mul()[0])
-            if not (math.isfinite(eps) and eps > 0):
-                raise ValueError(f"{where} has an invalid Coulomb smoothing velocity")
-        try:
-            term = make_term(kind, on if kind == "relative" else on[0], coords, eps=eps)
+        try:  # the kind's parameters (Coulomb's eps) are read from the forces
+            term = rebuild_term(kind, on, coords, parsed)
         except ValueError as exc:
             raise ValueError(
                 f"{where} is not a valid dissipation term: {exc}"
