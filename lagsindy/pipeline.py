@@ -463,7 +463,7 @@ def make_setup(params: dict, library, dissipation: Dissipation, case: str) -> Fi
         dissipation=dissipation,
         case=case,
         solver=SparseSolve.from_params(params, n_terms, dissipative),
-        unpenalized=list(params.get("unpenalized") or []),
+        unpenalized=_as_list(params.get("unpenalized")),
         fixed_term=params.get("fixed_term"),
         normalize=params.get("normalize", True),
     )
@@ -499,6 +499,11 @@ def fitted_formulation(est):
     form = formulation_of(est.get_params(deep=False), getattr(est, "case_", "forces"))
     window = getattr(est, "window_", None)
     return form if window is None else with_window(form, window)
+
+
+def _as_list(terms) -> list:
+    """``unpenalized`` as a list (it may be an array of terms, or None)."""
+    return [] if terms is None else list(terms)
 
 
 def setup_of(est, **changes) -> FitSetup:

@@ -163,6 +163,21 @@ def _plain(value):
 
 
 # ----------------------------------------------------------------------------- save
+def flat_hyperparameters(params: dict) -> dict:
+    """Hyperparameters with the settings objects written out as flat values.
+
+    A formulation object (``WeakForm(window=161)``) becomes its name and its own
+    parameters, which is how files store it (files stay readable by every version:
+    :meth:`LagrangianSINDy.from_fitted` turns them back into the object).
+    """
+    params = dict(params)
+    form = params.get("formulation")
+    if form is not None and not isinstance(form, str):
+        params["formulation"] = form.name
+        params.update(form.get_params(deep=False))
+    return params
+
+
 def model_to_dict(est) -> dict:
     """The JSON document of a fitted estimator (see the module docstring).
 
@@ -182,7 +197,7 @@ def model_to_dict(est) -> dict:
     coef = np.asarray(fitted.coef, dtype=float)
     if not np.all(np.isfinite(coef)):
         raise ValueError("the model has non-finite coefficients; it cannot be saved")
-    params = est.get_params(deep=False)
+    params = flat_hyperparameters(est.get_params(deep=False))
     params.pop("library", None)
     params.pop("dissipation", None)  # its terms are stored under "dissipation"
     params.pop("verbose", None)  # how chatty a session was is not part of the model
