@@ -355,10 +355,18 @@ def validate_tau(tau, n_samples, n_dof, coordinates=None) -> np.ndarray:
     return arr
 
 
-def raise_not_finite(gram, terms, Xa, tau, dtype):
-    """Explain non-finite Euler-Lagrange statistics: undefined terms or overflow."""
+def raise_not_finite(gram, terms, X, tau):
+    """Explain non-finite Euler-Lagrange statistics: undefined terms or overflow.
+
+    ``X`` and ``tau`` (arrays or tensors) are the data; the message names the
+    gram's precision.
+    """
     import torch
 
+    dtype = str(gram.dtype).replace("torch.", "")
+    Xa = X.detach().cpu().numpy() if torch.is_tensor(X) else np.asarray(X)
+    if torch.is_tensor(tau):
+        tau = tau.detach().cpu().numpy()
     diag = torch.diagonal(gram, dim1=1, dim2=2)
     bad = ~torch.isfinite(diag).all(dim=0).cpu().numpy()
     bad_terms = [str(t) for t, b in zip(terms, bad[: len(terms)]) if b]

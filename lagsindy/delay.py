@@ -28,6 +28,10 @@ import scipy.linalg
 from sklearn.base import clone
 from sklearn.model_selection import GroupKFold
 
+from . import pipeline
+from ._torch import resolve_device, resolve_dtype, to_tensor
+from ._validation import validate_state
+
 __all__ = ["DelayEstimate", "estimate_delay", "shift_input"]
 
 
@@ -417,25 +421,13 @@ def _finish(delay, at_edge, candidates, scores, fold_delays, k):
 
 
 def _force_columns(est, X):
-    """Force of each support term at X, (n_samples * n_dof, n_support), or None.
-
-    Reads the fitted estimator's Euler-Lagrange operator; checked against
-    ``predict`` so that a change of the estimator's internals falls back to refits
-    instead of giving a wrong answer.
-    """
-    try:
-        from ._torch import to_numpy
-
-        _, Xt = est._prepare_predict(X)
-        op, coef = est.fitted_.support_operator(Xt.device, Xt.dtype)
-        cols = to_numpy(op.columns(Xt))
-        coef = to_numpy(coef)
-    except Exception:  # noqa: BLE001 - any internal change: use refits
-        return None
-    if cols.ndim != 3 or cols.shape[2] != coef.size or coef.size == 0:
-        return None
-    pred = np.asarray(est.predict(X)).reshape(cols.shape[:2])
-    if not np.allclose(cols @ coef, pred, rtol=1e-8, atol=1e-10 * np.abs(pred).max()):
+    """Force of each support term at X, (n_samples * n_dof, n_support), or None
+    when the model kept no term."""
+    Xa, _, _ = validate_state(est, X, reset=False, coordinates=est.coordinates_)
+    device, dtype = resolve_device(est.device), resolve_dtype(est.dtype)
+    Xt = to_tensor(Xa, dtype=dtype, device=device)
+    cols, coef = est.fitted_.support_columns(Xt)
+    if coef.size == 0:
         return None
     return cols.reshape(-1, coef.size)
 
@@ -566,7 +558,7 @@ def _one_blas_thread():
     return _CONTROLLER[0].limit(limits=1, user_api="blas")
 
 
-def _diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
+def diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
     """Estimate an input delay; ``(DelayEstimate, shifted tau)`` or None.
 
     For :func:`lagsindy.diagnose`: :func:`estimate_delay` (held-out force
@@ -588,9 +580,10 @@ def _diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
         t[seg] = np.arange(len(seg)) * dt
         labels[seg] = k
     groups = labels if len(segments) >= 2 else None
-    base = clone(est).set_params(verbose=0)
-    if getattr(est, "window_", None) is not None:
-        base.set_params(window=est.window_)  # the window est's fit chose
+    # the formulation est's fit used, with the window it chose
+    base = clone(est).set_params(
+        verbose=0, formulation=pipeline.fitted_formulation(est)
+    )
     try:
         # Its refits differ only in the shifted input: with the weak form they
         # reuse the first one's feature integrals (the Gram matrices agree with

@@ -1,4 +1,4 @@
-r"""Non-conservative force candidates: Rayleigh dissipation and direct generalized forces.
+r"""Non-conservative force candidates: Rayleigh dissipation and direct forces.
 
 The Euler-Lagrange equations with a Rayleigh dissipation function :math:`D(\dot q)` and
 extra generalized forces :math:`Q(q, \dot q)` read
@@ -12,15 +12,9 @@ Each candidate here carries its generalized force vector (``-dD/dqdot`` for a Ra
 term), so it enters the regression linearly beside the Lagrangian's terms: a learned
 coefficient ``d_j`` contributes ``d_j * force_j`` to the right-hand side.
 
-=================  ==========================  ==================================
-kind               Rayleigh term / force       coefficient (units)
-=================  ==========================  ==================================
-``viscous``        ``qd_i**2 / 2``             b, force per velocity
-``relative``       ``(qd_i - qd_j)**2 / 2``    b between coordinates i and j
-``drag``           ``|qd_i|**3 / 3``           c, force per velocity squared
-``coulomb``        force ``-tanh(qd_i / eps)`` mu, force (smoothed sign)
-``bias``           force ``+1`` on q_i         constant offset force
-=================  ==========================  ==================================
+The kinds of candidates (viscous, relative, drag, coulomb, bias, and any added with
+:func:`lagsindy.force_kinds.register`) are records of :mod:`lagsindy.force_kinds`,
+which lists their forces and units; this module builds terms from them.
 
 Coulomb friction ``-mu * sign(qdot)`` is smoothed as ``-mu * tanh(qdot / eps)``;
 ``eps`` (default 0.01, in the coordinate's velocity units) is the velocity below which
@@ -30,7 +24,6 @@ smooth; choose it well below the typical speeds of the data.
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,12 +32,23 @@ from sklearn.base import BaseEstimator
 
 from ._expr import check_coordinate_names, symbols_for
 from ._params import cache_param_names
+from .force_kinds import DEFAULT_EPS
+from .force_kinds import get as get_kind
+from .force_kinds import kinds as registered_kinds
+from .force_kinds import names as kind_names
 
-KINDS = ("viscous", "relative", "drag", "coulomb", "bias")
-# Kinds whose force opposes the motion for a positive coefficient: a negative one
-# would feed energy in, so the fit constrains them to be non-negative.
-DISSIPATIVE_KINDS = ("viscous", "relative", "drag", "coulomb")
-DEFAULT_EPS = 0.01
+
+def __getattr__(name):
+    # KINDS and DISSIPATIVE_KINDS read the registry (lagsindy.force_kinds) when
+    # asked, so they include kinds registered later.
+    if name == "KINDS":
+        return kind_names()
+    if name == "DISSIPATIVE_KINDS":
+        # kinds whose force opposes the motion for a positive coefficient: a
+        # negative one would feed energy in, so the fit constrains them to be
+        # non-negative
+        return tuple(k.name for k in registered_kinds() if k.dissipative)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 @dataclass(frozen=True)
@@ -56,7 +60,7 @@ class ForceTerm:
     name : str
         e.g. ``"viscous(theta)"``, ``"relative(theta1,theta2)"``.
     kind : str
-        One of ``KINDS`` (or ``"custom"``).
+        A registered force kind (:mod:`lagsindy.force_kinds`), or ``"custom"``.
     coordinates : tuple of str
         The coordinate(s) it acts on.
     forces : tuple of sympy.Expr
@@ -72,78 +76,140 @@ class ForceTerm:
     forces: tuple
     rayleigh: sp.Expr | None = None
 
+    def _record(self):
+        """The term's :class:`~lagsindy.force_kinds.ForceKind`, or None (custom)."""
+        return get_kind(self.kind) if self.kind in kind_names() else None
+
+    @property
+    def parameters(self) -> dict:
+        """The kind's parameters of this term (Coulomb's ``eps``), from its forces."""
+        record = self._record()
+        if record is None or not record.parameters:
+            return {}
+        return _read_parameters(record, self.coordinates, self.forces)
+
     @property
     def eps(self) -> float | None:
-        """Smoothing velocity of a Coulomb term (from its force); ``None`` otherwise."""
-        if self.kind != "coulomb":
-            return None
-        force = next(f for f in self.forces if f != 0)
-        arg = next(iter(force.atoms(sp.tanh))).args[0]
-        return float(1 / arg.as_coeff_Mul()[0])
+        """Smoothing velocity of a term that has one (Coulomb); ``None`` otherwise."""
+        return self.parameters.get("eps")
 
     @property
     def dissipative(self) -> bool:
         """Whether the coefficient must be non-negative (the force opposes motion)."""
-        return self.kind in DISSIPATIVE_KINDS
+        record = self._record()
+        return record is not None and record.dissipative
 
     def units(self, coordinate_units: dict) -> str:
         """Units of its coefficient, from ``{coordinate: (q unit, force unit)}``."""
         q_unit, f_unit = coordinate_units.get(self.coordinates[0], ("[q]", "[F]"))
-        if self.kind in ("viscous", "relative"):
-            return f"{f_unit}*s/{q_unit}"
-        if self.kind == "drag":
-            return f"{f_unit}*s^2/{q_unit}^2"
-        if self.kind in ("coulomb", "bias"):
-            return f_unit
-        return "(force per unit coefficient)"
+        record = self._record()
+        if record is None:
+            return "(force per unit coefficient)"
+        return record.coefficient_units(q_unit, f_unit)
+
+
+def _read_parameters(record, on, forces) -> dict:
+    """``record``'s parameters of a term on ``on``, from its forces."""
+    q, qd, _ = symbols_for(list(on))
+    try:
+        values = record.read_parameters(tuple(forces), tuple(q), tuple(qd))
+    except (TypeError, AttributeError, IndexError, ArithmeticError) as exc:
+        # a reader meeting a force of another shape (e.g. from a model file)
+        raise ValueError(
+            f"the parameters of a {record.name} term cannot be read from its forces "
+            f"{[str(f) for f in forces]}: {exc!r}"
+        ) from None
+    return dict(values)
 
 
 def make_term(
-    kind: str, coordinates, all_coordinates, *, eps: float = DEFAULT_EPS
+    kind: str, coordinates, all_coordinates, *, eps: float = DEFAULT_EPS, **parameters
 ) -> ForceTerm:
-    """Build one candidate of ``kind`` on ``coordinates`` (one name, or two for relative)."""
+    """Build one candidate of ``kind`` on ``coordinates`` (one, or two for relative).
+
+    Parameters
+    ----------
+    kind : str
+        A registered force kind (:func:`lagsindy.force_kinds.names`).
+    coordinates : str or tuple of str
+        The coordinate the term acts on, or the kind's ``arity`` coordinates.
+    all_coordinates : list of str
+        The model's coordinates (the force vector has one entry per coordinate).
+    eps : float, default=0.01
+        Smoothing velocity, for kinds that have one (Coulomb); ignored by the others.
+    **parameters
+        The kind's other parameters (their defaults otherwise).
+
+    Returns
+    -------
+    ForceTerm
+    """
+    record = get_kind(kind)
     names = list(all_coordinates)
-    _, qd, _ = symbols_for(names)
+    q, qd, _ = symbols_for(names)
     coords = (coordinates,) if isinstance(coordinates, str) else tuple(coordinates)
     for c in coords:
         if c not in names:
             raise ValueError(f"{c!r} is not one of the coordinates {names}")
+    coords = record.check_coordinates(coords)
+    if "eps" in record.parameter_names:
+        parameters = {"eps": eps, **parameters}
+    values = record.resolve(parameters)
     idx = [names.index(c) for c in coords]
-    zero = [sp.Integer(0)] * len(names)
-    if kind == "relative":
-        if len(coords) != 2 or coords[0] == coords[1]:
+    own, rayleigh = record.build(
+        tuple(q[i] for i in idx), tuple(qd[i] for i in idx), **values
+    )
+    if own is None:
+        if rayleigh is None:
             raise ValueError(
-                f"a relative term needs two different coordinates, got {coords}"
+                f"the {kind} kind's builder returned neither forces nor a Rayleigh "
+                "function"
             )
-        rel = qd[idx[0]] - qd[idx[1]]
-        rayleigh = rel**2 / 2
-    elif len(coords) != 1:
-        raise ValueError(f"a {kind} term acts on one coordinate, got {coords}")
-    v = qd[idx[0]]
-    if kind == "viscous":
-        rayleigh = v**2 / 2
-    elif kind == "drag":
-        rayleigh = sp.Abs(v) ** 3 / 3
-        forces = list(zero)
-        forces[idx[0]] = -sp.Abs(v) * v  # -dD/dqdot, written without sign()
-        return ForceTerm(f"drag({coords[0]})", kind, coords, tuple(forces), rayleigh)
-    elif kind == "coulomb":
-        if not eps > 0:
-            raise ValueError(f"eps must be positive, got {eps}")
-        forces = list(zero)
-        forces[idx[0]] = -sp.tanh(v / sp.Float(eps))
-        return ForceTerm(f"coulomb({coords[0]})", kind, coords, tuple(forces), None)
-    elif kind == "bias":
-        forces = list(zero)
-        forces[idx[0]] = sp.Integer(1)
-        return ForceTerm(f"bias({coords[0]})", kind, coords, tuple(forces), None)
-    elif kind != "relative":
-        raise ValueError(f"unknown dissipation kind {kind!r}; use one of {KINDS}")
-    # The Rayleigh functions left here are quadratic polynomials: expanding gives
-    # the same expressions as simplify, at a hundredth of its cost.
-    forces = tuple(sp.expand(-sp.diff(rayleigh, s)) for s in qd)
+        # The built-in Rayleigh functions are polynomials in the velocities
+        # (quadratic, or |v|**3 with its force given): expanding gives the same
+        # expressions as simplify, at a hundredth of its cost.
+        forces = tuple(sp.expand(-sp.diff(rayleigh, s)) for s in qd)
+    else:
+        own = tuple(own)
+        if len(own) != len(coords):
+            raise ValueError(
+                f"the {kind} kind's builder returned {len(own)} forces for "
+                f"{len(coords)} coordinate(s)"
+            )
+        forces = [sp.Integer(0)] * len(names)
+        for i, f in zip(idx, own):
+            forces[i] = sp.sympify(f)
+        forces = tuple(forces)
     name = f"{kind}({','.join(coords)})"
     return ForceTerm(name, kind, coords, forces, rayleigh)
+
+
+def rebuild_term(kind: str, coordinates, all_coordinates, forces) -> ForceTerm:
+    """The term of ``kind`` on ``coordinates`` whose parameters ``forces`` show.
+
+    For a saved term (a model file stores the forces, not the parameters): the
+    kind's ``read_parameters`` recovers them and the term is built again; compare
+    its forces with ``forces`` to check the entry.
+
+    Raises
+    ------
+    ValueError
+        Unknown kind, wrong coordinates, or forces without the kind's shape.
+    """
+    record = get_kind(kind)
+    names = list(all_coordinates)
+    coords = (coordinates,) if isinstance(coordinates, str) else tuple(coordinates)
+    for c in coords:
+        if c not in names:
+            raise ValueError(f"{c!r} is not one of the coordinates {names}")
+    coords = record.check_coordinates(coords)
+    values = {}
+    if record.parameters:
+        try:
+            values = _read_parameters(record, coords, list(forces))
+        except ValueError as exc:
+            raise ValueError(f"a {kind} term: {exc}") from None
+    return make_term(kind, record.target(coords), names, **values)
 
 
 @cache_param_names
@@ -154,19 +220,29 @@ class DissipationLibrary(BaseEstimator):
     ----------
     kinds : sequence of str, default=("viscous",)
         Kinds applied to every coordinate: ``"viscous"``, ``"drag"``, ``"coulomb"``,
-        ``"bias"``, and ``"relative"`` (viscous between every pair of coordinates, or
-        the pairs in ``pairs``).
+        ``"bias"``, ``"relative"`` (viscous between every pair of coordinates, or
+        the pairs in ``pairs``), and any registered with
+        :func:`lagsindy.force_kinds.register` (:func:`lagsindy.force_kinds.names`
+        lists them).
     coordinates : list of str, default=None
         ``None``: filled in from the Lagrangian library by the estimator.
     terms : list of tuple, default=None
-        Extra single terms, each ``(kind, coordinate)`` or ``("relative", (a, b))``.
+        Extra single terms, each ``(kind, coordinate)`` or ``("relative", (a, b))``,
+        optionally with a third item, a dict of the term's own parameters
+        (``("coulomb", "x", {"eps": 0.02})``).
     pairs : list of tuple of str, default=None
-        Pairs for ``"relative"`` (default: all pairs).
+        Pairs for ``"relative"`` and other kinds of two coordinates (default: all
+        pairs).
     eps : float or dict, default=0.01
-        Smoothing velocity of Coulomb friction, in the coordinate's velocity units:
-        one value for every coordinate, or ``{coordinate: eps}`` (coordinates not
-        named get 0.01). Choose it well below the data's typical speeds (about 1 %
-        of the top speed): a larger value biases the fitted viscous friction.
+        Smoothing velocity of Coulomb friction (and of any kind with an ``eps``
+        parameter), in the coordinate's velocity units: one value for every
+        coordinate, or ``{coordinate: eps}`` (coordinates not named get 0.01).
+        Choose it well below the data's typical speeds (about 1 % of the top
+        speed): a larger value biases the fitted viscous friction.
+    parameters : dict, default=None
+        Other parameters of the kinds, ``{name: value}`` or ``{name: {coordinate:
+        value}}`` (coordinates not named get the kind's default). ``None``: every
+        kind's defaults.
 
     Attributes
     ----------
@@ -176,8 +252,8 @@ class DissipationLibrary(BaseEstimator):
     Examples
     --------
     >>> from lagsindy.dissipation import DissipationLibrary
-    >>> lib = DissipationLibrary(["viscous", "coulomb"], coordinates=["x", "theta"]).build()
-    >>> [t.name for t in lib.terms_]
+    >>> lib = DissipationLibrary(["viscous", "coulomb"], coordinates=["x", "theta"])
+    >>> [t.name for t in lib.build().terms_]
     ['viscous(x)', 'viscous(theta)', 'coulomb(x)', 'coulomb(theta)']
     """
 
@@ -189,12 +265,14 @@ class DissipationLibrary(BaseEstimator):
         terms=None,
         pairs=None,
         eps=DEFAULT_EPS,
+        parameters=None,
     ):
         self.kinds = kinds
         self.coordinates = coordinates
         self.terms = terms
         self.pairs = pairs
         self.eps = eps
+        self.parameters = parameters
 
     def build(self):
         """Create the candidate terms; returns ``self``."""
@@ -208,28 +286,40 @@ class DissipationLibrary(BaseEstimator):
             else self.coordinates
         )
         kinds = [self.kinds] if isinstance(self.kinds, str) else list(self.kinds or [])
-        unknown = [k for k in kinds if k not in KINDS]
+        unknown = [k for k in kinds if k not in kind_names()]
         if unknown:
             raise ValueError(
-                f"unknown dissipation kinds {unknown}; use some of {KINDS}"
+                f"unknown dissipation kinds {unknown}; use some of {kind_names()} "
+                "(or register one with lagsindy.force_kinds.register)"
             )
+        self._check_parameters()
         out = []
-        eps = self._eps_for
         for kind in kinds:
-            if kind == "relative":
-                pairs = self.pairs or list(itertools.combinations(names, 2))
-                out += [make_term(kind, pair, names) for pair in pairs]
-            else:
-                out += [make_term(kind, c, names, eps=eps(c)) for c in names]
+            record = get_kind(kind)
+            for target in record.targets(names, self.pairs):
+                out.append(
+                    make_term(
+                        kind,
+                        record.target(target),
+                        names,
+                        **self.parameters_for(kind, target[0]),
+                    )
+                )
         for spec in self.terms or []:
             try:
-                kind, coords = spec
+                kind, coords, *own = spec
+                if len(own) > 1 or (own and not isinstance(own[0], dict)):
+                    raise ValueError
             except (TypeError, ValueError):
                 raise ValueError(
-                    f"a dissipation term is (kind, coordinate) or ('relative', (a, b)), got {spec!r}"
+                    "a dissipation term is (kind, coordinate), ('relative', (a, b)) "
+                    f"or either with a dict of parameters, got {spec!r}"
                 ) from None
-            first = coords if isinstance(coords, str) else None
-            out.append(make_term(kind, coords, names, eps=eps(first)))
+            first = coords if isinstance(coords, str) else tuple(coords)[:1]
+            first = first if isinstance(first, str) else (first[0] if first else None)
+            values = self.parameters_for(kind, first)
+            values.update(own[0] if own else {})
+            out.append(make_term(kind, coords, names, **values))
         unique, seen = [], set()
         for t in out:
             if t.name not in seen:
@@ -239,19 +329,65 @@ class DissipationLibrary(BaseEstimator):
         self.terms_ = unique
         return self
 
+    def parameters_for(self, kind: str, coordinate) -> dict:
+        """The parameters a term of ``kind`` on ``coordinate`` gets from this library.
+
+        ``eps`` from :attr:`eps`, the others from :attr:`parameters`, else the kind's
+        defaults (:attr:`lagsindy.force_kinds.ForceKind.parameters`).
+        """
+        record = get_kind(kind)
+        out = {}
+        for name, default in record.parameters:
+            if name == "eps":
+                out[name] = self._eps_for(coordinate)
+                continue
+            value = (self.parameters or {}).get(name, default)
+            if isinstance(value, dict):
+                value = value.get(coordinate, default)
+            out[name] = float(value)
+        return out
+
+    def _check_parameters(self):
+        """``eps`` and ``parameters`` name known coordinates and parameters."""
+        self._check_coordinate_keys("eps", self.eps)
+        params = self.parameters or {}
+        if not isinstance(params, dict):
+            raise ValueError(
+                "parameters must be a dict {name: value or {coordinate: value}}, got "
+                f"{params!r}"
+            )
+        if "eps" in params:
+            raise ValueError("set the smoothing velocity with eps=..., not parameters")
+        known = {n for k in registered_kinds() for n in k.parameter_names}
+        unknown = sorted(set(params) - known)
+        if unknown:
+            raise ValueError(
+                f"parameters names {unknown}, which no force kind has; the kinds' "
+                f"parameters are {sorted(known - {'eps'})}"
+            )
+        for name, value in params.items():
+            self._check_coordinate_keys(f"parameters[{name!r}]", value)
+
+    def _check_coordinate_keys(self, what, value):
+        """A per-coordinate dict ``value`` names only the library's coordinates."""
+        if not isinstance(value, dict) or self.coordinates is None:
+            return
+        coords = (
+            [self.coordinates]
+            if isinstance(self.coordinates, str)
+            else self.coordinates
+        )
+        unknown = set(value) - set(coords)
+        if unknown:
+            raise ValueError(
+                f"{what} names coordinates {sorted(unknown)} that are not among "
+                f"{list(coords)}"
+            )
+
     def _eps_for(self, coordinate) -> float:
         """The Coulomb smoothing velocity of ``coordinate``."""
         if isinstance(self.eps, dict):
-            unknown = set(self.eps) - set(
-                [self.coordinates]
-                if isinstance(self.coordinates, str)
-                else self.coordinates
-            )
-            if unknown:
-                raise ValueError(
-                    f"eps names coordinates {sorted(unknown)} that are not among "
-                    f"{list(self.coordinates)}"
-                )
+            self._check_coordinate_keys("eps", self.eps)
             return float(self.eps.get(coordinate, DEFAULT_EPS))
         return float(self.eps)
 
@@ -267,16 +403,31 @@ class DissipationLibrary(BaseEstimator):
 
 
 def library_of(terms, coordinates) -> DissipationLibrary:
-    """A :class:`DissipationLibrary` that builds exactly ``terms`` (kinds, eps)."""
-    eps = {t.coordinates[0]: t.eps for t in terms if t.kind == "coulomb"}
+    """A :class:`DissipationLibrary` that builds exactly ``terms`` (kinds, parameters).
+
+    Each coordinate's ``eps`` (and other parameters) come from the first term that
+    has them; a term whose parameters differ from those is listed with its own.
+    """
+    eps, params, specs = {}, {}, []
+    for t in terms:
+        values = t.parameters
+        for name, value in values.items():
+            shared = eps if name == "eps" else params.setdefault(name, {})
+            shared.setdefault(t.coordinates[0], value)
+        record = get_kind(t.kind)
+        spec = (t.kind, record.target(t.coordinates))
+        if any(
+            (eps if name == "eps" else params[name])[t.coordinates[0]] != value
+            for name, value in values.items()
+        ):
+            spec += (values,)
+        specs.append(spec)
     return DissipationLibrary(
         kinds=(),
         coordinates=list(coordinates),
         eps=eps or DEFAULT_EPS,
-        terms=[
-            (t.kind, t.coordinates if t.kind == "relative" else t.coordinates[0])
-            for t in terms
-        ],
+        terms=specs,
+        parameters=params or None,
     )
 
 

@@ -10,8 +10,6 @@ Prediction, scoring and simulation delegate to that state.
 
 from __future__ import annotations
 
-import dataclasses
-import warnings
 from numbers import Integral, Real
 
 import numpy as np
@@ -23,34 +21,17 @@ from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
+from . import pipeline
 from ._params import cache_param_names
-from ._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
-from .cases import Problem, SparseSolve, solve_case
-from .formulation import feature_operator, gram_statistics
-from .formulation.probes import (
-    PROBE_KINDS,
-    PROBED_CASES,
-    probe_forces,
-    probe_term,
-    probing,
-    split_probes,
-    warn_unmodelled,
-)
-from .formulation.scaling import (
-    BalancedGram,
-    IdentifiabilityWarning,  # noqa: F401 - its 0.1 import path
-    warn_if_not_identifiable,
-)
-from .formulation.weak import choose_window
-from .library import CandidateLibrary
+from ._torch import resolve_device, resolve_dtype, to_tensor
+from .dissipation import library_of
+from .formulation.scaling import IdentifiabilityWarning  # noqa: F401 - 0.1 path
+from .io.model_file import read_model_file, write_model_file
 from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 path
-    MASS_BAD_FRACTION,
     FittedLagrangian,
     MassCheck,
-    feature_index,
     mass_matrix_check,
 )
-from .solvers import warn_not_converged
 
 _CASES = {"auto", "forces", "fixed", "acceleration"}
 
@@ -70,7 +51,7 @@ _PARAMETER_CONSTRAINTS = {
     "fixed_term": [str, sp.Basic, None],
     "unpenalized": ["array-like", None],
     "case": [StrOptions(_CASES)],
-    "formulation": [StrOptions({"auto", "strong", "weak"})],
+    "formulation": [StrOptions({"auto", "strong", "weak"}), HasMethods(["statistics"])],
     "window": [Interval(Integral, 5, None, closed="left"), StrOptions({"auto"})],
     "dt": [Interval(Real, 0, None, closed="neither"), None],
     "noise_cov": [StrOptions({"auto"}), "array-like", None],
@@ -360,7 +341,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             Rows ``[q..., q_dot..., q_ddot...]``. DataFrame columns are matched by
             name (``theta``, ``theta_dot``, ``theta_ddot``).
         y : array-like of shape (n_samples, n_dof) or (n_samples,), default=None
-            Generalized forces tau (case I). ``None`` for passive data.
+            Generalized forces tau (case I). ``None`` for passive data. A coordinate
+            that is never driven (an undriven link) has a column of zeros.
         groups : array-like of shape (n_samples,), default=None
             Trajectory label of each row; used by the weak formulation only (the
             strong form treats rows independently). Without it, trajectories are split
@@ -375,14 +357,70 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         for name in [k for k in vars(self) if k.endswith("_") and not k.endswith("__")]:
             delattr(self, name)
         device, dtype = resolve_device(self.device), resolve_dtype(self.dtype)
-        Xa, tau, library, diss, case = _prepare(self, X, y)
-        Xt, tau_t = _tensors(Xa, tau, device, dtype)
-        stats, solution = _fit_windows(
-            self, Xa, Xt, tau, tau_t, library, diss, groups, case
+        Xa, tau, setup = self._setup(X, y)
+        Xt = to_tensor(Xa, dtype=dtype, device=device)
+        tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
+        formulation = pipeline.formulation_of(self.get_params(deep=False), setup.case)
+        ladder = pipeline.fit_statistics(formulation, setup, Xt, tau_t, groups)
+        stats, solution = pipeline.solve_ladder(
+            ladder, setup, Xt, tau, verbose=self.verbose
         )
-        fitted = _fitted_state(self, library, diss, case, stats, solution, y, tau, Xt)
-        self._publish(fitted)
-        return self
+        tau_1d = tau is not None and np.asarray(y).ndim == 1
+        fitted = pipeline.fitted_state(setup, stats, solution, tau_1d=tau_1d)
+        pipeline.check_fit(fitted, setup, stats, solution, Xt, tau)
+        return self._publish(fitted)
+
+    def _setup(self, X, y):
+        """Validated data and the :class:`~lagsindy.pipeline.FitSetup` of a fit."""
+        coordinates = None if self.library is None else self.library.coordinates
+        if isinstance(coordinates, str):
+            coordinates = [coordinates]
+        Xa, tau, coordinates = val.validate_state(
+            self, X, reset=True, y=y, coordinates=coordinates
+        )
+        val.check_motion(Xa, coordinates)
+        library = pipeline.build_library(self.library, coordinates, Xa.shape[0])
+        case = pipeline.resolve_case(self.case, tau)
+        dissipation = pipeline.build_dissipation(self.dissipation, library)
+        params = self.get_params(deep=False)
+        return Xa, tau, pipeline.make_setup(params, library, dissipation, case)
+
+    @classmethod
+    def from_fitted(cls, fitted: FittedLagrangian, **params):
+        """A fitted estimator from a fitted state and hyperparameters.
+
+        What :func:`lagsindy.io.load_model` and :func:`lagsindy.refine` use to turn a
+        :class:`~lagsindy.model.FittedLagrangian` into an estimator that predicts,
+        scores and simulates like the one it came from.
+
+        Parameters
+        ----------
+        fitted : FittedLagrangian
+        **params
+            Hyperparameters (``lam``, ``fixed_term``, ...; ``get_params()`` of
+            another estimator works); the library is the fitted state's, the
+            dissipation library (unless given) the one its terms come from;
+            ``feature_names_in`` sets ``feature_names_in_``.
+
+        Returns
+        -------
+        LagrangianSINDy
+        """
+        params = dict(params)
+        feature_names_in = params.pop("feature_names_in", None)
+        params.pop("library", None)  # the fitted state's
+        dissipation = params.pop("dissipation", None)
+        est = _with_params(cls, fitted.library, params)
+        est.n_features_in_ = 3 * fitted.n_dof
+        if feature_names_in is not None:
+            est.feature_names_in_ = np.asarray(feature_names_in, dtype=object)
+        if dissipation is None and fitted.dissipation_terms:
+            dissipation = fitted.dissipation_library or library_of(
+                fitted.dissipation_terms, fitted.coordinates
+            )
+        if dissipation is not None:
+            est.set_params(dissipation=clone(dissipation))
+        return est._publish(fitted)
 
     def _publish(self, fitted: FittedLagrangian):
         """Expose the fitted state as the fitted attributes (``model_`` last)."""
@@ -514,9 +552,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         See :func:`lagsindy.io.save_model`; read it back with :meth:`load`.
         Returns the :class:`pathlib.Path` written.
         """
-        from .io import save_model
-
-        return save_model(self, path)
+        return write_model_file(self, path)
 
     @classmethod
     def load(cls, path):
@@ -525,375 +561,32 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         See :func:`lagsindy.io.load_model`. Returns a fitted estimator that predicts
         like the saved one.
         """
-        from .io import load_model
-
-        return load_model(path)
-
-    @classmethod
-    def _from_saved(cls, params, fitted, feature_names_in=None):
-        """A fitted estimator from saved hyperparameters and state (see io)."""
-        return _restore(cls, params, fitted, feature_names_in)
-
-
-# ----------------------------------------------------------------------------- steps
-def _warn_default_library(coordinates):
-    """The default library's products of two factors cannot couple velocities through
-    an angle (a double pendulum fitted with it returned 27 meaningless terms)."""
-    a, b = coordinates[:2]
-    warnings.warn(
-        f"library=None fits degree-2 polynomials of {coordinates}, which have no term "
-        "coupling two coordinates' velocities through an angle (a cart-pendulum's "
-        f"x_dot*theta_dot*cos(theta), a double pendulum's {a}_dot*{b}_dot*cos({a} - "
-        f"{b})): if these coordinates are coupled, the fit returns a wrong Lagrangian. "
-        f"Pass a library: CandidateLibrary.chain({list(coordinates)}) for a chain of "
-        "links, CandidateLibrary.polynomial(coordinates, angles=[...], degree=3 or 4), "
-        "or a system's paper_library().",
-        UserWarning,
-        stacklevel=5,
-    )
-
-
-def _prepare(est, X, y):
-    """Validated data, built library and dissipation terms, and the case."""
-    library = clone(est.library) if est.library is not None else None
-    lib_coords = None if library is None else library.coordinates
-    if isinstance(lib_coords, str):
-        lib_coords = [lib_coords]
-    Xa, tau, coordinates = val.validate_state(
-        est, X, reset=True, y=y, coordinates=lib_coords
-    )
-    val.check_motion(Xa, coordinates)
-    if library is None:
-        library = CandidateLibrary.polynomial(
-            coordinates, angles="all", degree=2, raw_angles=True
-        )
-        if len(coordinates) > 1:
-            _warn_default_library(coordinates)
-    elif library.coordinates is None:
-        library.set_params(coordinates=coordinates)
-    library.build()
-    n_dof, n_terms = len(library.coordinates_), len(library.terms_)
-    if Xa.shape[0] * n_dof < n_terms:
-        raise ValueError(
-            f"too few samples: {Xa.shape[0]} sample(s) x {n_dof} coordinate(s) "
-            f"give {Xa.shape[0] * n_dof} equations for {n_terms} candidate "
-            "terms; record more data or use a smaller library"
-        )
-    case = _resolve_case(est.case, tau)
-    diss = _build_dissipation(est.dissipation, library)
-    _check_known_terms(est, library, diss, case)
-    return Xa, tau, library, diss, case
-
-
-def _resolve_case(case, tau):
-    if case == "auto":
-        return "forces" if tau is not None else "fixed"
-    if case == "forces" and tau is None:
-        raise ValueError("case='forces' needs tau: call fit(X, tau)")
-    if case in ("fixed", "acceleration") and tau is not None:
-        raise ValueError(
-            f"case={case!r} is for passive data; call fit(X) without tau, or "
-            "use case='forces'"
-        )
-    return case
-
-
-def _formulation(formulation, case):
-    if case != "acceleration":
-        return formulation
-    if formulation == "weak":
-        raise ValueError(
-            "formulation='weak' is for cases I and III; case='acceleration' "
-            "needs the strong form"
-        )
-    return "strong"
-
-
-def _build_dissipation(dissipation, library):
-    """(terms, removed, built library): the candidates a Lagrangian column does not cover."""
-    from .dissipation import reduce_forces
-
-    if dissipation is None:
-        return [], [], None
-    coordinates = list(library.coordinates_)
-    dlib = clone(dissipation)
-    if dlib.coordinates is None:
-        dlib.set_params(coordinates=coordinates)
-    _build_cached(dlib)
-    if list(dlib.coordinates_) != coordinates:
-        raise ValueError(
-            f"the dissipation library's coordinates {list(dlib.coordinates_)} differ "
-            f"from the Lagrangian library's {coordinates}"
-        )
-    terms, removed = reduce_forces(library.terms_, dlib.terms_, coordinates)
-    return terms, removed, dlib
-
-
-# Built dissipation candidates by library parameters (``diagnose`` refits the same
-# dissipation library several times; building simplifies every term with sympy).
-_BUILT_DISSIPATION: dict = {}
-_BUILT_DISSIPATION_SIZE = 16
-
-
-def _build_cached(dlib):
-    """``dlib.build()``, reusing the terms built earlier from equal parameters.
-
-    The terms (frozen :class:`~lagsindy.dissipation.ForceTerm`) are shared, the
-    lists are not; only the library class itself is cached (a subclass may build
-    differently).
-    """
-    from .dissipation import DissipationLibrary
-
-    if type(dlib) is not DissipationLibrary:
-        return dlib.build()
-    key = repr(sorted(dlib.get_params(deep=False).items()))
-    if key not in _BUILT_DISSIPATION:
-        dlib.build()
-        if len(_BUILT_DISSIPATION) >= _BUILT_DISSIPATION_SIZE:
-            _BUILT_DISSIPATION.pop(next(iter(_BUILT_DISSIPATION)))
-        _BUILT_DISSIPATION[key] = (list(dlib.coordinates_), list(dlib.terms_))
-        return dlib
-    names, terms = _BUILT_DISSIPATION[key]
-    dlib.coordinates_, dlib.terms_ = list(names), list(terms)
-    return dlib
-
-
-def _term_index(library, param, term) -> int:
-    """Index of a term named by a parameter, with the parameter in the message."""
-    try:
-        return library.index(term)
-    except (ValueError, TypeError) as exc:
-        raise ValueError(f"{param}={term!r}: {exc}") from None
-
-
-def _check_known_terms(est, library, diss, case):
-    """Resolve ``fixed_term`` and ``unpenalized`` before any heavy computation."""
-    if est.fixed_term is not None:
-        if case != "fixed":
-            why = (
-                "with tau the forces set the scale"
-                if case == "forces"
-                else "case II fixes the scale by a unit norm instead"
-            )
-            raise ValueError(
-                f"fixed_term={est.fixed_term!r} is only used in case III (passive "
-                f"data, fit(X) without tau), but this fit is case={case!r} and "
-                f"{why}: drop fixed_term (unpenalized=[...] keeps a known term "
-                "without fixing its value)."
-            )
-        if not (isinstance(est.fixed_term, str) and est.fixed_term == "mass"):
-            _term_index(library, "fixed_term", est.fixed_term)
-    for term in est.unpenalized if est.unpenalized is not None else []:
+        params, fitted, names = read_model_file(path)
         try:
-            feature_index(library, diss[0], diss[1], term)
-        except (ValueError, TypeError) as exc:
-            raise ValueError(f"unpenalized={term!r}: {exc}") from None
+            return cls.from_fitted(fitted, feature_names_in=names, **params)
+        except ValueError as exc:
+            raise ValueError(f"{path}: {exc}") from None
 
 
-# (set outside the class body, which the architecture test keeps short)
-cache_param_names(LagrangianSINDy)
-
-
-def _tensors(Xa, tau, device, dtype):
-    Xt = to_tensor(Xa, dtype=dtype, device=device)
-    return Xt, None if tau is None else to_tensor(tau, dtype=dtype, device=device)
-
-
-def _statistics(est, Xt, tau_t, library, diss, groups, case):
-    """Gram statistics of every feature in the formulation ``est`` asks for; in the
-    probed cases without a dissipation library, with probe forces set aside (see
-    :mod:`lagsindy.formulation.probes`)."""
-    n_features = len(library.terms_) + len(diss[0])
-    probes = []
-    if case in PROBED_CASES and est.dissipation is None and probing():
-        from .dissipation import DissipationLibrary
-
-        probes = _build_dissipation(DissipationLibrary(PROBE_KINDS), library)[0]
-    operator = feature_operator(
-        library.coordinates_,
-        library.terms_,
-        list(diss[0]) + list(probes),
-        range(n_features + len(probes)),
-        Xt.device,
-        Xt.dtype,
-    )
-    ladder = gram_statistics(
-        operator,
-        Xt,
-        tau_t,
-        groups,
-        formulation=_formulation(est.formulation, case),
-        window=est.window,
-        dt=est.dt,
-        noise_cov=est.noise_cov,
-    )
-    names = [t.name for t in probes]
-    return split_probes(ladder, n_features, names, int(tau_t is not None))
-
-
-def _solve(case, problem):
-    """Run the case; warn when the data leave combinations of terms undetermined."""
-    solution = solve_case(case, problem)
-    solution.row_scale = problem.balanced.row_scale
-    if case != "acceleration":
-        free = np.flatnonzero(problem.identifiable)
-        allowed = 1 if case == "fixed" else 0
-        warn_if_not_identifiable(
-            problem.balanced, free, problem.names, allowed=allowed, stacklevel=5
-        )
-    return solution
-
-
-def _fit_windows(est, Xa, Xt, tau, tau_t, library, diss, groups, case):
-    """Statistics and solution, the window chosen by :func:`choose_window`."""
-    ladder = _statistics(est, Xt, tau_t, library, diss, groups, case)
-    search = case == "fixed" and est.fixed_term is None
-    memo = {}  # what the windows' problems share (data and library only)
-
-    def solve(stats, like=None):
-        problem = _problem(est, stats, library, diss, Xa, Xt, tau)
-        problem.memo = memo
-        if like is not None and search:  # confirm with the scale already chosen
-            scale = (
-                "mass" if like.normalization == "mass" else library.terms_[like.fixed]
-            )
-            problem = dataclasses.replace(problem, fixed_term=scale)
-        return _solve(case, problem)
-
-    return choose_window(ladder, solve, search=search, verbose=est.verbose)
-
-
-def _problem(est, stats, library, diss, Xa, Xt, tau) -> Problem:
-    """Balance the statistics and collect what the case needs."""
-    terms, n_terms = diss[0], len(library.terms_)
-    n_features = n_terms + len(terms)
-    if not bool(torch.isfinite(stats.gram).all()):
-        val.raise_not_finite(stats.gram, library.terms_, Xa, tau, est.dtype)
-    balanced = BalancedGram(
-        stats.gram,
-        stats.n_rows,
-        n_features,
-        normalize=est.normalize,
-        project_psd=stats.corrected,
-    )
-    identifiable = balanced.identifiable().cpu().numpy()
-    if not identifiable.any():
-        raise ValueError(
-            "no candidate term varies on the data (every Euler-Lagrange column is "
-            "zero): the velocities and accelerations may all be zero; record motion"
-        )
-    if tau is not None and balanced.target_scale(n_features) <= 0:
-        raise ValueError(
-            "tau is identically zero: for passive data call fit(X) without tau "
-            "(case III or case='acceleration')"
-            if not np.any(tau)
-            else "tau is too small to use (largest |tau| = "
-            f"{np.abs(tau).max():.3g}, its squares underflow): change its units"
-        )
-    penalty = np.ones(n_features)
-    for term in est.unpenalized if est.unpenalized is not None else []:
-        penalty[feature_index(library, terms, diss[1], term)] = 0.0
-    dissipative = [False] * n_terms + [t.dissipative for t in terms]
-    names = list(library.get_feature_names_out()) + [t.name for t in terms]
-    return Problem(
-        balanced=balanced,
-        identifiable=identifiable,
-        penalty=penalty,
-        Xt=Xt,
-        library=library,
-        dissipation_terms=terms,
-        names=np.asarray(names, dtype=object),
-        solver=SparseSolve.from_params(
-            est.get_params(deep=False), n_terms, dissipative
-        ),
-        fixed_term=est.fixed_term,
-    )
-
-
-def _fitted_state(
-    est, library, diss, case, stats, solution, y, tau, Xt
-) -> FittedLagrangian:
-    """The fitted state from a case's solution, with the fit's checks and warnings."""
-    n_terms, coef, result = len(library.terms_), solution.coef, solution.result
-    if not np.all(np.isfinite(coef)):
-        raise FloatingPointError(
-            "the fit produced non-finite coefficients; check the data scale"
-        )
-    warn_not_converged(result.stages, est.max_iter)
-    if not np.any(coef[:n_terms]):
-        warnings.warn(
-            "every Lagrangian term was thresholded away: the learned Lagrangian is "
-            "zero. Lower lam or threshold.",
-            UserWarning,
-            stacklevel=4,
-        )
-    fixed = solution.fixed
-    fitted = FittedLagrangian(
-        library=library,
-        coef=coef[:n_terms],
-        case=case,
-        dissipation_terms=diss[0],
-        dissipation_coef=coef[n_terms:],
-        dissipation_removed=diss[1],
-        dissipation_library=diss[2],
-        fixed_term=None if fixed is None else str(library.terms_[fixed]),
-        normalization=solution.normalization if case == "fixed" else None,
-        formulation=stats.formulation,
-        dt=stats.dt,
-        noise_cov=stats.noise_cov,
-        window=stats.window,
-        stages=result.stages,
-        n_iter=result.n_iter,
-        residual=result.cost,
-        tau_1d=tau is not None and np.asarray(y).ndim == 1,
-    )
-    fitted.mass_check = fitted.checked_mass(Xt, stacklevel=4)
-    norms = stats.gram.diagonal(dim1=1, dim2=2).sum(0).clamp(min=0).sqrt()
-    fitted.warn_angle_polynomials(Xt, to_numpy(norms)[:n_terms], stacklevel=4)
-    probed = probe_forces(
-        stats,
-        coef,
-        est.normalize,
-        probe_term(case, coef[:n_terms], fixed),
-        solution.row_scale,
-    )
-    sign = -1.0 if fitted.mass_check.negative > 0.5 else 1.0
-    if not warn_unmodelled(probed, sign, stacklevel=4):
-        fitted.warn_unexplained(stacklevel=4, Xt=Xt)
-        fitted.warn_poor_accelerations(Xt, solution.score, stacklevel=4, tau=tau)
-    return fitted
-
-
-def _from_params(cls, library, params):
-    """``cls(library, **params)`` with saved hyperparameters checked and validated."""
+def _with_params(cls, library, params):
+    """``cls(library, **params)``, the parameters checked (they may come from a
+    file written by another version)."""
     from sklearn.utils._param_validation import InvalidParameterError
 
     known = set(cls().get_params(deep=False)) - {"library", "dissipation"}
     unknown = sorted(set(params) - known)
     if unknown:
         raise ValueError(
-            f"the model file has unknown hyperparameters {unknown[:5]}; it may come "
-            "from a newer lagsindy version"
+            f"unknown hyperparameters {unknown[:5]} (a model file from a newer "
+            "lagsindy version?)"
         )
     try:
         est = cls(clone(library), **params)
         est._validate_params()
     except (InvalidParameterError, TypeError) as exc:
-        raise ValueError(
-            f"the model file's hyperparameters are not valid: {exc}"
-        ) from None
+        raise ValueError(f"the hyperparameters are not valid: {exc}") from None
     return est
 
 
-def _restore(cls, params, fitted, feature_names_in):
-    """``cls(**params)`` fitted with the saved state ``fitted``."""
-    est = _from_params(cls, fitted.library, params)
-    est.n_features_in_ = 3 * fitted.n_dof
-    if feature_names_in is not None:
-        est.feature_names_in_ = np.asarray(feature_names_in, dtype=object)
-    if fitted.dissipation_terms:
-        from .dissipation import library_of
-
-        dlib = library_of(fitted.dissipation_terms, fitted.coordinates)
-        est.set_params(dissipation=dlib)
-    return est._publish(fitted)
+# (set outside the class body: one line, not a step of the fit)
+cache_param_names(LagrangianSINDy)

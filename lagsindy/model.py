@@ -22,7 +22,9 @@ from ._torch import to_numpy, to_tensor
 from .cases.fixed import SCORING_ROWS, r2_scores
 from .dynamics import MechanicalModel
 from .formulation import feature_operator
+from .formulation.forms import WeakForm
 from .formulation.operator import forward_accelerations
+from .formulation.weak import WINDOW_FIRST
 
 # Fraction of samples with a singular or indefinite learned mass matrix above which
 # the fit warns.
@@ -311,6 +313,21 @@ class FittedLagrangian:
             self._cache = (key, op, coef)
         return self._cache[1], self._cache[2]
 
+    def support_columns(self, Xt):
+        """The Euler-Lagrange columns of the model's terms at the rows of ``Xt``.
+
+        Returns
+        -------
+        columns : ndarray of shape (n_samples, n_dof, n_support)
+            The generalized force of each kept term (Lagrangian, then dissipation)
+            for a unit coefficient: ``columns @ coef`` is :meth:`forces`.
+        coef : ndarray of shape (n_support,)
+        """
+        op, coef = self.support_operator(Xt.device, Xt.dtype)
+        if coef.numel() == 0:
+            return np.zeros((Xt.shape[0], self.n_dof, 0)), np.zeros(0)
+        return to_numpy(op.columns(Xt)), to_numpy(coef)
+
     def forces(self, Xt) -> np.ndarray:
         """Generalized forces (inverse dynamics) at the rows of ``Xt``."""
         op, coef = self.support_operator(Xt.device, Xt.dtype)
@@ -338,25 +355,15 @@ class FittedLagrangian:
         -------
         float
         """
-        from .formulation.weak import weak_gram
-
         op, coef = self.support_operator(Xt.device, Xt.dtype)
         tau_t = to_tensor(
             np.asarray(tau).reshape(Xt.shape[0], -1), dtype=Xt.dtype, device=Xt.device
         )
         ones = Xt.new_ones((Xt.shape[0], self.n_dof, 1))
-        window = self.window if self.window is not None else "auto"
-        [(_, build)], _, _ = weak_gram(
-            op,
-            Xt,
-            tau_t,
-            groups,
-            window=window if window != "auto" else 81,
-            dt=self.dt,
-            noise_cov=None,
-            extra=ones,
-        )
-        gram, _ = build()  # columns: support, constant, tau
+        window = self.window if self.window is not None else WINDOW_FIRST
+        form = WeakForm(window=window, dt=self.dt, noise_cov=None)
+        (build,) = form.statistics(op, Xt, tau_t, groups, extra=ones)
+        gram = build().gram  # columns: support, constant, tau
         v = torch.cat([coef, coef.new_zeros(1), coef.new_full((1,), -1.0)])
         res = torch.einsum("p,ipq,q->i", v, gram, v)
         const = gram[:, -2, -2].clamp_min(torch.finfo(gram.dtype).tiny)

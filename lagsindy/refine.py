@@ -19,7 +19,6 @@ energy's sign (non-negative in the fit's scale); a bias or custom force is signe
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import warnings
 from numbers import Integral
@@ -635,8 +634,11 @@ def refine(
     )
     # checked (and warned about, naming the coordinates) as after a fit
     new_fitted.mass_check = new_fitted.checked_mass(Xt, stacklevel=2)
-    out = copy.deepcopy(est)
-    out._publish(new_fitted)
+    out = type(est).from_fitted(
+        new_fitted,
+        feature_names_in=getattr(est, "feature_names_in_", None),
+        **est.get_params(deep=False),
+    )
     out.refinement_ = Refinement(
         horizon=int(horizon),
         stride=int(stride),

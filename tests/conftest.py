@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-import lagsindy.estimator as estimator
+import lagsindy.pipeline as estimator
 from lagsindy import LagrangianSINDy
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 

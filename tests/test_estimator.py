@@ -290,7 +290,7 @@ def test_dissipation_terms_are_built_once_per_parameters(monkeypatch):
     """A refit with an equal dissipation library reuses its built terms (diagnose
     refits several times); other parameters build again, and the fits agree."""
     import lagsindy.dissipation as dissipation_module
-    import lagsindy.estimator as estimator_module
+    import lagsindy.pipeline as estimator_module
     from lagsindy import DissipationLibrary
     from lagsindy.systems import cart_pendulum, make_dataset
 

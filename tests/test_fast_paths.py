@@ -18,7 +18,7 @@ import lagsindy.formulation.weak as weak_module
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy._batched import compile_terms
 from lagsindy.euler_lagrange import EulerLagrangeOperator
-from lagsindy.formulation.scaling import BalancedGram, _balance_rows
+from lagsindy.formulation.scaling import BalancedGram, balance_rows
 from lagsindy.formulation.weak import (
     _band,
     _correlate,
@@ -336,7 +336,7 @@ def test_row_balance_on_numpy_equals_the_torch_iterations():
             mean_sq[:, 1] = 0.0  # a column zero everywhere
         want = _torch_balance(torch.tensor(mean_sq)).numpy()
         # measured: 2.2e-16 relative at most
-        np.testing.assert_allclose(_balance_rows(mean_sq), want, rtol=1e-13)
+        np.testing.assert_allclose(balance_rows(mean_sq), want, rtol=1e-13)
     gram = torch.tensor(rng.normal(size=(2, 6, 6)))
     gram = gram @ gram.transpose(1, 2)
     for dtype in (torch.float64, torch.float32):

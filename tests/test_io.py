@@ -13,6 +13,7 @@ from sklearn.base import clone
 
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy import io as lio
+from lagsindy.io import model_file as lmf
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
 _VISCOUS = {
@@ -303,7 +304,7 @@ def test_malicious_or_invalid_term_is_refused(saved, tmp_path, term):
     assert not (tmp_path / MARKER).exists()
 
 
-FIELDS = [f for f in lio._FIELDS if f not in lio._OPTIONAL]
+FIELDS = [f for f in lmf._FIELDS if f not in lmf._OPTIONAL]
 
 
 @pytest.mark.parametrize("field", FIELDS)
@@ -437,7 +438,7 @@ def test_garbage_files_give_clear_error(tmp_path, content, message):
 
 
 def test_oversized_file_is_refused_before_reading(saved, monkeypatch):
-    monkeypatch.setattr(lio, "MAX_FILE_BYTES", 100)
+    monkeypatch.setattr(lmf, "MAX_FILE_BYTES", 100)
     with pytest.raises(ValueError, match="bytes"):
         lio.load_model(saved)
 

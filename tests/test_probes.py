@@ -48,7 +48,7 @@ def _fit(system, data, library=None, passive=False, **params):
         seen.append(original(*args, **kwargs))
         return seen[-1]
 
-    import lagsindy.estimator as estimator_module
+    import lagsindy.pipeline as estimator_module
 
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(estimator_module, "probe_forces", spy)
@@ -239,7 +239,7 @@ def test_probes_weight_the_equations_as_the_fit_did(damped):
         seen.append(row_scale)
         return original(stats, coef, normalize, fixed, row_scale)
 
-    import lagsindy.estimator as estimator_module
+    import lagsindy.pipeline as estimator_module
 
     system, data = damped
     with pytest.MonkeyPatch.context() as mp:

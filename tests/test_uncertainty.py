@@ -11,8 +11,12 @@ from lagsindy import (
     LibraryBaggingLagrangianSINDy,
     bootstrap,
 )
-from lagsindy import uncertainty as U
+from sklearn.base import clone
+
+from lagsindy import pipeline
 from lagsindy._validation import validate_state
+from lagsindy.formulation.forms import group_rows
+from lagsindy.uncertainty import _resampling as R
 from lagsindy.systems import make_dataset, single_pendulum
 
 SMALL_LIB = [
@@ -41,24 +45,34 @@ def noisy_pendulum():
     )
 
 
+def _group_stats(full, Xa, tau_a, groups):
+    """The per-group statistics of ``full`` and the data as tensors."""
+    Xt, tau_t = R.tensors(full, Xa, tau_a)
+    return R.group_statistics(full, Xt, tau_t, groups), Xt
+
+
+def _fast(full, stats, Xt, m, start=None):
+    return R.fast_resample(pipeline.setup_of(full), stats, m, Xt, {}, start)
+
+
 def _compare_paths(est, X, tau, groups, n_check=3):
     """Max difference between the fast path and full refits on a few resamples."""
-    full = U.clone(est).fit(X, tau, groups=groups)
+    full = clone(est).fit(X, tau, groups=groups)
     Xa, tau_a, _ = validate_state(
         full, X, reset=False, y=tau, coordinates=full.coordinates_
     )
-    stats = U._group_gram(full, Xa, tau_a, groups)
+    stats, Xt = _group_stats(full, Xa, tau_a, groups)
     weak = full.formulation == "weak"
     extra = {"noise_cov": full.noise_cov_, "window": full.window_} if weak else {}
-    base = U.clone(est).set_params(library=U.clone(full.library_), **extra)
-    rows_of = U._group_rows(groups)
+    base = clone(est).set_params(library=clone(full.library_), **extra)
+    rows_of = group_rows(groups)
     rng = np.random.default_rng(1)
     worst = 0.0
     n_groups = len(rows_of)
     for _ in range(n_check):
         m = rng.multinomial(n_groups, np.full(n_groups, 1.0 / n_groups))
-        a = U._fast_resample(full, stats, m, full.stages_[0].coef)
-        b = U._refit_resample(base, Xa, tau_a, rows_of, m, weak)
+        a = _fast(full, stats, Xt, m, full.stages_[0].coef)
+        b = R.refit_resample(base, Xa, tau_a, rows_of, m, weak)
         assert np.array_equal(a != 0, b != 0)
         worst = max(worst, np.abs(a - b).max() / np.abs(b).max())
     return worst
@@ -83,11 +97,11 @@ def test_resamples_estimate_their_own_sampling_interval():
         random_state=5,
     )
     est = LagrangianSINDy(_small_library(), formulation="weak")
-    full = U.clone(est).fit(d.X, d.tau, groups=d.groups)
+    full = clone(est).fit(d.X, d.tau, groups=d.groups)
     Xa, tau_a, _ = validate_state(
         full, d.X, reset=False, y=d.tau, coordinates=full.coordinates_
     )
-    stats = U._group_gram(full, Xa, tau_a, d.groups)
+    stats, Xt = _group_stats(full, Xa, tau_a, d.groups)
     assert stats.sampling_interval(np.ones(10)) == full.dt_
     m = np.array([0, 1, 0, 0, 2, 2, 1, 1, 3, 0])
     take = np.repeat(np.arange(10), m)
@@ -95,13 +109,13 @@ def test_resamples_estimate_their_own_sampling_interval():
     labels = np.repeat(np.arange(m.sum()), 200)
     # the resamples hold the noise covariance and the window fixed, not dt
     fixed = {"noise_cov": full.noise_cov_, "window": full.window_}
-    refit = U.clone(est).set_params(**fixed).fit(d.X[rows], d.tau[rows], groups=labels)
+    refit = clone(est).set_params(**fixed).fit(d.X[rows], d.tau[rows], groups=labels)
     # measured: 1.2 % below the full data's estimate on this resample
     assert stats.sampling_interval(m) == pytest.approx(refit.dt_, rel=1e-12)
     assert abs(refit.dt_ / full.dt_ - 1) > 5e-3
     # the Gram matrix interpolated at that dt is the one built there: same fit
     # (measured: 1e-16 relative)
-    coef = U._fast_resample(full, stats, m)
+    coef = _fast(full, stats, Xt, m)
     np.testing.assert_allclose(coef, refit.fitted_.all_coef(), rtol=1e-10)
 
 
@@ -109,19 +123,20 @@ def test_resamples_estimate_their_own_sampling_interval():
 def test_batched_resamples_equal_one_at_a_time(noisy_pendulum, formulation):
     d = noisy_pendulum
     est = LagrangianSINDy(single_pendulum().paper_library(), formulation=formulation)
-    full = U.clone(est).fit(d.X, d.tau, groups=d.groups)
+    full = clone(est).fit(d.X, d.tau, groups=d.groups)
     Xa, tau_a, _ = validate_state(
         full, d.X, reset=False, y=d.tau, coordinates=full.coordinates_
     )
-    stats = U._group_gram(full, Xa, tau_a, d.groups)
+    stats, Xt = _group_stats(full, Xa, tau_a, d.groups)
     rng = np.random.default_rng(7)
     mults = rng.multinomial(8, np.full(8, 1 / 8), size=25)
     start = full.stages_[0].coef
-    assert U._batch_supported(full)
-    batched = U._batched_resamples(full, stats, mults, start)
+    setup = pipeline.setup_of(full)
+    assert R.batch_supported(setup, Xt.dtype)
+    batched = R.batched_resamples(setup, stats, mults, start)
     assert all(b is not None for b in batched)
     for m, b in zip(mults, batched):
-        a = U._fast_resample(full, stats, m, start)
+        a = _fast(full, stats, Xt, m, start)
         assert np.array_equal(a != 0, b != 0)
         # measured: 1e-15 (strong), 5e-15 (weak) relative to the largest coefficient
         assert np.abs(a - b).max() <= 1e-9 * np.abs(a).max()
@@ -140,7 +155,7 @@ def test_fast_path_matches_full_refits_case_iii():
         fixed_term="theta_dot**2",
         formulation="strong",
     )
-    assert U._fast_path_supported(U.clone(est).fit(d.X))
+    assert R.fast_path_supported(clone(est).fit(d.X))
     assert _compare_paths(est, d.X, None, d.groups) < 1e-8
 
 
@@ -169,7 +184,7 @@ def test_report_table_and_determinism(noisy_pendulum):
     assert list(frame.term) == SMALL_LIB
     assert "inclusion" in str(rep) and "cos(theta)" in str(rep)
     # the full fit's coefficients are the estimator's own
-    ref = U.clone(est).fit(d.X, d.tau, groups=d.groups)
+    ref = clone(est).fit(d.X, d.tau, groups=d.groups)
     np.testing.assert_array_equal(frame.coefficient, ref.coef_)
     again = bootstrap(
         est,

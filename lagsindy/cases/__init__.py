@@ -47,6 +47,11 @@ class Problem:
         Results that depend only on the data and the library (not on the window's
         statistics), shared by the problems of one fit (the estimator passes one
         dict to every window's problem): e.g. case III's mass-matrix traces.
+    start : ndarray of shape (n_features,) or None
+        A warm start of the first stage, in coefficient units (the bootstrap starts
+        its resamples from the full fit's first stage); used by case I and by case
+        III with one fixed term. The first stage is strictly convex where its Gram
+        block is definite, so the start changes the iterations, not the answer.
     """
 
     balanced: object
@@ -59,6 +64,7 @@ class Problem:
     solver: SparseSolve
     fixed_term: object = None
     memo: dict = field(default_factory=dict, repr=False, compare=False)
+    start: np.ndarray | None = None
 
     @property
     def coordinates(self) -> list:

@@ -89,6 +89,7 @@ def fit_fixed(problem: Problem) -> Solution:
                 1.0,
                 verbose,
                 constrain=bool(traces[r] > 0),
+                start=p.start,
             )
             coef[r] = 1.0
             fits.append(("term", r, coef, result))

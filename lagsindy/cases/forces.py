@@ -18,5 +18,6 @@ def fit_forces(problem: Problem) -> Solution:
         problem.penalty,
         0.0,
         problem.solver.verbose,
+        start=problem.start,
     )
     return Solution(coef, result)

@@ -24,6 +24,20 @@ SYSTEM_NAMES = (
 )
 
 
+def _catalogue_help() -> str:
+    """``--catalogue``'s help: diagnose's default kinds and the other force kinds."""
+    from ..force_kinds import kinds  # standard library only
+
+    default = [k.name for k in kinds() if k.in_default_catalogue]
+    other = [k.name for k in kinds() if not k.in_default_catalogue]
+    return (
+        "comma-separated candidate kinds (default: "
+        + ", ".join(["delay", *default, "gain", "conservative"])
+        + ("; also " + ", ".join(other) if other else "")
+        + ")"
+    )
+
+
 class _Formatter(argparse.ArgumentDefaultsHelpFormatter):
     """Shows each option's default, except for flags and options without one."""
 
@@ -454,8 +468,7 @@ def build_parser() -> argparse.ArgumentParser:
     diag.add_argument(
         "--catalogue",
         default=None,
-        help="comma-separated candidate kinds (default: all): viscous, relative, "
-        "drag, coulomb, bias, gain, conservative, delay",
+        help=_catalogue_help(),
     )
     diag.add_argument(
         "--bootstrap",

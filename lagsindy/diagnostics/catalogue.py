@@ -1,32 +1,80 @@
 """The candidate effects :func:`~lagsindy.diagnose` can try.
 
-Viscous damping, relative (joint) damping, quadratic drag and Coulomb friction on
-every coordinate, a constant offset force, an input gain error (when several
-coordinates are driven), missing conservative terms and an input delay.
+The force kinds of :mod:`lagsindy.force_kinds` (by default those marked
+``in_default_catalogue``: viscous damping, relative (joint) damping, quadratic drag,
+Coulomb friction and a constant offset force, on every coordinate or pair), an input
+gain error (when several coordinates are driven), missing conservative terms and an
+input delay.
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 import numpy as np
 import sympy as sp
 
 from .._expr import canonical, symbols_for
-from ..dissipation import DEFAULT_EPS, make_term
+from ..dissipation import DEFAULT_EPS, DissipationLibrary, make_term
+from ..force_kinds import get as get_kind
+from ..force_kinds import kinds as registered_kinds
+from ..force_kinds import names as kind_names
 from .report import Candidate
 
-DEFAULT_CATALOGUE = (
-    "delay",
-    "viscous",
-    "relative",
-    "drag",
-    "coulomb",
-    "bias",
-    "gain",
-    "conservative",
-)
-_DISSIPATIVE = ("viscous", "relative", "drag", "coulomb", "bias")
-# Kinds whose coefficient must be non-negative (they only remove energy).
-_NONNEGATIVE = ("viscous", "relative", "drag", "coulomb")
+# Candidate kinds that are not force kinds: tried before the forces (delay) and
+# after them (gain, conservative).
+_BEFORE_FORCES = ("delay",)
+_AFTER_FORCES = ("gain", "conservative")
+
+
+class _DefaultCatalogue(Sequence):
+    """``diagnose``'s default kinds, read from the force-kind registry when used.
+
+    ``("delay", <force kinds in the default catalogue>, "gain", "conservative")``:
+    a kind registered later with ``in_default_catalogue=True`` is included.
+    """
+
+    def _kinds(self) -> tuple:
+        forces = tuple(k.name for k in registered_kinds() if k.in_default_catalogue)
+        return _BEFORE_FORCES + forces + _AFTER_FORCES
+
+    def __getitem__(self, index):
+        return self._kinds()[index]
+
+    def __len__(self) -> int:
+        return len(self._kinds())
+
+    def __eq__(self, other):
+        return tuple(self) == (tuple(other) if isinstance(other, Sequence) else other)
+
+    def __hash__(self):
+        return hash(self._kinds())
+
+    def __repr__(self) -> str:
+        return repr(self._kinds())
+
+
+DEFAULT_CATALOGUE = _DefaultCatalogue()
+
+
+class _KindSet:
+    """Names of the registered force kinds that pass ``test``, read when used."""
+
+    def __init__(self, test):
+        self._test = test
+
+    def __contains__(self, name) -> bool:
+        return name in kind_names() and self._test(get_kind(name))
+
+    def __iter__(self):
+        return iter([k.name for k in registered_kinds() if self._test(k)])
+
+
+# Candidates that are force kinds (built by the dissipation library), and those
+# whose coefficient must be non-negative (dissipative: they only remove energy;
+# bias, a constant offset, is a force kind but not dissipative).
+_DISSIPATIVE = _KindSet(lambda kind: True)
+_NONNEGATIVE = _KindSet(lambda kind: kind.dissipative)
 # Coulomb smoothing velocity, relative to the 99th percentile of |q_dot|.
 _EPS_FRACTION = 0.01
 
@@ -47,25 +95,28 @@ def velocity_eps(X, n_dof, coordinates) -> dict:
     }
 
 
-def _pairs(coords):
-    return [(a, b) for k, a in enumerate(coords) for b in coords[k + 1 :]]
-
-
 def _catalogue(est, kinds, extra_terms, angles, tau, eps):
     """Candidate effects not already in the model's candidate set."""
     coords = est.coordinates_
     present_forces = {t.name for t in est.dissipation_terms_}
     present_terms = set(est.library_.get_feature_names_out())
     out = []
+    # the kinds' parameters other than eps: the refits' (scoring._fit_model)
+    source = est.dissipation
+    if not isinstance(source, DissipationLibrary):
+        source = DissipationLibrary((), coordinates=coords)
     for kind in kinds:
-        if kind in _DISSIPATIVE:
-            targets = _pairs(coords) if kind == "relative" else [(c,) for c in coords]
-            for tgt in targets:
+        if kind in kind_names():
+            record = get_kind(kind)
+            for tgt in record.targets(coords):
+                params = source.parameters_for(kind, tgt[0])
+                params.pop("eps", None)
                 term = make_term(
                     kind,
-                    tgt if kind == "relative" else tgt[0],
+                    record.target(tgt),
                     coords,
                     eps=eps.get(tgt[0], DEFAULT_EPS),
+                    **params,
                 )
                 if term.name not in present_forces:
                     out.append(Candidate(kind, term.name, tuple(tgt), term))
@@ -97,7 +148,8 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps):
                 out.append(Candidate("conservative", str(t), own or (coords[0],), t))
         else:
             raise ValueError(
-                f"unknown candidate kind {kind!r}; use some of {DEFAULT_CATALOGUE}"
+                f"unknown candidate kind {kind!r}; use some of "
+                f"{_BEFORE_FORCES + kind_names() + _AFTER_FORCES}"
             )
     return out
 

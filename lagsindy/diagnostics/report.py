@@ -12,16 +12,23 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from ..force_kinds import get as get_kind
+from ..force_kinds import names as kind_names
+
+# The wording of the candidates that are not force kinds (a force kind's is its
+# record's, lagsindy.force_kinds).
 _KIND_TEXT = {
-    "viscous": "viscous damping",
-    "relative": "relative (joint) damping",
-    "drag": "quadratic drag",
-    "coulomb": "Coulomb friction",
-    "bias": "constant offset force",
     "gain": "input gain error",
     "conservative": "missing conservative term",
     "delay": "input delay",
 }
+
+
+def _kind_text(kind: str) -> str:
+    """How the report names an effect of ``kind``."""
+    if kind in kind_names():
+        return get_kind(kind).description
+    return _KIND_TEXT.get(kind, kind)
 
 
 @dataclass
@@ -35,7 +42,7 @@ class Candidate:
 
     @property
     def description(self) -> str:
-        return _KIND_TEXT.get(self.kind, self.kind)
+        return _kind_text(self.kind)
 
 
 @dataclass
@@ -359,12 +366,6 @@ def _units(cand, units, passive):
         if cand.kind == "conservative":
             return f"energy ({f_unit}*{q_unit})"
         return cand.term.units(units)
-    if cand.kind == "viscous":
-        return f"per unit of {c}_dot"
-    if cand.kind == "relative":
-        return f"per unit of {c}_dot-{cand.coordinates[1]}_dot"
-    if cand.kind == "drag":
-        return f"per unit of {c}_dot^2"
-    if cand.kind in ("coulomb", "bias"):
-        return f"force units of {c}"
+    if cand.kind in kind_names():
+        return get_kind(cand.kind).unit_words(cand.coordinates)
     return "energy units"

@@ -16,8 +16,12 @@ import torch
 from sklearn.base import clone
 from sklearn.model_selection import GroupKFold
 
+from .. import pipeline
 from .._torch import to_numpy
 from ..dissipation import DEFAULT_EPS, DissipationLibrary
+from ..force_kinds import get as get_kind
+from ..force_kinds import names as kind_names
+from ..formulation.forms import StrongForm, WeakForm
 from ..formulation.operator import EulerLagrangeOperator
 from ..formulation.probes import without_probes
 from ..formulation.weak import (
@@ -26,17 +30,13 @@ from ..formulation.weak import (
     estimate_sampling_interval,
     negligible_noise,
     trajectory_segments,
-    window_stride,
 )
-from .catalogue import _DISSIPATIVE, _NONNEGATIVE
 
 # A refit whose mass matrix is singular or indefinite at more than this fraction of
 # the checked samples cannot predict accelerations: the fold (or model) is degenerate.
 _MASS_BAD_FRACTION = 0.01
 # Samples per fold at which mass matrices are checked.
 _MASS_ROWS = 150
-# Samples for the noise correction of each fold's weak statistics.
-_NOISE_ROWS = 4000
 
 
 def _columns(est, candidates):
@@ -48,7 +48,7 @@ def _columns(est, candidates):
     and the number of Lagrangian columns.
     """
     cons = [c for c in candidates if c.kind == "conservative"]
-    diss = [c for c in candidates if c.kind in _DISSIPATIVE]
+    diss = [c for c in candidates if c.kind in kind_names()]
     gain = [c for c in candidates if c.kind == "gain"]
     lib_terms = list(est.library_.terms_) + [c.term for c in cons]
     forces = list(est.dissipation_terms_) + [c.term for c in diss]
@@ -63,7 +63,7 @@ def _columns(est, candidates):
     index.update({c.name: n_lib + n_force + k for k, c in enumerate(gain)})
     nonneg = np.zeros(n_features, dtype=bool)
     for k, f in enumerate(forces):
-        nonneg[n_lib + k] = f.kind in _NONNEGATIVE
+        nonneg[n_lib + k] = f.dissipative
     return op, index, nonneg, n_lib
 
 
@@ -162,46 +162,51 @@ class _Statistics:
 
     Column layout: ``[library terms + conservative candidates | model forces +
     dissipative candidates | gain candidates | target]``. ``kind`` is ``"weak"``
-    (integrated residual over windows) or ``"strong"`` (pointwise).
+    (integrated residual over windows) or ``"strong"`` (pointwise). The statistics
+    of each block of the folds come from the formulation's
+    ``trajectory_statistics`` (the weak form's noise covariance estimated once on
+    every block); a fold's are the sum of its blocks'. ``raw`` holds them without,
+    ``fit`` with the noise correction.
     """
 
     def __init__(self, op, Xt, tau_t, extra, folds, kind, *, window=None, dt=None):
         d = op.n_dof
         self.kind = kind
+        blocks = [np.asarray(b) for fold in folds for b in fold]
+        owner = np.asarray([k for k, fold in enumerate(folds) for _ in fold])
+        labels = np.full(Xt.shape[0], -1)
+        for j, b in enumerate(blocks):
+            labels[b] = j
+        if kind == "weak":
+            usable = [torch.as_tensor(b) for b in blocks if len(b) >= window]
+            if not usable:
+                raise _NoWindows()
+            cov = estimate_noise_covariance(Xt, usable, d)
+            if negligible_noise(Xt, usable, cov):
+                cov = None  # as the fit does (see weak.NEGLIGIBLE_NOISE)
+            form = WeakForm(window=window, dt=dt, noise_cov=cov)
+        else:
+            form = StrongForm()
+        inside = labels >= 0
+        rows = np.flatnonzero(inside)
+        stats = form.trajectory_statistics(
+            op,
+            Xt[rows],
+            None if tau_t is None else tau_t[rows],
+            labels[rows],
+            extra=None if extra is None else extra[rows],
+        )
+        # the statistics' trajectories are the blocks, in order of first appearance
+        seen, first = np.unique(labels[rows], return_index=True)
+        fold_of = owner[seen[np.argsort(first)]]
         raw, fit = [], []
-        for blocks in folds:
-            if kind == "weak":
-                segs = [torch.as_tensor(b) for b in blocks if len(b) >= window]
-                if not segs:
-                    raise _NoWindows()
-                cov = estimate_noise_covariance(Xt, segs, d)
-                if negligible_noise(Xt, segs, cov):
-                    cov = None  # as the fit does (see weak.NEGLIGIBLE_NOISE)
-                g, noise, n_w = op.weak_gram(
-                    Xt,
-                    tau_t,
-                    segs,
-                    window=window,
-                    stride=window_stride(window),
-                    dt=dt,
-                    noise_cov=cov,
-                    noise_rows=_NOISE_ROWS,
-                    extra=extra,
-                    return_noise=True,
-                )
-                if n_w == 0:
-                    raise _NoWindows()
-                raw.append(to_numpy(g))
-                fit.append(to_numpy(g - noise))
-            else:
-                rows = torch.as_tensor(np.concatenate(blocks))
-                g = op.gram(
-                    Xt[rows],
-                    None if tau_t is None else tau_t[rows],
-                    extra=None if extra is None else extra[rows],
-                )
-                raw.append(to_numpy(g))
-                fit.append(raw[-1])
+        for k in range(len(folds)):
+            weights = (fold_of == k).astype(float)
+            total = stats.total(weights, corrected=False)
+            if kind == "weak" and total.n_rows == 0:
+                raise _NoWindows()
+            raw.append(to_numpy(total.gram))
+            fit.append(to_numpy(stats.total(weights).gram))
         self.raw = np.stack(raw)  # (K, d, P, P)
         self.fit = np.stack(fit)
 
@@ -400,7 +405,7 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=T
     if cons:
         library.set_params(terms=list(library.terms or []) + [c.term for c in cons])
         unpenalized += [str(c.term) for c in effects if c.kind == "conservative"]
-    diss = [c for c in list(effects) + list(penalized) if c.kind in _DISSIPATIVE]
+    diss = [c for c in list(effects) + list(penalized) if c.kind in kind_names()]
     if diss:
         base = est.dissipation
         dlib = (
@@ -414,23 +419,20 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=T
             for c in est.coordinates_
         }
         for c in diss:
-            if c.kind == "coulomb":
+            if "eps" in get_kind(c.kind).parameter_names:
                 merged[c.coordinates[0]] = (eps or {}).get(
                     c.coordinates[0], DEFAULT_EPS
                 )
         specs = list(dlib.terms or [])
-        specs += [
-            (c.kind, c.coordinates if c.kind == "relative" else c.coordinates[0])
-            for c in diss
-        ]
+        specs += [(c.kind, get_kind(c.kind).target(c.coordinates)) for c in diss]
         dlib.set_params(terms=specs, eps=merged)
         new.set_params(dissipation=dlib)
-        unpenalized += [c.name for c in effects if c.kind in _DISSIPATIVE]
+        unpenalized += [c.name for c in effects if c.kind in kind_names()]
     new.set_params(library=library, unpenalized=unpenalized or None)
     if est.case_ == "fixed":
         new.set_params(fixed_term=_normalization(est))
-    if getattr(est, "window_", None) is not None:
-        new.set_params(window=est.window_)  # the window est's fit chose
+    # the formulation est's fit used, with the window it chose
+    new.set_params(formulation=pipeline.fitted_formulation(est))
     new.set_params(verbose=0)  # refits are quiet; the result keeps est's verbose
     if not fit:
         return new

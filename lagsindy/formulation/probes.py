@@ -28,11 +28,13 @@ import warnings
 import numpy as np
 import torch
 
+from ..force_kinds import kinds as registered_kinds
 from .scaling import BalancedGram, dense_residuals, dense_solution
 from .weak import window_stride
 
-# Kinds of the probe forces (see lagsindy.dissipation.DissipationLibrary).
-PROBE_KINDS = ("viscous", "coulomb")
+# Kinds of the probe forces (see lagsindy.dissipation.DissipationLibrary): the
+# registry's kinds marked probe (viscous, coulomb), read at import.
+PROBE_KINDS = tuple(kind.name for kind in registered_kinds() if kind.probe)
 
 # Cases whose fits are probed: with forces (I) and passive (III, and II, whose fits
 # on damped data warned of nothing: a double pendulum with viscous damping 0.3 at
@@ -304,7 +306,7 @@ def warn_unmodelled(
         f"friction or damping missing from the model explains {result.share:.0%} of "
         f"what the model leaves unexplained ({measure}: {result.residual:.3g}, and "
         f"{result.named_residual:.3g} with {which}{scale}): {harm}. Refit with "
-        "dissipation=DissipationLibrary(['viscous', 'coulomb']), or run "
+        f"dissipation=DissipationLibrary({list(PROBE_KINDS)}), or run "
         f"lagsindy.diagnose, which also tests {tests}, to find and add the "
         f"effect.{advice}",
         UnmodelledForceWarning,

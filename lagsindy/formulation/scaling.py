@@ -15,38 +15,49 @@ from ..solvers.datafits import GramQuadratic
 # The alternating row/column scaling converges linearly (about 100-150 iterations to
 # rtol 1e-10 on the paper's systems); the fit is invariant to units only at its fixed
 # point, so the cap must not cut it short (100 did, shifting noisy fits by ~1e-7).
-_BALANCE_MAX_ITER = 2000
+BALANCE_MAX_ITER = 2000
 
 
-def _balance_rows(mean_sq: np.ndarray) -> np.ndarray:
-    """Row scales of the alternating row/column balancing of ``mean_sq`` (n_dof, p).
+def balance_rows(mean_sq: np.ndarray) -> np.ndarray:
+    """Row scales of the alternating row/column balancing of ``mean_sq``.
 
-    On NumPy arrays, with plain ufuncs (``add.reduce`` for ``mean``, the test of
-    ``allclose(new, rows, rtol=1e-10, atol=0)`` written out): the iterations are on
-    a few numbers each, where the per-call overhead of torch (about 0.3 ms per
-    iteration) or of NumPy's Python-level ``mean``/``allclose`` would dominate.
+    ``mean_sq`` holds the mean squares of the columns per coordinate, of shape
+    (n_dof, p), or (R, n_dof, p) for R problems balanced at once (each stops at its
+    own iteration: the same scales as one at a time, up to rounding). On NumPy
+    arrays with plain ufuncs: the iterations are on a few numbers each, where the
+    per-call overhead of torch (about 0.3 ms per iteration) or of NumPy's
+    Python-level ``mean``/``allclose`` would dominate.
+
+    Returns
+    -------
+    ndarray of shape (n_dof,) or (R, n_dof)
     """
+    single = mean_sq.ndim == 2
+    stacked = mean_sq[None] if single else mean_sq
     with np.errstate(all="ignore"):  # inf and nan pass silently, as in torch
-        return _balance(mean_sq)
+        rows = _balance(stacked)
+    return rows[0] if single else rows
 
 
 def _balance(mean_sq):
-    n_dof = mean_sq.shape[0]
-    rows = np.ones(n_dof, dtype=mean_sq.dtype)
-    one = np.ones(n_dof, dtype=mean_sq.dtype)
-    for _ in range(_BALANCE_MAX_ITER):
-        cols = np.sqrt(np.add.reduce(mean_sq / rows[:, None] ** 2, axis=0) / n_dof)
+    n_prob, n_dof = mean_sq.shape[:2]
+    rows = np.ones((n_prob, n_dof), dtype=mean_sq.dtype)
+    live = np.ones(n_prob, dtype=bool)
+    for _ in range(BALANCE_MAX_ITER):
+        cols = np.sqrt(np.add.reduce(mean_sq / rows[:, :, None] ** 2, axis=1) / n_dof)
         active = cols > 0
-        if not active.any():
+        count = active.sum(axis=1)
+        safe = np.where(active, cols, 1.0)
+        ratio = np.where(active[:, None, :], mean_sq / safe[:, None, :] ** 2, 0.0)
+        new = np.sqrt(np.add.reduce(ratio, axis=2) / np.maximum(count, 1)[:, None])
+        new = np.where(new > 0, new, 1.0)
+        new = new / np.exp(np.add.reduce(np.log(new), axis=1) / n_dof)[:, None]
+        close = (np.abs(new - rows) <= 1e-10 * np.abs(rows)).all(axis=1)
+        step = live & (count > 0)
+        rows = np.where(step[:, None], new, rows)
+        live &= step & ~close
+        if not live.any():
             break
-        ratio = mean_sq[:, active] / cols[active] ** 2
-        new_rows = np.sqrt(np.add.reduce(ratio, axis=1) / ratio.shape[1])
-        new_rows = np.where(new_rows > 0, new_rows, one)
-        new_rows = new_rows / np.exp(np.add.reduce(np.log(new_rows)) / n_dof)
-        if (np.abs(new_rows - rows) <= 1e-10 * np.abs(rows)).all():
-            rows = new_rows
-            break
-        rows = new_rows
     return rows
 
 
@@ -97,7 +108,7 @@ class BalancedGram:
             rows = row_scale
         elif normalize and self.n_features:
             rows = torch.as_tensor(
-                _balance_rows(to_numpy(mean_sq)), dtype=gram.dtype, device=gram.device
+                balance_rows(to_numpy(mean_sq)), dtype=gram.dtype, device=gram.device
             )
         self.row_scale = rows
         weights = 1.0 / rows**2
@@ -115,6 +126,39 @@ class BalancedGram:
         else:
             self.col_scale = torch.where(col > 0, torch.ones_like(col), col)
         self.normalize = normalize
+
+    @classmethod
+    def many(cls, grams, n_samples, n_features, normalize=True, project_psd=False):
+        """:class:`BalancedGram` of several statistics, their row scales balanced at
+        once (:func:`balance_rows` on the stack; each problem stops at its own
+        iteration, so each gets the scales it would get alone, up to rounding).
+
+        Parameters
+        ----------
+        grams : Tensor of shape (R, n_dof, P, P)
+        n_samples : sequence of int, length R
+        n_features : int
+        normalize, project_psd : bool
+
+        Returns
+        -------
+        list of BalancedGram
+        """
+        n_rows = torch.as_tensor(
+            np.asarray(n_samples, dtype=float), dtype=grams.dtype, device=grams.device
+        )
+        rows = [None] * grams.shape[0]
+        if normalize and n_features:
+            diag = torch.diagonal(grams, dim1=2, dim2=3)[:, :, :n_features]
+            mean_sq = torch.clamp(diag / n_rows[:, None, None], min=0)
+            scales = torch.as_tensor(
+                balance_rows(to_numpy(mean_sq)), dtype=grams.dtype, device=grams.device
+            )
+            rows = list(scales)
+        return [
+            cls(g, int(n), n_features, normalize, project_psd, row_scale=r)
+            for g, n, r in zip(grams, n_samples, rows)
+        ]
 
     def identifiable(self) -> torch.Tensor:
         """Boolean mask of candidate columns that are not identically zero on the data."""

@@ -5,14 +5,15 @@
 * :mod:`~lagsindy.io.datasets`: the MultiArm pendulum recordings that ship with
   lagsindy.
 
-:func:`save_model` and :func:`load_model` are the entry points. The package never
-imports :mod:`lagsindy.estimator`: :func:`load_model` takes the estimator class from
-the public ``lagsindy`` namespace and hands it the file's hyperparameters and state.
+:func:`save_model` and :func:`load_model` are the entry points. The model document
+is read into a :class:`~lagsindy.model.FittedLagrangian` and hyperparameters
+(:mod:`~lagsindy.io.model_file` never imports the estimator); :func:`load_model`
+turns them into an estimator through the public
+:meth:`LagrangianSINDy.from_fitted <lagsindy.LagrangianSINDy.from_fitted>`.
 """
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from .datasets import (
@@ -22,22 +23,18 @@ from .datasets import (
     load_multiarm_parameters,
     load_multiarm_pendulum,
 )
-from .model_file import (  # noqa: F401 - _FIELDS, _OPTIONAL: for tests of the layout
-    _FIELDS,
-    _OPTIONAL,
+from .model_file import (
     FORMAT,
+    MAX_FILE_BYTES,
     MAX_TERMS,
     SCHEMA_VERSION,
     SCHEMA_VERSIONS,
-    _reject_constant,
-    _unique_keys,
     expression_to_string,
     model_from_dict,
     model_to_dict,
+    read_model_file,
+    write_model_file,
 )
-
-#: Largest model file :func:`load_model` reads, in bytes.
-MAX_FILE_BYTES = 20_000_000
 
 __all__ = [
     "FORMAT",
@@ -79,14 +76,7 @@ def save_model(est, path) -> Path:
     pathlib.Path
         The path written.
     """
-    doc = model_to_dict(est)
-    path = Path(path)
-    # One field per line, values compact: readable and diff-friendly.
-    lines = [
-        f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in doc.items()
-    ]
-    path.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
-    return path
+    return write_model_file(est, path)
 
 
 def read_model(path):
@@ -109,31 +99,7 @@ def read_model(path):
     ValueError
         When the file is not a valid model file (the message names the problem).
     """
-    path = Path(path)
-    size = path.stat().st_size
-    if size > MAX_FILE_BYTES:
-        raise ValueError(
-            f"{path} has {size} bytes, more than a model file may have "
-            f"({MAX_FILE_BYTES})"
-        )
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8")
-        doc = json.loads(
-            text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys
-        )
-    except UnicodeDecodeError:
-        raise ValueError(f"{path} is not a text (UTF-8) model file") from None
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path} is not valid JSON: {exc}") from None
-    except RecursionError:
-        raise ValueError(f"{path} is nested too deeply to be a model file") from None
-    except ValueError as exc:  # NaN/Infinity, repeated keys, oversized integers
-        raise ValueError(f"{path}: {exc}") from None
-    try:
-        return model_from_dict(doc)
-    except ValueError as exc:
-        raise ValueError(f"{path}: {exc}") from None
+    return read_model_file(path)
 
 
 def load_model(path):
@@ -158,10 +124,6 @@ def load_model(path):
     ValueError
         When the file is not a valid model file (the message names the problem).
     """
-    import lagsindy
+    from ..estimator import LagrangianSINDy
 
-    params, fitted, names = read_model(path)
-    try:
-        return lagsindy.LagrangianSINDy._from_saved(params, fitted, names)
-    except ValueError as exc:
-        raise ValueError(f"{Path(path)}: {exc}") from None
+    return LagrangianSINDy.load(path)

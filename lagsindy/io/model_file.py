@@ -49,10 +49,12 @@ the estimator (:mod:`lagsindy.io` turns the pair into one).
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import warnings
 from numbers import Integral, Real
+from pathlib import Path
 
 import numpy as np
 import sympy as sp
@@ -66,7 +68,6 @@ from .._expr import (
     parse_expression,
     state_names,
 )
-from ..dissipation import DEFAULT_EPS
 
 FORMAT = "lagsindy-model"
 SCHEMA_VERSION = 1
@@ -162,6 +163,21 @@ def _plain(value):
 
 
 # ----------------------------------------------------------------------------- save
+def flat_hyperparameters(params: dict) -> dict:
+    """Hyperparameters with the settings objects written out as flat values.
+
+    A formulation object (``WeakForm(window=161)``) becomes its name and its own
+    parameters, which is how files store it (files stay readable by every version:
+    :meth:`LagrangianSINDy.from_fitted` turns them back into the object).
+    """
+    params = dict(params)
+    form = params.get("formulation")
+    if form is not None and not isinstance(form, str):
+        params["formulation"] = form.name
+        params.update(form.get_params(deep=False))
+    return params
+
+
 def model_to_dict(est) -> dict:
     """The JSON document of a fitted estimator (see the module docstring).
 
@@ -171,7 +187,7 @@ def model_to_dict(est) -> dict:
     """
     from sklearn.utils.validation import check_is_fitted
 
-    from .. import __version__
+    from .._version import __version__
 
     check_is_fitted(est)
     fitted = est.fitted_
@@ -181,7 +197,7 @@ def model_to_dict(est) -> dict:
     coef = np.asarray(fitted.coef, dtype=float)
     if not np.all(np.isfinite(coef)):
         raise ValueError("the model has non-finite coefficients; it cannot be saved")
-    params = est.get_params(deep=False)
+    params = flat_hyperparameters(est.get_params(deep=False))
     params.pop("library", None)
     params.pop("dissipation", None)  # its terms are stored under "dissipation"
     params.pop("verbose", None)  # how chatty a session was is not part of the model
@@ -540,7 +556,8 @@ def _same_forces(a, b, coords) -> bool:
 
 def _dissipation_entries(entries, coords, allowed):
     """Validate the ``dissipation`` field and rebuild its terms from kind and coordinates."""
-    from ..dissipation import KINDS, make_term
+    from ..dissipation import rebuild_term
+    from ..force_kinds import names as kind_names
 
     if len(entries) > MAX_TERMS:
         raise ValueError(f"the model file has {len(entries)} dissipation entries")
@@ -555,9 +572,9 @@ def _dissipation_entries(entries, coords, allowed):
                 f"{sorted(fields)}, got {got}"
             )
         kind = entry["kind"]
-        if kind not in KINDS:
+        if kind not in kind_names():
             raise ValueError(
-                f"{where}['kind'] must be one of {KINDS}, got {str(kind)[:40]!r}"
+                f"{where}['kind'] must be one of {kind_names()}, got {str(kind)[:40]!r}"
             )
         on = _check_strings(
             entry["coordinates"], f"{where}['coordinates']", limit=_MAX_NAME_LENGTH
@@ -580,18 +597,8 @@ def _dissipation_entries(entries, coords, allowed):
         (coefficient,) = _check_numbers(
             [entry["coefficient"]], f"{where}['coefficient']"
         )
-        eps = DEFAULT_EPS
-        if kind == "coulomb":
-            tanhs = [a for f in parsed for a in f.atoms(sp.tanh)]
-            if len(tanhs) != 1:
-                raise ValueError(
-                    f"{where} is a Coulomb term without one tanh(qdot/eps)"
-                )
-            eps = float(1 / tanhs[0].args[0].as_coeff_Mul()[0])
-            if not (math.isfinite(eps) and eps > 0):
-                raise ValueError(f"{where} has an invalid Coulomb smoothing velocity")
-        try:
-            term = make_term(kind, on if kind == "relative" else on[0], coords, eps=eps)
+        try:  # the kind's parameters (Coulomb's eps) are read from the forces
+            term = rebuild_term(kind, on, coords, parsed)
         except ValueError as exc:
             raise ValueError(
                 f"{where} is not a valid dissipation term: {exc}"
@@ -614,3 +621,54 @@ def _index(library, text):
         raise ValueError(
             f"the model file names a term that is not among its terms: {exc}"
         ) from None
+
+
+# ----------------------------------------------------------------------------- files
+#: Largest model file :func:`read_model_file` reads, in bytes.
+MAX_FILE_BYTES = 20_000_000
+
+
+def write_model_file(est, path) -> Path:
+    """Write the model document of a fitted estimator (:func:`model_to_dict`) as a
+    JSON file, one field per line (readable and diff-friendly); the path written."""
+    doc = model_to_dict(est)
+    path = Path(path)
+    lines = [
+        f" {json.dumps(k)}: {json.dumps(v, allow_nan=False)}" for k, v in doc.items()
+    ]
+    path.write_text("{\n" + ",\n".join(lines) + "\n}\n", encoding="utf-8")
+    return path
+
+
+def read_model_file(path):
+    """Read a model file: hyperparameters, fitted state and column names.
+
+    Raises ``FileNotFoundError`` when the file does not exist and ``ValueError``
+    (naming the file and the problem) when it is not a valid model file; nothing
+    in it is evaluated as code. See :func:`model_from_dict` for what is returned.
+    """
+    path = Path(path)
+    size = path.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise ValueError(
+            f"{path} has {size} bytes, more than a model file may have "
+            f"({MAX_FILE_BYTES})"
+        )
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+        doc = json.loads(
+            text, parse_constant=_reject_constant, object_pairs_hook=_unique_keys
+        )
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not a text (UTF-8) model file") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not valid JSON: {exc}") from None
+    except RecursionError:
+        raise ValueError(f"{path} is nested too deeply to be a model file") from None
+    except ValueError as exc:  # NaN/Infinity, repeated keys, oversized integers
+        raise ValueError(f"{path}: {exc}") from None
+    try:
+        return model_from_dict(doc)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None

@@ -17,8 +17,9 @@ on :math:`G = A^\top A / n` and :math:`b = A^\top y / n`, so an iteration costs
 The package holds one module per role: :mod:`~lagsindy.solvers.datafits`,
 :mod:`~lagsindy.solvers.penalties`, :mod:`~lagsindy.solvers.fista` (with its
 exact finishes in :mod:`~lagsindy.solvers.exact`) and
-:mod:`~lagsindy.solvers.staged`. :class:`BalancedGram` lives in
-:mod:`lagsindy.formulation.scaling` and is re-exported here.
+:mod:`~lagsindy.solvers.staged`. The solvers know nothing of mechanics: the
+scaled problems they solve are made by
+:class:`lagsindy.formulation.scaling.BalancedGram`.
 """
 
 from __future__ import annotations
@@ -31,7 +32,6 @@ from .staged import Stage, StagedResult, fista_path, staged_fista, warn_not_conv
 __all__ = [
     "L1",
     "AccelerationDatafit",
-    "BalancedGram",
     "GramQuadratic",
     "SolverResult",
     "Stage",
@@ -42,13 +42,3 @@ __all__ = [
     "staged_fista",
     "warn_not_converged",
 ]
-
-
-def __getattr__(name):
-    # BalancedGram moved to lagsindy.formulation.scaling (it scales the Euler-Lagrange
-    # statistics; the solvers only see its GramQuadratic problems).
-    if name == "BalancedGram":
-        from ..formulation.scaling import BalancedGram
-
-        return BalancedGram
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -10,18 +10,19 @@ resample that takes trajectory :math:`g` :math:`m_g` times are
 :math:`\sum_g m_g G_g` (strong form: per-sample rows; weak form: per-window rows, since
 a window never spans two trajectories). The per-trajectory statistics are computed once,
 so a resample costs one scaled staged solve, not a rebuild of the regression. This fast
-path goes through one private seam, :func:`_solve_from_gram`, which repeats what
-:meth:`LagrangianSINDy.fit` does after building the Gram matrix (balancing, then the
-staged solve of case I, or of case III with a given ``fixed_term``). It checks itself:
-before any resample, the seam is run on the full data's statistics and must reproduce
-the full fit; if it does not (a configuration it does not know, or estimator internals
-that changed), every resample is a full refit (``clone(est).fit``) instead, and the
-report says so (``fast_path_``). Configurations that choose between models on the data
+path is the fit's own pipeline: the formulation's ``trajectory_statistics`` and
+:func:`lagsindy.pipeline.solve` with the full fit's setup
+(:func:`~lagsindy.pipeline.setup_of`). It checks itself: before any resample, it is
+run on the full data's statistics and must reproduce the full fit (the weak form's
+noise correction is summed over every sample per trajectory, over a subsample in a
+fit of many rows); if it does not, every resample is a full refit
+(``clone(est).fit``) instead, and the report says so (``fast_path``). Configurations that choose between models on the data
 (case III without a fixed term or with ``fixed_term="mass"``, case II) always use full
 refits.
 
-Case I resamples are solved together (:func:`_batched_resamples`): the balancing of
-every resample's Gram matrix and each stage's FISTA iterations run on stacked arrays
+Case I resamples are solved together (:func:`~._resampling.batched_resamples`): the
+balancing of every resample's Gram matrix and each stage's FISTA iterations run on
+stacked arrays
 (:func:`lagsindy.solvers.staged.staged_fista_batch`), one batched product per iteration instead
 of one Python-level loop per resample, while the per-resample decisions (thresholds,
 the path's second start, the debiasing refit) follow
@@ -46,36 +47,32 @@ relative on those data, against a spread of 0.2 % to 0.8 %.
 
 from __future__ import annotations
 
-import math
 import warnings
 from numbers import Integral, Real
 
 import numpy as np
 from joblib import Parallel, delayed
 from scipy.stats import norm
-from sklearn.base import BaseEstimator, MetaEstimatorMixin, RegressorMixin, clone
+from sklearn.base import clone
 from sklearn.utils import check_random_state
-from sklearn.utils.validation import check_is_fitted
 
-from ._params import cache_param_names
-from ._resampling import (  # noqa: F401 (the private names tests reach through here)
-    _batch_supported,
-    _batched_resamples,
-    _fast_path_supported,
-    _fast_resample,
-    _group_gram,
-    _group_rows,
-    _GroupStats,
-    _normalize_to,
-    _refit_resample,
-    _solve_from_gram,
+from .. import pipeline
+from .._validation import validate_state
+from ..formulation.forms import group_rows
+from ..formulation.operator import NOISE_ROWS
+from ..formulation.probes import without_probes
+from ._resampling import (
+    batch_supported,
+    batched_resamples,
+    fast_path_supported,
+    fast_resample,
+    group_statistics,
+    normalize_to,
+    refit_resample,
+    tensors,
 )
-from ._validation import validate_state
-from .formulation.operator import NOISE_ROWS
-from .formulation.probes import without_probes
-from .library import CandidateLibrary
 
-__all__ = ["BootstrapReport", "LibraryBaggingLagrangianSINDy", "bootstrap"]
+__all__ = ["BootstrapReport", "bootstrap"]
 
 _METHODS = ("percentile", "basic", "bca")
 # Agreement the fast path must show with the full fit before it is trusted (max abs
@@ -299,18 +296,21 @@ def bootstrap(
         full, X, reset=False, y=tau, coordinates=full.coordinates_
     )
     n = Xa.shape[0]
-    weak = getattr(full, "formulation_", full.formulation) == "weak"
+    weak = full.formulation_ == "weak"
     params = {"library": clone(full.library_)}
     if weak:
         # The resamples estimate their own sampling interval (unless it was given);
         # the noise covariance and the window are the full fit's.
-        params.update(noise_cov=full.noise_cov_, window=full.window_)
+        form = pipeline.formulation_of(full.get_params(deep=False))
+        params["formulation"] = type(form)(
+            window=int(full.window_), dt=form.dt, noise_cov=full.noise_cov_
+        )
     base = clone(est).set_params(**params)
 
     traj = np.zeros(n, dtype=np.int64) if groups is None else np.asarray(groups)
     if traj.shape != (n,):
         raise ValueError(f"groups must have one label per row of X ({n})")
-    trajectories = _group_rows(traj)
+    trajectories = group_rows(traj)
     if len(trajectories) >= _MIN_TRAJECTORIES:
         resampling, labels = "trajectories", traj
     else:
@@ -335,7 +335,7 @@ def bootstrap(
             k = max(1, min(k, len(r) // shortest))
             labels[r] = next_label + np.minimum(np.arange(len(r)) * k // len(r), k - 1)
             next_label += k
-    rows_of = _group_rows(labels)
+    rows_of = group_rows(labels)
     n_groups = len(rows_of)
     if n_groups < 5:
         warnings.warn(
@@ -366,14 +366,17 @@ def bootstrap(
     fast = False
     stats = None
     start = full.stages_[0].coef if full.stages_ else None
-    if _fast_path_supported(full):
-        stats = _group_gram(full, Xa, tau_a, labels)
+    Xt, tau_t = tensors(full, Xa, tau_a)
+    setup = pipeline.setup_of(full)
+    memo = {}  # what the resamples' problems share (data and library only)
+    if fast_path_supported(full):
+        stats = group_statistics(full, Xt, tau_t, labels)
         if resampling == "blocks" and weak:
             with without_probes():  # the full fit above has reported them
                 check = clone(base).fit(Xa, tau_a, groups=labels).fitted_.all_coef()
         else:
             check = all_coef
-        seam = _fast_resample(full, stats, np.ones(n_groups))
+        seam = fast_resample(setup, stats, np.ones(n_groups), Xt, memo)
         scale = max(np.abs(check).max(), 1e-300)
         rtol = _SEAM_RTOL
         if weak and full.noise_cov_ is not None and n > NOISE_ROWS:
@@ -403,31 +406,34 @@ def bootstrap(
         np.arange(len(all_mults)), max(1, min(len(all_mults), _n_workers(n_jobs_eff)))
     )
     batched = None
-    if fast and _batch_supported(full):
+    if fast and batch_supported(setup, Xt.dtype):
         # Every resample in one batch (so the result does not depend on n_jobs),
         # the full data's statistics with them: the batch must reproduce the fit too.
         both = np.concatenate(
             [np.ones((1, n_groups), dtype=all_mults.dtype), all_mults]
         )
-        solved = _batched_resamples(full, stats, both, start)
+        solved = batched_resamples(setup, stats, both, start)
         same = solved[0] is not None and np.array_equal(solved[0] != 0, seam != 0)
         if same and np.abs(solved[0] - seam).max() <= _BATCH_RTOL * scale:
             batched = solved[1:]
     if batched is not None:
         missing = [i for i, c in enumerate(batched) if c is None]
         for i in missing:  # what the batch could not take: one at a time
-            batched[i] = _fast_resample(full, stats, all_mults[i], start)
+            batched[i] = fast_resample(setup, stats, all_mults[i], Xt, memo, start)
         results = [batched]
     else:
         if fast:
 
             def work(ix):
-                return [_fast_resample(full, stats, all_mults[i], start) for i in ix]
+                return [
+                    fast_resample(setup, stats, all_mults[i], Xt, memo, start)
+                    for i in ix
+                ]
         else:
 
             def work(ix):
                 return [
-                    _refit_resample(base, Xa, tau_a, rows_of, all_mults[i], weak)
+                    refit_resample(base, Xa, tau_a, rows_of, all_mults[i], weak)
                     for i in ix
                 ]
 
@@ -442,7 +448,7 @@ def bootstrap(
         if c is None:
             continue
         kept[i] = c != 0
-        c = _normalize_to(c, ref)
+        c = normalize_to(c, ref)
         if c is not None:
             out[i] = c
     samples, jack = out[:n_resamples], out[n_resamples:]
@@ -480,245 +486,3 @@ def _n_workers(n_jobs):
     from joblib import effective_n_jobs
 
     return max(1, effective_n_jobs(n_jobs))
-
-
-# --------------------------------------------------------------------------- bagging
-@cache_param_names
-class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEstimator):
-    """Library bagging (Ensemble-SINDy) for large candidate libraries.
-
-    Each of ``n_estimators`` fits sees a random subset of the Lagrangian candidate
-    terms (the dissipation library, the ``fixed_term`` and ``unpenalized`` terms are
-    always offered). A term's inclusion is the fraction of the fits that offered it
-    and kept it. Terms whose inclusion exceeds ``inclusion_threshold`` form the final
-    library, on which the base estimator is refitted.
-
-    Parameters
-    ----------
-    estimator : LagrangianSINDy, default=None
-        The base configuration; its ``library`` is the full candidate set. ``None``:
-        ``LagrangianSINDy()``.
-    n_estimators : int, default=50
-    max_terms : int or float, default=0.5
-        Terms offered to each fit: an integer count, or a fraction of the library.
-    inclusion_threshold : float, default=0.5
-    random_state : int, RandomState instance or None, default=None
-    n_jobs : int, default=None
-        Parallel fits (joblib).
-    verbose : int, default=0
-
-    Attributes
-    ----------
-    estimator_ : LagrangianSINDy
-        The refit on the kept terms.
-    library_ : CandidateLibrary
-        The full candidate library (built).
-    inclusion_ : ndarray of shape (n_terms,)
-        Per term of ``library_``; NaN for a term never offered.
-    n_offered_ : ndarray of shape (n_terms,)
-        Fits that offered each term.
-    kept_ : ndarray of bool, shape (n_terms,)
-    coef_ : ndarray of shape (n_terms,)
-        Final coefficients over ``library_``'s terms.
-    lagrangian_ : sympy.Expr
-    n_failed_ : int
-        Bagged fits that raised (left out).
-
-    References
-    ----------
-    U. Fasel, J. N. Kutz, B. W. Brunton and S. L. Brunton, "Ensemble-SINDy: Robust
-    sparse model discovery in the low-data, high-noise limit, with active learning
-    and control", Proc. R. Soc. A 478, 2022.
-    """
-
-    def __init__(
-        self,
-        estimator=None,
-        *,
-        n_estimators=50,
-        max_terms=0.5,
-        inclusion_threshold=0.5,
-        random_state=None,
-        n_jobs=None,
-        verbose=0,
-    ):
-        self.estimator = estimator
-        self.n_estimators = n_estimators
-        self.max_terms = max_terms
-        self.inclusion_threshold = inclusion_threshold
-        self.random_state = random_state
-        self.n_jobs = n_jobs
-        self.verbose = verbose
-
-    def _base(self):
-        if self.estimator is not None:
-            return clone(self.estimator)
-        import lagsindy  # the public facade: this module never imports the estimator
-
-        return lagsindy.LagrangianSINDy()
-
-    def fit(self, X, y=None, groups=None):
-        """Fit the bagged ensemble, then the base estimator on the kept terms.
-
-        Parameters
-        ----------
-        X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
-        y : array-like of shape (n_samples, n_dof), default=None
-        groups : array-like of shape (n_samples,), default=None
-
-        Returns
-        -------
-        self
-        """
-        if not (isinstance(self.n_estimators, Integral) and self.n_estimators >= 1):
-            raise ValueError(
-                f"n_estimators must be a positive integer, got {self.n_estimators!r}"
-            )
-        if not 0 <= self.inclusion_threshold < 1:
-            raise ValueError(
-                f"inclusion_threshold must be in [0, 1), got {self.inclusion_threshold!r}"
-            )
-        base = self._base()
-        library = clone(base.library) if base.library is not None else None
-        lib_coords = None if library is None else library.coordinates
-        if isinstance(lib_coords, str):
-            lib_coords = [lib_coords]
-        _, _, coordinates = validate_state(
-            clone(base), X, reset=True, coordinates=lib_coords
-        )
-        if library is None:
-            library = CandidateLibrary.polynomial(
-                coordinates, angles="all", degree=2, raw_angles=True
-            )
-        elif library.coordinates is None:
-            library.set_params(coordinates=coordinates)
-        library.build()
-        self.library_ = library
-        terms = list(library.terms_)
-        n_terms = len(terms)
-        if isinstance(self.max_terms, Integral):
-            k = int(self.max_terms)
-        elif isinstance(self.max_terms, Real) and 0 < self.max_terms <= 1:
-            k = int(math.ceil(self.max_terms * n_terms))
-        else:
-            raise ValueError(
-                f"max_terms must be a positive integer or a fraction in (0, 1], got "
-                f"{self.max_terms!r}"
-            )
-        always = set()
-        fixed = base.fixed_term
-        if fixed is not None and not (isinstance(fixed, str) and fixed == "mass"):
-            always.add(library.index(fixed))
-        for t in base.unpenalized if base.unpenalized is not None else []:
-            try:
-                always.add(library.index(t))
-            except (ValueError, TypeError):
-                pass  # a dissipation term: always offered anyway
-        k = min(max(k, 1), n_terms)
-        rng = check_random_state(self.random_state)
-        pool = np.array([j for j in range(n_terms) if j not in always])
-        subsets = []
-        for _ in range(self.n_estimators):
-            pick = rng.choice(
-                pool, size=min(max(k - len(always), 0), len(pool)), replace=False
-            )
-            subsets.append(np.sort(np.concatenate([sorted(always), pick]).astype(int)))
-
-        def one(subset):
-            lib = CandidateLibrary.from_terms(
-                library.coordinates_,
-                [terms[j] for j in subset],
-                remove_trivial=False,
-                remove_dependent=False,
-            )
-            with warnings.catch_warnings(), without_probes():
-                warnings.simplefilter("ignore")
-                try:
-                    est = clone(base).set_params(library=lib).fit(X, y, groups=groups)
-                except (ValueError, FloatingPointError, RuntimeError):
-                    return None
-            return est.coef_ != 0
-
-        if self.verbose:
-            print(
-                f"[lagsindy] library bagging: {self.n_estimators} fits of {k} of "
-                f"{n_terms} terms"
-            )
-        kept_lists = Parallel(n_jobs=self.n_jobs, verbose=max(0, self.verbose - 1))(
-            delayed(one)(s) for s in subsets
-        )
-        offered = np.zeros(n_terms)
-        chosen = np.zeros(n_terms)
-        failed = 0
-        for subset, kept in zip(subsets, kept_lists):
-            if kept is None:
-                failed += 1
-                continue
-            offered[subset] += 1
-            chosen[subset[kept]] += 1
-        self.n_failed_ = failed
-        if failed == len(subsets):
-            raise ValueError(
-                "every bagged fit failed; check that the base estimator fits the full "
-                "library, or offer more terms per fit (max_terms)"
-            )
-        if failed:
-            warnings.warn(
-                f"{failed} of {len(subsets)} bagged fits failed and are left out",
-                UserWarning,
-                stacklevel=2,
-            )
-        with np.errstate(invalid="ignore", divide="ignore"):
-            self.inclusion_ = np.where(
-                offered > 0, chosen / np.maximum(offered, 1), np.nan
-            )
-        self.n_offered_ = offered
-        kept = np.nan_to_num(self.inclusion_, nan=0.0) > self.inclusion_threshold
-        kept[list(always)] = True
-        if not kept.any():
-            raise ValueError(
-                f"no term has inclusion above {self.inclusion_threshold}; lower "
-                "inclusion_threshold"
-            )
-        self.kept_ = kept
-        final = CandidateLibrary.from_terms(
-            library.coordinates_,
-            [terms[j] for j in np.flatnonzero(kept)],
-            remove_trivial=False,
-            remove_dependent=False,
-        )
-        self.estimator_ = clone(base).set_params(library=final).fit(X, y, groups=groups)
-        coef = np.zeros(n_terms)
-        coef[np.flatnonzero(kept)] = self.estimator_.coef_
-        self.coef_ = coef
-        self.lagrangian_ = self.estimator_.lagrangian_
-        self.term_names_ = library.get_feature_names_out()
-        self.n_features_in_ = self.estimator_.n_features_in_
-        return self
-
-    def __sklearn_is_fitted__(self):
-        return "estimator_" in self.__dict__
-
-    def __sklearn_tags__(self):
-        tags = super().__sklearn_tags__()
-        tags.target_tags.required = False
-        return tags
-
-    def predict(self, X):
-        """Generalized forces of the refitted model (see ``LagrangianSINDy.predict``)."""
-        check_is_fitted(self)
-        return self.estimator_.predict(X)
-
-    def predict_acceleration(self, X, tau=None):
-        """Accelerations of the refitted model."""
-        check_is_fitted(self)
-        return self.estimator_.predict_acceleration(X, tau)
-
-    def score(self, X, y=None, sample_weight=None):
-        """R^2 of the refitted model (see ``LagrangianSINDy.score``)."""
-        check_is_fitted(self)
-        return self.estimator_.score(X, y, sample_weight=sample_weight)
-
-    def equation(self, precision: int = 4) -> str:
-        check_is_fitted(self)
-        return self.estimator_.equation(precision)

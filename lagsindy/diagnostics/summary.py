@@ -1,0 +1,180 @@
+"""The end of :func:`~lagsindy.diagnose`: never worse, and the report."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from .catalogue import _effect_coefficient
+from .report import DiagnosisReport, Step, _units
+from .scoring import _adjusted_tau, _force_scale, _kept_terms, _residual
+
+__all__ = ["summarize"]
+
+
+def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
+    """Step 3 of a :class:`~.loop.Search`: keep the starting model unless the final
+    one is better, and make the report."""
+    est, J, index, coords = search.est, search.J, search.index, search.coords
+    final = search.current
+    if search.current is not est and not search.value < search.value0:
+        final, search.support, search.effects, search.gains = est, search.s0, [], {}
+        search.stop_reason = (
+            "the diagnosed model does not beat the starting one held out"
+        )
+        if search.delay is not None:
+            search.delay = None
+            search.scorer, search.scorer_s = search.scorer_rec, search.scorer_s_rec
+            search.tau_a = search.tau_recorded
+    if final is est:
+        search.value = search.j0
+    support, effects, gains = search.support, search.effects, search.gains
+    value = search.value
+    p1 = search.scorer_s.score(support)[0]
+    lib_before, lib_after = _kept_terms(est), _kept_terms(final)
+    effect_terms = {e.name for e in effects if e.kind == "conservative"}
+    changes = {
+        "removed": sorted(lib_before - lib_after),
+        "added": sorted(lib_after - lib_before - effect_terms),
+    }
+
+    tau_recorded, Xf = search.tau_recorded, search.Xf
+    tau_final = _adjusted_tau(search.tau_a, gains)
+    residual_before = _residual(est, Xf, tau_recorded)
+    residual_after = _residual(final, Xf, tau_final)
+    # The scale a residual is compared with: the measured force, or the model's
+    # force contributions where they are larger (an undriven coordinate).
+    force_rms = _force_scale(est, search.Xt)
+    if not search.passive:
+        force_rms = np.maximum(force_rms, np.sqrt(np.mean(tau_recorded**2, axis=0)))
+    steps = []
+    if search.delay is not None:
+        cand, estimate = search.delay
+        v_without = search.scorer_rec.score(support)[0]
+        steps.append(
+            Step(
+                candidate=cand,
+                coefficient=1e3 * estimate.delay,
+                units=f"ms (+- {1e3 * estimate.std:.2g} ms)",
+                explained=float(1 - value**2 / v_without**2)
+                if np.isfinite(v_without) and v_without > 0
+                else 1.0,
+                fold_explained=[],
+                residual_rms=np.sqrt(np.mean(residual_after**2, axis=0)),
+                heldout_error=search.history[cand.name][1],
+                equation=final.equation(4),
+                ranking=pd.DataFrame(),
+                how="added",
+            )
+        )
+    all_effects = list(effects) + [search.by_name[f"gain({coords[i]})"] for i in gains]
+    for e in all_effects:
+        how, after = search.history.get(e.name, ("added", value))
+        without = support - {index[e.name]}
+        v_without = J(without)[0]
+        explained = (
+            float(1 - value**2 / v_without**2) if np.isfinite(v_without) else 1.0
+        )
+        steps.append(
+            Step(
+                candidate=e,
+                coefficient=_effect_coefficient(final, e, gains),
+                units=_units(e, units, search.passive),
+                explained=explained,
+                fold_explained=[],
+                residual_rms=np.sqrt(np.mean(residual_after**2, axis=0)),
+                heldout_error=after,
+                equation=final.equation(4),
+                ranking=search.rankings[-1] if search.rankings else pd.DataFrame(),
+                how=how,
+            )
+        )
+    boot = None
+    if bootstrap is not None:
+        boot = _bootstrap_final(
+            final,
+            Xf,
+            tau_final,
+            search.groups,
+            search.segments,
+            search.Xa.shape[0],
+            int(bootstrap),
+            random_state,
+            search.verbose,
+        )
+        by_term = {t: k for k, t in enumerate(boot.terms)}
+        for s in steps:
+            k = by_term.get(
+                str(s.candidate.term)
+                if s.candidate.kind == "conservative"
+                else s.candidate.name
+            )
+            if k is not None and s.candidate.kind != "gain":
+                s.low, s.high = float(boot.low[k]), float(boot.high[k])
+    fold_names = [
+        f"fold {k + 1} ({sum(len(b) for b in search.folds[k])} samples)"
+        for k in sorted(search.degenerate)
+    ]
+    return DiagnosisReport(
+        initial=est,
+        final=final,
+        residual_rms_before=np.sqrt(np.mean(residual_before**2, axis=0)),
+        residual_rms_after=np.sqrt(np.mean(residual_after**2, axis=0)),
+        force_rms=force_rms,
+        heldout_error_before=float(search.j0),
+        heldout_error_after=float(value),
+        pointwise_before=float(search.p0),
+        pointwise_after=float(p1),
+        criterion=search.criterion,
+        steps=steps,
+        rankings=search.rankings,
+        coordinates=coords,
+        passive=search.passive,
+        lagrangian_changes=changes,
+        degenerate_folds=fold_names,
+        stop_reason=search.stop_reason,
+        bootstrap=boot,
+        settings={
+            "n_splits": search.n_splits,
+            "fold_kind": search.fold_kind,
+            "min_explained": search.min_explained,
+            "catalogue": tuple(search.catalogue),
+            "eps": dict(search.eps),
+            "window": search.win if search.stats_w is not None else None,
+            "start_valid": search.start_valid,
+            "swaps": search.swaps,
+        },
+        _data={
+            "X": search.Xa,
+            "tau": tau_recorded,
+            "residual_before": residual_before,
+            "residual_after": residual_after,
+        },
+    )
+
+
+def _bootstrap_final(
+    final, X, tau, groups, segments, n, n_resamples, random_state, verbose
+):
+    """:func:`lagsindy.bootstrap` of the final model's configuration.
+
+    The groups are the trajectories (``groups``, else the segments diagnose found),
+    so resamples never join pieces of different trajectories.
+    """
+    from ..uncertainty import bootstrap as _bootstrap
+
+    if groups is None:
+        groups = np.zeros(n, dtype=np.int64)
+        for k, seg in enumerate(segments):
+            groups[seg] = k
+    if verbose:
+        print(f"[lagsindy] bootstrap of the final model: {n_resamples} resamples")
+    return _bootstrap(
+        final,
+        X,
+        tau,
+        groups=groups,
+        n_resamples=n_resamples,
+        random_state=random_state,
+        verbose=max(0, verbose - 1),
+    )

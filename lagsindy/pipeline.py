@@ -1,0 +1,525 @@
+"""The one fit pipeline: Gram statistics in, a fitted Lagrangian out.
+
+Every consumer (the estimator's ``fit``, the bootstrap, the diagnosis, the delay
+search) runs the same two steps:
+
+1. a formulation (:mod:`lagsindy.formulation.forms`) turns the data into Gram
+   statistics, of all rows or per trajectory (folds and resamples are sums);
+2. :func:`solve` turns statistics into a :class:`~lagsindy.cases.Solution` (scaled by
+   :class:`~lagsindy.formulation.scaling.BalancedGram`, solved by the case of
+   :mod:`lagsindy.cases` with the staged sparse solve), and :func:`fitted_state` into a
+   :class:`~lagsindy.model.FittedLagrangian`.
+
+What a solve needs besides the statistics is one :class:`FitSetup` (the built
+library and dissipation candidates, the case, the solver settings, which terms are
+unpenalized, how passive data fix the scale). The functions here are pure: they read
+their arguments and return results; :func:`check_fit` is the one that warns.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from sklearn.base import clone
+
+from . import _validation as val
+from ._torch import to_numpy
+from .cases import Problem, SparseSolve, solve_case
+from .dissipation import DissipationLibrary, reduce_forces
+from .formulation import feature_operator
+from .formulation.forms import StrongForm, WeakForm, make_formulation, with_window
+from .formulation.probes import (
+    PROBE_KINDS,
+    PROBED_CASES,
+    probe_forces,
+    probe_term,
+    probing,
+    split_probes,
+    warn_unmodelled,
+)
+from .formulation.scaling import BalancedGram, warn_if_not_identifiable
+from .formulation.weak import choose_window
+from .model import FittedLagrangian, feature_index
+from .solvers import warn_not_converged
+
+__all__ = [
+    "Dissipation",
+    "FitSetup",
+    "build_dissipation",
+    "check_fit",
+    "fit_statistics",
+    "fitted_state",
+    "fitted_formulation",
+    "formulation_of",
+    "problem",
+    "solve",
+    "solve_ladder",
+]
+
+
+@dataclass
+class Dissipation:
+    """The dissipation candidates of a fit.
+
+    ``terms``: the :class:`~lagsindy.dissipation.ForceTerm` candidates a Lagrangian
+    column does not cover; ``removed``: ``(name, reason)`` of those it does;
+    ``library``: the built :class:`~lagsindy.dissipation.DissipationLibrary` (or
+    ``None`` without one).
+    """
+
+    terms: list = field(default_factory=list)
+    removed: list = field(default_factory=list)
+    library: object = None
+
+
+@dataclass
+class FitSetup:
+    """What a solve needs besides the statistics.
+
+    Attributes
+    ----------
+    library : CandidateLibrary
+        The built library; its terms are the first features.
+    dissipation : Dissipation
+    case : {"forces", "fixed", "acceleration"}
+    solver : SparseSolve
+        The staged sparse solve with its settings.
+    unpenalized : list
+        Names of the features that are neither shrunk nor thresholded.
+    fixed_term : str, sympy.Expr, "mass" or None
+        How passive data fix the scale (case III).
+    normalize : bool
+        Balance the rows and columns of the statistics.
+    """
+
+    library: object
+    dissipation: Dissipation
+    case: str
+    solver: SparseSolve
+    unpenalized: list = field(default_factory=list)
+    fixed_term: object = None
+    normalize: bool = True
+
+    @property
+    def n_terms(self) -> int:
+        return len(self.library.terms_)
+
+    @property
+    def n_features(self) -> int:
+        return self.n_terms + len(self.dissipation.terms)
+
+    @property
+    def names(self) -> np.ndarray:
+        names = list(self.library.get_feature_names_out())
+        return np.asarray(names + [t.name for t in self.dissipation.terms], object)
+
+    def penalty(self) -> np.ndarray:
+        """L1 weight per feature: 0 for the unpenalized ones."""
+        weights = np.ones(self.n_features)
+        d = self.dissipation
+        for term in self.unpenalized:
+            weights[feature_index(self.library, d.terms, d.removed, term)] = 0.0
+        return weights
+
+    def operator(self, indices, device, dtype, extra_forces=()):
+        """Euler-Lagrange operator of the features at ``indices`` (then
+        ``extra_forces``, force terms that are not features)."""
+        forces = list(self.dissipation.terms) + list(extra_forces)
+        return feature_operator(
+            self.library.coordinates_,
+            self.library.terms_,
+            forces,
+            indices,
+            device,
+            dtype,
+        )
+
+
+# ----------------------------------------------------------------------- building
+# Built dissipation candidates by library parameters (``diagnose`` refits the same
+# dissipation library several times; building simplifies every term with sympy).
+_BUILT_DISSIPATION: dict = {}
+_BUILT_DISSIPATION_SIZE = 16
+
+
+def _build_cached(dlib):
+    """``dlib.build()``, reusing the terms built earlier from equal parameters.
+
+    The terms (frozen :class:`~lagsindy.dissipation.ForceTerm`) are shared, the
+    lists are not; only the library class itself is cached (a subclass may build
+    differently).
+    """
+    if type(dlib) is not DissipationLibrary:
+        return dlib.build()
+    key = repr(sorted(dlib.get_params(deep=False).items()))
+    if key not in _BUILT_DISSIPATION:
+        dlib.build()
+        if len(_BUILT_DISSIPATION) >= _BUILT_DISSIPATION_SIZE:
+            _BUILT_DISSIPATION.pop(next(iter(_BUILT_DISSIPATION)))
+        _BUILT_DISSIPATION[key] = (list(dlib.coordinates_), list(dlib.terms_))
+        return dlib
+    names, terms = _BUILT_DISSIPATION[key]
+    dlib.coordinates_, dlib.terms_ = list(names), list(terms)
+    return dlib
+
+
+def build_dissipation(dissipation, library) -> Dissipation:
+    """The candidates of ``dissipation`` (a DissipationLibrary, unbuilt) that a
+    column of the built ``library`` does not cover."""
+    if dissipation is None:
+        return Dissipation()
+    coordinates = list(library.coordinates_)
+    dlib = clone(dissipation)
+    if dlib.coordinates is None:
+        dlib.set_params(coordinates=coordinates)
+    _build_cached(dlib)
+    if list(dlib.coordinates_) != coordinates:
+        raise ValueError(
+            f"the dissipation library's coordinates {list(dlib.coordinates_)} differ "
+            f"from the Lagrangian library's {coordinates}"
+        )
+    terms, removed = reduce_forces(library.terms_, dlib.terms_, coordinates)
+    return Dissipation(terms, removed, dlib)
+
+
+# --------------------------------------------------------------------- statistics
+def fit_statistics(formulation, setup: FitSetup, Xt, tau_t, groups) -> list:
+    """The statistics a fit solves on (a list of functions, see
+    :mod:`lagsindy.formulation.forms`): every feature's columns and the target; in
+    the probed cases without a dissipation library, with probe forces set aside (see
+    :mod:`lagsindy.formulation.probes`)."""
+    n_features = setup.n_features
+    probes = []
+    if setup.case in PROBED_CASES and setup.dissipation.library is None and probing():
+        probes = build_dissipation(DissipationLibrary(PROBE_KINDS), setup.library).terms
+    operator = setup.operator(
+        range(n_features + len(probes)), Xt.device, Xt.dtype, extra_forces=probes
+    )
+    ladder = formulation.statistics(operator, Xt, tau_t, groups)
+    names = [t.name for t in probes]
+    return split_probes(ladder, n_features, names, int(tau_t is not None))
+
+
+# -------------------------------------------------------------------------- solve
+def problem(
+    stats, setup: FitSetup, Xt=None, tau=None, *, memo=None, start=None
+) -> Problem:
+    """Balance the statistics and collect what the case needs.
+
+    ``Xt`` (the data) is needed by case III's search and case II; ``tau`` only to
+    say what is wrong when the target is zero.
+    """
+    n_features = setup.n_features
+    if not bool(torch.isfinite(stats.gram).all()):
+        val.raise_not_finite(stats.gram, setup.library.terms_, Xt, tau)
+    balanced = BalancedGram(
+        stats.gram,
+        stats.n_rows,
+        n_features,
+        normalize=setup.normalize,
+        project_psd=stats.corrected,
+    )
+    identifiable = balanced.identifiable().cpu().numpy()
+    if not identifiable.any():
+        raise ValueError(
+            "no candidate term varies on the data (every Euler-Lagrange column is "
+            "zero): the velocities and accelerations may all be zero; record motion"
+        )
+    if setup.case == "forces" and balanced.target_scale(n_features) <= 0:
+        raise ValueError(
+            "tau is identically zero: for passive data call fit(X) without tau "
+            "(case III or case='acceleration')"
+            if tau is None or not np.any(tau)
+            else "tau is too small to use (largest |tau| = "
+            f"{np.abs(tau).max():.3g}, its squares underflow): change its units"
+        )
+    out = Problem(
+        balanced=balanced,
+        identifiable=identifiable,
+        penalty=setup.penalty(),
+        Xt=Xt,
+        library=setup.library,
+        dissipation_terms=setup.dissipation.terms,
+        names=setup.names,
+        solver=setup.solver,
+        fixed_term=setup.fixed_term,
+        start=start,
+    )
+    if memo is not None:
+        out.memo = memo
+    return out
+
+
+def solve(
+    stats, setup: FitSetup, Xt=None, tau=None, *, memo=None, start=None, warn=True
+):
+    """Solve the case on ``stats``: the :class:`~lagsindy.cases.Solution`.
+
+    ``memo``: what problems on the same data share (see
+    :class:`~lagsindy.cases.Problem`); ``start``: a warm start in coefficient units;
+    ``warn``: warn when the data leave combinations of terms undetermined.
+    """
+    p = problem(stats, setup, Xt, tau, memo=memo, start=start)
+    solution = solve_case(setup.case, p)
+    solution.row_scale = p.balanced.row_scale
+    if warn and setup.case != "acceleration":
+        free = np.flatnonzero(p.identifiable)
+        allowed = 1 if setup.case == "fixed" else 0
+        # (stacklevel: the caller of LagrangianSINDy.fit, through solve_ladder)
+        warn_if_not_identifiable(
+            p.balanced, free, p.names, allowed=allowed, stacklevel=8
+        )
+    return solution
+
+
+def solve_ladder(ladder, setup: FitSetup, Xt, tau=None, *, verbose=0):
+    """Statistics and solution, the weak form's window chosen by
+    :func:`~lagsindy.formulation.weak.choose_window` among the ``ladder``'s."""
+    search = setup.case == "fixed" and setup.fixed_term is None
+    memo = {}  # what the windows' problems share (data and library only)
+
+    def run(stats, like=None):
+        use = setup
+        if like is not None and search:  # confirm with the scale already chosen
+            scale = (
+                "mass"
+                if like.normalization == "mass"
+                else setup.library.terms_[like.fixed]
+            )
+            use = dataclasses.replace(setup, fixed_term=scale)
+        return solve(stats, use, Xt, tau, memo=memo)
+
+    return choose_window(ladder, run, search=search, verbose=verbose)
+
+
+def fitted_state(setup: FitSetup, stats, solution, *, tau_1d=False):
+    """The :class:`~lagsindy.model.FittedLagrangian` of a solution (no checks)."""
+    n_terms, coef, result = setup.n_terms, solution.coef, solution.result
+    if not np.all(np.isfinite(coef)):
+        raise FloatingPointError(
+            "the fit produced non-finite coefficients; check the data scale"
+        )
+    fixed = solution.fixed
+    d = setup.dissipation
+    return FittedLagrangian(
+        library=setup.library,
+        coef=coef[:n_terms],
+        case=setup.case,
+        dissipation_terms=d.terms,
+        dissipation_coef=coef[n_terms:],
+        dissipation_removed=d.removed,
+        dissipation_library=d.library,
+        fixed_term=None if fixed is None else str(setup.library.terms_[fixed]),
+        normalization=solution.normalization if setup.case == "fixed" else None,
+        formulation=stats.formulation,
+        dt=stats.dt,
+        noise_cov=stats.noise_cov,
+        window=stats.window,
+        stages=result.stages,
+        n_iter=result.n_iter,
+        residual=result.cost,
+        tau_1d=tau_1d,
+    )
+
+
+def check_fit(fitted, setup: FitSetup, stats, solution, Xt, tau, *, stacklevel=4):
+    """The fit's checks, each a warning that says what is likely wrong: FISTA not
+    converged, an empty model, the learned mass matrix (stored as
+    ``fitted.mass_check``), angles in polynomials beyond two turns, missing friction
+    or damping (probe forces), residual and acceleration checks."""
+    n_terms, coef = setup.n_terms, solution.coef
+    warn_not_converged(solution.result.stages, setup.solver.max_iter)
+    if not np.any(coef[:n_terms]):
+        warnings.warn(
+            "every Lagrangian term was thresholded away: the learned Lagrangian is "
+            "zero. Lower lam or threshold.",
+            UserWarning,
+            stacklevel=stacklevel,
+        )
+    fitted.mass_check = fitted.checked_mass(Xt, stacklevel=stacklevel)
+    norms = stats.gram.diagonal(dim1=1, dim2=2).sum(0).clamp(min=0).sqrt()
+    fitted.warn_angle_polynomials(Xt, to_numpy(norms)[:n_terms], stacklevel=stacklevel)
+    probed = probe_forces(
+        stats,
+        coef,
+        setup.normalize,
+        probe_term(setup.case, coef[:n_terms], solution.fixed),
+        solution.row_scale,
+    )
+    sign = -1.0 if fitted.mass_check.negative > 0.5 else 1.0
+    if not warn_unmodelled(probed, sign, stacklevel=stacklevel):
+        fitted.warn_unexplained(stacklevel=stacklevel, Xt=Xt)
+        fitted.warn_poor_accelerations(
+            Xt, solution.score, stacklevel=stacklevel, tau=tau
+        )
+    return fitted
+
+
+# ------------------------------------------------------------------------- setups
+_CASES = ("auto", "forces", "fixed", "acceleration")
+
+
+def resolve_case(case, tau):
+    """``"auto"``: case I (``"forces"``) when forces are given, else III."""
+    if case == "auto":
+        return "forces" if tau is not None else "fixed"
+    if case == "forces" and tau is None:
+        raise ValueError("case='forces' needs tau: call fit(X, tau)")
+    if case in ("fixed", "acceleration") and tau is not None:
+        raise ValueError(
+            f"case={case!r} is for passive data; call fit(X) without tau, or "
+            "use case='forces'"
+        )
+    return case
+
+
+def build_library(library, coordinates, n_samples):
+    """The built copy of ``library`` (``None``: the default degree-2 polynomials,
+    with a warning when the coordinates may be coupled)."""
+    from .library import CandidateLibrary
+
+    library = clone(library) if library is not None else None
+    if library is None:
+        library = CandidateLibrary.polynomial(
+            coordinates, angles="all", degree=2, raw_angles=True
+        )
+        if len(coordinates) > 1:
+            _warn_default_library(coordinates)
+    elif library.coordinates is None:
+        library.set_params(coordinates=coordinates)
+    library.build()
+    n_dof, n_terms = len(library.coordinates_), len(library.terms_)
+    if n_samples * n_dof < n_terms:
+        raise ValueError(
+            f"too few samples: {n_samples} sample(s) x {n_dof} coordinate(s) "
+            f"give {n_samples * n_dof} equations for {n_terms} candidate "
+            "terms; record more data or use a smaller library"
+        )
+    return library
+
+
+def _warn_default_library(coordinates):
+    """The default library's products of two factors cannot couple velocities through
+    an angle (a double pendulum fitted with it returned 27 meaningless terms)."""
+    a, b = coordinates[:2]
+    warnings.warn(
+        f"library=None fits degree-2 polynomials of {coordinates}, which have no term "
+        "coupling two coordinates' velocities through an angle (a cart-pendulum's "
+        f"x_dot*theta_dot*cos(theta), a double pendulum's {a}_dot*{b}_dot*cos({a} - "
+        f"{b})): if these coordinates are coupled, the fit returns a wrong Lagrangian. "
+        f"Pass a library: CandidateLibrary.chain({list(coordinates)}) for a chain of "
+        "links, CandidateLibrary.polynomial(coordinates, angles=[...], degree=3 or 4), "
+        "or a system's paper_library().",
+        UserWarning,
+        stacklevel=6,
+    )
+
+
+def _term_index(library, param, term) -> int:
+    """Index of a term named by a parameter, with the parameter in the message."""
+    try:
+        return library.index(term)
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{param}={term!r}: {exc}") from None
+
+
+def check_known_terms(setup: FitSetup):
+    """Resolve ``fixed_term`` and ``unpenalized`` before any heavy computation."""
+    case, fixed = setup.case, setup.fixed_term
+    if fixed is not None:
+        if case != "fixed":
+            why = (
+                "with tau the forces set the scale"
+                if case == "forces"
+                else "case II fixes the scale by a unit norm instead"
+            )
+            raise ValueError(
+                f"fixed_term={fixed!r} is only used in case III (passive "
+                f"data, fit(X) without tau), but this fit is case={case!r} and "
+                f"{why}: drop fixed_term (unpenalized=[...] keeps a known term "
+                "without fixing its value)."
+            )
+        if not (isinstance(fixed, str) and fixed == "mass"):
+            _term_index(setup.library, "fixed_term", fixed)
+    d = setup.dissipation
+    for term in setup.unpenalized:
+        try:
+            feature_index(setup.library, d.terms, d.removed, term)
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"unpenalized={term!r}: {exc}") from None
+
+
+def make_setup(params: dict, library, dissipation: Dissipation, case: str) -> FitSetup:
+    """The :class:`FitSetup` of an estimator's parameters (``get_params()``), its
+    built library and dissipation, and the case."""
+    n_terms = len(library.terms_)
+    dissipative = [False] * n_terms + [t.dissipative for t in dissipation.terms]
+    setup = FitSetup(
+        library=library,
+        dissipation=dissipation,
+        case=case,
+        solver=SparseSolve.from_params(params, n_terms, dissipative),
+        unpenalized=_as_list(params.get("unpenalized")),
+        fixed_term=params.get("fixed_term"),
+        normalize=params.get("normalize", True),
+    )
+    check_known_terms(setup)
+    return setup
+
+
+def formulation_of(params: dict, case: str = "forces"):
+    """The formulation object of an estimator's parameters (``get_params()``):
+    ``formulation`` (a name or an object) with the weak form's ``window``, ``dt`` and
+    ``noise_cov``; case II always the strong form."""
+    formulation = params.get("formulation", "auto")
+    if case == "acceleration":
+        if formulation == "weak" or isinstance(formulation, WeakForm):
+            raise ValueError(
+                "formulation='weak' is for cases I and III; case='acceleration' "
+                "needs the strong form"
+            )
+        return StrongForm()
+    return make_formulation(
+        formulation,
+        window=params.get("window", "auto"),
+        dt=params.get("dt"),
+        noise_cov=params.get("noise_cov", "auto"),
+    )
+
+
+def fitted_formulation(est):
+    """The formulation a fitted estimator's fit used, with the test-function window
+    its fit chose (``window="auto"`` chose ``est.window_``): what refits of the same
+    configuration on other rows (folds, shifted inputs, resamples) should use. An
+    unfitted ``est``: the formulation of its parameters."""
+    form = formulation_of(est.get_params(deep=False), getattr(est, "case_", "forces"))
+    window = getattr(est, "window_", None)
+    return form if window is None else with_window(form, window)
+
+
+def _as_list(terms) -> list:
+    """``unpenalized`` as a list (it may be an array of terms, or None)."""
+    return [] if terms is None else list(terms)
+
+
+def setup_of(est, **changes) -> FitSetup:
+    """The :class:`FitSetup` of a fitted estimator (its built library, dissipation
+    terms, case and settings; in case III the scale its fit chose), as its fit
+    used it; ``changes`` replace fields (e.g. ``fixed_term=None``)."""
+    fitted = est.fitted_
+    dissipation = Dissipation(
+        list(fitted.dissipation_terms),
+        list(fitted.dissipation_removed),
+        fitted.dissipation_library,
+    )
+    params = est.get_params(deep=False)
+    setup = make_setup(params, fitted.library, dissipation, fitted.case)
+    if fitted.case == "fixed":
+        scale = "mass" if fitted.normalization == "mass" else fitted.fixed_term
+        setup = dataclasses.replace(setup, fixed_term=scale)
+    setup.solver = dataclasses.replace(setup.solver, verbose=0)
+    return dataclasses.replace(setup, **changes) if changes else setup

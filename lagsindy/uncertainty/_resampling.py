@@ -1,0 +1,317 @@
+"""Resamples of the bootstrap, solved from per-trajectory Gram statistics.
+
+The machinery behind :func:`lagsindy.uncertainty.bootstrap` (see its module for the
+design): the per-group statistics (:class:`GroupStats`, from the fit's formulation's
+``trajectory_statistics``), one resample solved by the pipeline's solve
+(:func:`fast_resample`) or by a full refit (:func:`refit_resample`), and case I
+resamples solved in one batch (:func:`batched_resamples`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import numpy as np
+import torch
+from sklearn.base import clone
+
+from .. import pipeline
+from .._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
+from ..formulation.forms import StrongForm, WeakForm, group_rows
+from ..formulation.probes import without_probes
+from ..formulation.scaling import BalancedGram, dense_residual
+from ..solvers.staged import staged_fista_batch
+
+# The weak statistics are built at these multiples of the full fit's sampling
+# interval (any three distinct values interpolate the quadratic exactly).
+DT_NODES = (0.5, 1.0, 1.5)
+
+
+def fast_path_supported(full) -> bool:
+    """Whether a resample can be solved from statistics with the full fit's setup:
+    the configuration makes no choice between models on the data (case I, or case
+    III with a fixed term given), in the strong or the weak form."""
+    if full.formulation_ not in ("strong", "weak"):
+        return False
+    if full.case_ == "forces":
+        return True
+    fixed = full.fixed_term
+    return (
+        full.case_ == "fixed"
+        and full.normalization_ == "term"
+        and fixed is not None
+        and not (isinstance(fixed, str) and fixed == "mass")
+    )
+
+
+class GroupStats:
+    """Per-group statistics from which a resample's statistics are summed.
+
+    Parameters
+    ----------
+    nodes : list of TrajectoryStatistics
+        The groups' statistics at each sampling interval of ``dts`` (weak form with
+        an estimated ``dt``: three; else one). A weak Gram matrix is a quadratic
+        polynomial in ``dt`` (each column is a kinetic part that does not depend on
+        it plus ``dt`` times a potential and force part; the noise correction has
+        the same form), so three nodes give it exactly at any ``dt`` by Lagrange
+        interpolation.
+    dts : ndarray or None
+        The sampling intervals of ``nodes``; ``None`` when ``dt`` is held fixed.
+    steps : tuple of Tensor or None
+        ``(ratios, weights, owner)`` of
+        :func:`~lagsindy.formulation.weak.estimate_sampling_interval`, sorted by
+        ratio, with the group of each step: a resample's sampling interval is the
+        weighted median with the weights times the group's multiplicity.
+    """
+
+    def __init__(self, nodes, dts=None, steps=None):
+        self.nodes = nodes
+        self.dts = dts
+        self.steps = steps
+
+    def sampling_interval(self, mult):
+        """The weak form's estimated ``dt`` on a resample (None: not estimated)."""
+        if self.steps is None:
+            return None
+        ratios, weights, owner = self.steps
+        w = torch.as_tensor(mult, dtype=weights.dtype, device=weights.device)
+        cum = torch.cumsum(weights * w[owner], 0)
+        k = int(torch.searchsorted(cum, cum[-1] / 2))
+        return float(ratios[min(k, ratios.numel() - 1)])
+
+    def statistics(self, mult):
+        """The statistics of the resample taking group ``g`` ``mult[g]`` times."""
+        per_node = [node.total(mult) for node in self.nodes]
+        dt = self.sampling_interval(mult)
+        if dt is None:
+            return per_node[0]
+        x = self.dts
+        basis = [
+            np.prod([(dt - x[m]) / (x[j] - x[m]) for m in range(3) if m != j])
+            for j in range(3)
+        ]
+        gram = sum(float(c) * s.gram for c, s in zip(basis, per_node))
+        return dataclasses.replace(per_node[0], gram=gram, dt=dt)
+
+
+def _step_ratios(Xt, n_dof, groups):
+    """The sampling-interval statistics of every group (see :class:`GroupStats`).
+
+    The same per-step ratios and weights as
+    :func:`~lagsindy.formulation.weak.estimate_sampling_interval`, in the same
+    order, so that the resample that takes every group once gets the fit's ``dt``.
+    """
+    ratios, weights, owner = [], [], []
+    for k, g in enumerate(groups):
+        idx = torch.as_tensor(g, device=Xt.device)
+        q, qd = Xt[idx, :n_dof], Xt[idx, n_dof : 2 * n_dof]
+        if q.shape[0] < 2:
+            continue
+        mid = (qd[1:] + qd[:-1]) / 2
+        ok = mid.abs() > 0
+        r = ((q[1:] - q[:-1])[ok] / mid[ok]).flatten()
+        ratios.append(r)
+        weights.append((mid[ok] ** 2).flatten())
+        owner.append(torch.full((r.numel(),), k, device=Xt.device, dtype=torch.long))
+    r, w, o = torch.cat(ratios), torch.cat(weights), torch.cat(owner)
+    order = torch.argsort(r)
+    return r[order], w[order], o[order]
+
+
+def tensors(full, Xa, tau):
+    """``Xa`` and ``tau`` as tensors of the estimator's device and precision."""
+    device, dtype = resolve_device(full.device), resolve_dtype(full.dtype)
+    Xt = to_tensor(Xa, dtype=dtype, device=device)
+    return Xt, None if tau is None else to_tensor(tau, dtype=dtype, device=device)
+
+
+def group_statistics(full, Xt, tau_t, labels) -> GroupStats:
+    """Per-group statistics of the fitted ``full``'s configuration.
+
+    Weak form: the fit's window and noise covariance; at three sampling intervals
+    when the fit estimated ``dt`` (so a resample can use its own estimate).
+    """
+    setup = pipeline.setup_of(full)
+    operator = setup.operator(range(setup.n_features), Xt.device, Xt.dtype)
+    if full.formulation_ != "weak":
+        strong = StrongForm().trajectory_statistics(operator, Xt, tau_t, labels)
+        return GroupStats([strong])
+    dt = float(full.dt_)
+    estimated = pipeline.formulation_of(full.get_params(deep=False)).dt is None
+    dts = np.array([c * dt for c in DT_NODES]) if estimated else np.array([dt])
+    form = WeakForm(window=int(full.window_), dt=dt, noise_cov=full.noise_cov_)
+    nodes = form.trajectory_statistics(operator, Xt, tau_t, labels, dts=dts)
+    if not estimated:
+        return GroupStats(nodes)
+    steps = _step_ratios(Xt, full.n_dof_, group_rows(labels))
+    return GroupStats(nodes, dts, steps)
+
+
+def fast_resample(setup, stats, mult, Xt, memo, start=None):
+    """One resample solved from the statistics; coefficients, or None if it fails."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            solution = pipeline.solve(
+                stats.statistics(mult), setup, Xt, memo=memo, start=start, warn=False
+            )
+        except (ValueError, FloatingPointError, RuntimeError):
+            return None
+    coef = solution.coef
+    return coef if np.all(np.isfinite(coef)) else None
+
+
+def batch_supported(setup, dtype) -> bool:
+    """Whether :func:`batched_resamples` knows this configuration (case I, steps
+    ``1 / L``, float64); the others are solved one resample at a time."""
+    return (
+        setup.case == "forces"
+        and setup.solver.alpha is None
+        and setup.solver.max_stages >= 1
+        and dtype == torch.float64
+    )
+
+
+def batched_resamples(setup, stats, mults, start=None):
+    """Case I resamples solved together: every stage's FISTA iterations batched
+    over the resamples (:func:`~lagsindy.solvers.staged.staged_fista_batch`).
+
+    The per-resample steps (balancing, thresholds, the path's second start,
+    debiasing) are those of :class:`~lagsindy.cases.SparseSolve`, so each resample
+    gets what its own solve would, up to rounding. Returns a list with the
+    coefficients of each resample, or ``None`` where that resample must be solved
+    alone (a different set of identifiable columns, a step the divergence guard
+    would change, a failure).
+    """
+    from ..cases.sparse import LAM_STARTS, PATH_FLOOR, PATH_TIE
+
+    n_features, solver = setup.n_features, setup.solver
+    penalty = setup.penalty()
+    out = [None] * len(mults)
+    if len(mults) == 0:
+        return out
+    summed = [stats.statistics(m) for m in mults]
+    balanced = BalancedGram.many(
+        torch.stack([s.gram for s in summed]).to(torch.float64),
+        [s.n_rows for s in summed],
+        n_features,
+        setup.normalize,
+        summed[0].corrected,
+    )
+    ident = np.stack([b.identifiable().cpu().numpy() for b in balanced])
+    free = np.flatnonzero(ident[0])
+    problems = []  # (index, datafit, scale)
+    for i, b in enumerate(balanced):
+        if not np.array_equal(ident[i], ident[0]) or b.target_scale(n_features) <= 0:
+            continue
+        if not bool(torch.isfinite(b.gram).all()):
+            continue
+        datafit, to_coef = b.problem(free, n_features, 1.0)
+        problems.append((i, datafit, to_numpy(to_coef(torch.ones_like(datafit.rhs)))))
+    if not problems:
+        return out
+    weights = torch.as_tensor(penalty[free], dtype=torch.float64)
+    thresholds = torch.as_tensor(solver.thresholds(free), dtype=torch.float64)
+    nonneg_t = solver.nonneg(free, "cpu")
+    scales = np.stack([s for _, _, s in problems])
+    w0 = np.zeros((len(problems), len(free)))
+    if start is not None:
+        w0 = np.asarray(start)[free][None, :] / scales
+    if nonneg_t is not None:
+        w0 = np.where(nonneg_t.numpy()[None, :], np.maximum(w0, 0.0), w0)
+
+    def path(rows, lam):
+        """The staged schedule of every problem in ``rows`` (one batch);
+        ``(coefficients, relative residual)`` each, or ``None`` for all of them
+        when the batch's divergence guard gives up (then each is solved alone)."""
+        try:
+            solved = staged_fista_batch(
+                [problems[r][1] for r in rows],
+                lam=lam,
+                penalty_weights=[weights] * len(rows),
+                threshold=[thresholds] * len(rows),
+                nonneg=[nonneg_t] * len(rows),
+                w0=[torch.from_numpy(w0[r]) for r in rows],
+                **solver._schedule(),
+            )
+        except FloatingPointError:
+            return [None] * len(rows)
+        return [(res.coef.numpy(), res.cost) for res in solved]
+
+    first = path(np.arange(len(problems)), solver.lam)
+    chosen = list(first)
+    if solver.lam != 0 and LAM_STARTS > 1 and solver.lam_decay > 1:
+        again = []
+        for r, res in enumerate(first):
+            if res is None:
+                continue
+            bound = dense_residual(problems[r][1])
+            if res[1] > (1 + PATH_TIE) * bound + PATH_FLOOR:
+                again.append(r)
+        if LAM_STARTS > 2 and again:
+            return out  # more starts than one restart: not batched
+        if again:
+            second = path(np.array(again), solver.lam / solver.lam_decay)
+            for r, res in zip(again, second):
+                if res is None:
+                    chosen[r] = None
+                    continue
+                cands = [first[r], res]
+                best = min(x[1] for x in cands)
+                near = [x for x in cands if x[1] <= (1 + PATH_TIE) * best + 1e-12]
+                chosen[r] = min(near, key=lambda x: int((x[0] != 0).sum()))
+    for r, res in enumerate(chosen):
+        if res is None:
+            continue
+        i = problems[r][0]
+        coef = np.zeros(n_features)
+        coef[free] = res[0] * scales[r]
+        if np.all(np.isfinite(coef)):
+            out[i] = coef
+    return out
+
+
+def refit_resample(base, Xa, tau, groups_rows, mult, weak):
+    """One resample by a full refit on the resampled trajectories."""
+    idx, labels = [], []
+    for g, m in enumerate(mult):
+        for _ in range(int(m)):
+            idx.append(groups_rows[g])
+            labels.append(np.full(len(groups_rows[g]), len(labels)))
+    idx = np.concatenate(idx)
+    labels = np.concatenate(labels)
+    with warnings.catch_warnings(), without_probes():
+        warnings.simplefilter("ignore")
+        try:
+            est = clone(base).fit(
+                Xa[idx],
+                None if tau is None else tau[idx],
+                groups=labels if weak else None,
+            )
+        except (ValueError, FloatingPointError, RuntimeError):
+            return None
+    return est.fitted_.all_coef()
+
+
+def normalize_to(coef, ref):
+    """Rescale ``coef`` so that feature ``ref`` has coefficient 1 (None if it is 0)."""
+    if coef is None or ref is None:
+        return coef
+    if coef[ref] == 0:
+        return None
+    return coef / coef[ref]
+
+
+__all__ = [
+    "GroupStats",
+    "batch_supported",
+    "batched_resamples",
+    "fast_path_supported",
+    "fast_resample",
+    "group_statistics",
+    "normalize_to",
+    "refit_resample",
+    "tensors",
+]
