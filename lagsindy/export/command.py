@@ -5,9 +5,8 @@
 Register it with :func:`add_export_command` on the ``lagsindy`` parser's
 subparsers; :func:`run_export` runs it (returns the exit status, raises
 ``ValueError``/``OSError`` with a one-line message on bad input, as the other
-commands do). This module reads model files (:mod:`lagsindy.io`), so it belongs
-with the command line, above :mod:`lagsindy.io` in the layers: only the command
-imports it.
+commands do). It reads model files with :mod:`lagsindy.io.model_file` (a lower
+layer) and imports it only when it runs.
 """
 
 from __future__ import annotations
@@ -95,13 +94,13 @@ def run_export(args: argparse.Namespace) -> int:
     OSError
         When a file cannot be read or written.
     """
-    from ..io import read_model
+    from ..io.model_file import read_model_file
     from .c_code import c_sources
     from .equations import model_equations
     from .python_code import python_source
 
     model = Path(args.model)
-    _, fitted, _ = read_model(model)
+    _, fitted, _ = read_model_file(model)
     matrix = None if args.input_matrix is None else parse_matrix(args.input_matrix)
     suffix = ".py" if args.format == "python" else ".c"
     out = Path(args.out) if args.out else Path(model.stem + suffix)

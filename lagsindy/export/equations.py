@@ -170,7 +170,7 @@ def model_equations(source, input_matrix=None, *, date=None) -> ModelEquations:
     ValueError
         When the estimator is not fitted, or its learned Lagrangian is zero.
     """
-    from .. import __version__
+    from .._version import __version__
 
     model, fitted = _model_of(source)
     q, qd, _ = model.symbols
