@@ -25,6 +25,7 @@ from . import pipeline
 from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .dissipation import library_of
+from .export import export_model, linearize, to_casadi
 from .formulation.scaling import IdentifiabilityWarning  # noqa: F401 - 0.1 path
 from .io.model_file import read_model_file, write_model_file
 from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 path
@@ -545,6 +546,23 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         """
         check_is_fitted(self)
         return self.fitted_.coef_table()
+
+    # ------------------------------------------------------------------ use
+    def export(self, path, format=None, *, input_matrix=None):
+        """Write the model as standalone Python or C code (no lagsindy needed).
+
+        See :func:`lagsindy.export.export_model`.
+        """
+        return export_model(self, path, format, input_matrix=input_matrix)
+
+    def to_casadi(self, input_matrix=None):
+        """CasADi functions of the model (see :func:`lagsindy.export.to_casadi`)."""
+        return to_casadi(self, input_matrix)
+
+    def linearize(self, x_eq, u_eq=None, dt=None, *, input_matrix=None):
+        """A, B (and the discrete pair given ``dt``) at an equilibrium (see
+        :func:`lagsindy.export.linearize`)."""
+        return linearize(self, x_eq, u_eq, dt, input_matrix=input_matrix)
 
     def save(self, path):
         """Write the fitted model as a JSON file that is safe to share.

@@ -19,8 +19,8 @@ the estimator was fitted with); pass ``input_matrix`` to say that, for example,
 only a cart is driven.
 
 The names below are imported on first use (PEP 562), so registering the
-``lagsindy export`` command (:mod:`lagsindy.export.command`) costs no sympy or
-numpy import.
+``lagsindy export`` command (:mod:`lagsindy.export.command`, part of the command
+line) costs no sympy or numpy import.
 """
 
 from __future__ import annotations
@@ -30,7 +30,6 @@ from typing import TYPE_CHECKING
 
 # public name -> submodule that defines it
 _EXPORTS = {
-    "add_export_command": "command",
     "BUILD_LINE": "c_code",
     "c_identifier": "c_code",
     "c_sources": "c_code",
@@ -49,7 +48,6 @@ _EXPORTS = {
     "model_equations": "equations",
     "ModelEquations": "equations",
     "python_source": "python_code",
-    "run_export": "command",
     "to_casadi": "casadi_model",
 }
 
@@ -72,7 +70,6 @@ def __dir__():
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs
     from .c_code import BUILD_LINE, c_identifier, c_sources  # noqa: F401
     from .casadi_model import CasadiModel, to_casadi  # noqa: F401
-    from .command import add_export_command, run_export  # noqa: F401
     from .compiled import CModel, compile_c, find_compiler  # noqa: F401
     from .equations import ModelEquations, model_equations  # noqa: F401
     from .files import FORMATS, export_model, export_source  # noqa: F401

@@ -7,14 +7,12 @@ import pytest
 
 from lagsindy.export import (
     CModel,
-    add_export_command,
     compile_c,
     export_source,
     find_compiler,
     load_python,
-    run_export,
 )
-from lagsindy.export.command import parse_matrix
+from lagsindy.export.command import add_export_command, parse_matrix, run_export
 
 from ._models import true_estimator
 
