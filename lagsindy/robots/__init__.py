@@ -1,0 +1,1 @@
+"""Robot arms from URDF kinematics: energy regressor terms, base parameters, write-back."""
