@@ -21,6 +21,8 @@ the columns of the classical joint torque regressor.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import torch
 from torch.func import jacfwd, jvp, vmap
@@ -229,8 +231,11 @@ def euler_lagrange_columns(fn, q, qd, qdd, chunk_size: int = 8192) -> torch.Tens
 
     batched = vmap(one)
     n = q.shape[0]
-    parts = [
-        batched(q[s : s + chunk_size], qd[s : s + chunk_size], qdd[s : s + chunk_size])
-        for s in range(0, n, chunk_size)
-    ]
+    with warnings.catch_warnings():
+        # torch's own notice when forward AD first loads, not the caller's concern
+        warnings.filterwarnings("ignore", message=".*torch.jit.script.*is deprecated")
+        parts = [
+            batched(q[s : s + chunk_size], qd[s : s + chunk_size], qdd[s : s + chunk_size])
+            for s in range(0, n, chunk_size)
+        ]
     return torch.cat(parts, dim=0)
