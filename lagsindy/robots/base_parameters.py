@@ -26,7 +26,6 @@ import numpy as np
 import scipy.linalg
 import torch
 
-from .energy import euler_lagrange_columns
 
 # Relative tolerances. Measured on Panda, UR5 and the test URDFs (unit columns, 100
 # random states): the last kept QR pivot is >= 0.38 of the first, the first dropped
@@ -209,7 +208,7 @@ def base_parameters(library, n_samples=None, random_state=0) -> BaseParameters:
     rng = np.random.default_rng(random_state)
     q, qd, qdd = exciting_states(tree.lower, tree.upper, n_samples, rng)
     t = [torch.as_tensor(x) for x in (q, qd, qdd)]
-    cols = euler_lagrange_columns(library.torch_terms().fn, *t).numpy()
+    cols = library.torch_terms().columns(*t).numpy()
     out = base_parameters_from_columns(cols, names)
     if out.rank_qr != out.n_base:
         raise ValueError(

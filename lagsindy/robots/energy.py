@@ -198,6 +198,17 @@ class RobotTerms:
             parts.append(0.5 * qd * qd)
         return torch.cat(parts, dim=-1)
 
+    def columns(self, q, qd, qdd):
+        """Euler-Lagrange columns of the terms, (n_samples, n_dof, n_terms), fast.
+
+        The joint torque regressor by the Newton-Euler recursion
+        (:func:`lagsindy.robots.regressor.joint_torque_regressor`): equal to the
+        ``torch.func`` columns of :meth:`fn` to round-off, without differentiating.
+        """
+        from .regressor import joint_torque_regressor
+
+        return joint_torque_regressor(self, q, qd, qdd)
+
     def fn(self, q, qd):
         """Term values for one sample: (n_dof,), (n_dof,) -> (n_terms,)."""
         return self.fn_batch(q, qd)

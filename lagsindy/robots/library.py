@@ -146,10 +146,16 @@ class RobotLibrary(BaseEstimator):
         """Alias of :meth:`torch_terms` (the name :class:`CandidateLibrary` uses)."""
         return self.torch_terms()
 
-    def euler_lagrange_columns(self, q, qd, qdd) -> np.ndarray:
+    def euler_lagrange_columns(self, q, qd, qdd, method="recursive") -> np.ndarray:
         """Joint torque regressor: ``tau = columns @ pi``, shape (n_samples, n_dof, n_terms).
 
-        ``q``, ``qd``, ``qdd`` of shape (n_samples, n_dof), float64 on the CPU.
+        Parameters
+        ----------
+        q, qd, qdd : array-like of shape (n_samples, n_dof)
+        method : {"recursive", "autograd"}, default="recursive"
+            ``"recursive"``: the Newton-Euler recursion (:meth:`RobotTerms.columns`);
+            ``"autograd"``: ``torch.func`` on the term function (slower, the same
+            numbers to round-off).
         """
         t = [torch.as_tensor(np.asarray(a, dtype=float)) for a in (q, qd, qdd)]
         for a in t:
@@ -158,7 +164,11 @@ class RobotLibrary(BaseEstimator):
                     f"q, qd, qdd must have shape (n_samples, {len(self.coordinates_)}), "
                     f"got {tuple(a.shape)}"
                 )
-        return euler_lagrange_columns(self.torch_terms().fn, *t).numpy()
+        if method == "recursive":
+            return self.torch_terms().columns(*t).numpy()
+        if method == "autograd":
+            return euler_lagrange_columns(self.torch_terms().fn, *t).numpy()
+        raise ValueError(f"method must be 'recursive' or 'autograd', got {method!r}")
 
     def __getstate__(self):
         state = self.__dict__.copy()

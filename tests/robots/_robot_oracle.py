@@ -10,6 +10,7 @@ import pytest
 
 DATA = Path(__file__).resolve().parent / "data"
 PANDA_JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
+ARM7_JOINTS = [f"joint{i}" for i in range(1, 8)]
 
 
 def example_robot(relative: str) -> str:
