@@ -10,16 +10,21 @@
 
 from .base_parameters import BaseParameters, base_parameters, base_parameters_from_columns
 from .energy import RobotTerms, euler_lagrange_columns
+from .export import ConsistentParameters, consistent_parameters, feasibility, to_urdf
 from .library import RobotLibrary
 from .urdf import RobotTree, build_tree
 
 __all__ = [
     "BaseParameters",
+    "ConsistentParameters",
     "RobotLibrary",
     "RobotTerms",
     "RobotTree",
     "base_parameters",
     "base_parameters_from_columns",
     "build_tree",
+    "consistent_parameters",
     "euler_lagrange_columns",
+    "feasibility",
+    "to_urdf",
 ]
