@@ -30,6 +30,7 @@ from torch.func import jacfwd, jvp, vmap
 from .urdf import PARAMETER_KINDS, RobotTree
 
 GRAVITY = (0.0, 0.0, -9.81)
+COLUMN_CHUNK = 1024  # samples per chunk of RobotTerms.columns
 
 
 def _cross(a, b):
@@ -207,7 +208,18 @@ class RobotTerms:
         """
         from .regressor import joint_torque_regressor
 
-        return joint_torque_regressor(self, q, qd, qdd)
+        n = q.shape[0] if q.ndim > 1 else 0
+        if n <= COLUMN_CHUNK:
+            return joint_torque_regressor(self, q, qd, qdd)
+        # chunks keep the recursion's temporaries in the processor's cache
+        return torch.cat(
+            [
+                joint_torque_regressor(
+                    self, q[s : s + COLUMN_CHUNK], qd[s : s + COLUMN_CHUNK], qdd[s : s + COLUMN_CHUNK]
+                )
+                for s in range(0, n, COLUMN_CHUNK)
+            ]
+        )
 
     def fn(self, q, qd):
         """Term values for one sample: (n_dof,), (n_dof,) -> (n_terms,)."""

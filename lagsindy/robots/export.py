@@ -78,7 +78,7 @@ class ConsistentParameters:
     min_eigenvalue : ndarray of shape (n_bodies,)
         Smallest eigenvalue of each body's pseudo-inertia (> 0).
     success : bool
-        The solver converged and the violation is below 1e-8.
+        Consistent parameters reproducing the base parameters were found.
     """
 
     parameters: np.ndarray
@@ -113,9 +113,10 @@ def consistent_parameters(library, base, beta, reference=None, max_iter=20000, t
     Returns
     -------
     ConsistentParameters
-        Its ``parameters`` reproduce ``beta`` exactly (the last projection is the
-        affine one); a ``UserWarning`` is raised when they are not consistent (the
-        base parameters are outside the consistent set, ``violation`` says how far).
+        Its ``parameters`` are consistent and reproduce ``beta`` to round-off (the
+        last projection is the affine one). When ``beta`` is outside the consistent
+        set they are the consistent point found, ``violation`` says how far its base
+        parameters are from ``beta``, and a ``UserWarning`` is raised.
     """
     library._ensure_built()
     n_bodies = len(library.tree_.bodies)
@@ -146,11 +147,12 @@ def consistent_parameters(library, base, beta, reference=None, max_iter=20000, t
 
     def to_consistent(x):
         out = x.copy()
-        for b in range(n_bodies):
-            j = (a @ x[10 * b : 10 * b + 10]).reshape(4, 4)
-            w, v = np.linalg.eigh(0.5 * (j + j.T))
-            if w[0] < margin:
-                out[10 * b : 10 * b + 10] = a_pinv @ ((v * np.maximum(w, margin)) @ v.T).ravel()
+        js = np.einsum("ij,bj->bi", a, x[:n_link].reshape(n_bodies, 10)).reshape(-1, 4, 4)
+        w, v = np.linalg.eigh(0.5 * (js + js.transpose(0, 2, 1)))
+        low = w[:, 0] < margin
+        if low.any():
+            clipped = np.einsum("bij,bj,bkj->bik", v[low], np.maximum(w[low], margin), v[low])
+            out[:n_link].reshape(n_bodies, 10)[low] = clipped.reshape(-1, 16) @ a_pinv.T
         out[n_link:] = np.maximum(x[n_link:], 0.0)
         return out
 
@@ -170,14 +172,12 @@ def consistent_parameters(library, base, beta, reference=None, max_iter=20000, t
             break
     pi = to_affine(x)
     lam = feasibility(pi, n_bodies)
-    mass_scale = max(masses.max(initial=0.0), 1e-300)
-    # what the affine step costs the consistent point, in the base parameters' terms
+    success = bool(lam.min() > 0 and np.all(pi[n_link:] >= 0))
+    if not success:  # keep the consistent point; it misses the base parameters
+        pi = x
+        lam = feasibility(pi, n_bodies)
     violation = float(
-        np.abs(k_mat @ x - beta).max() / max(np.abs(beta).max(initial=0.0), 1e-300)
-    )
-    success = bool(
-        lam.min() > 0
-        and np.all(pi[n_link:] >= -1e-12 * mass_scale * length**2)
+        np.abs(k_mat @ pi - beta).max() / max(np.abs(beta).max(initial=0.0), 1e-300)
     )
     if not success:
         warnings.warn(

@@ -157,7 +157,7 @@ class RobotLibrary(BaseEstimator):
             ``"autograd"``: ``torch.func`` on the term function (slower, the same
             numbers to round-off).
         """
-        t = [torch.as_tensor(np.asarray(a, dtype=float)) for a in (q, qd, qdd)]
+        t = [torch.as_tensor(np.ascontiguousarray(a, dtype=float)) for a in (q, qd, qdd)]
         for a in t:
             if a.ndim != 2 or a.shape[1] != len(self.coordinates_):
                 raise ValueError(

@@ -3,7 +3,7 @@ r"""The joint torque regressor by recursion (Newton-Euler), batched in torch.
 The Euler-Lagrange columns of :class:`~lagsindy.robots.energy.RobotTerms` are the
 classical joint torque regressor ``Y(q, qd, qdd)`` (``tau = Y pi``). ``torch.func``
 computes them from the term function; this module computes the same matrix directly,
-about two orders of magnitude faster, by the recursion of Atkeson, An and
+about 25 times faster (measured on a 7-joint arm), by the recursion of Atkeson, An and
 Hollerbach (1986), as pinocchio's ``computeJointTorqueRegressor`` does:
 
 1. forward: each body's angular velocity and acceleration and its origin's linear
@@ -116,7 +116,6 @@ def joint_torque_regressor(terms, q, qd, qdd) -> torch.Tensor:
     n_bodies = len(tree.bodies)
     world = []
     blocks, screws = [], []
-    z36 = torch.zeros(*batch, 3, 6, dtype=q.dtype, device=q.device)
     for i, (b, c, (w, wd, a)) in enumerate(zip(tree.bodies, per_body, kin)):
         r_pc, p_pc = frames[i]
         if b.parent < 0:
@@ -126,13 +125,15 @@ def joint_torque_regressor(terms, q, qd, qdd) -> torch.Tensor:
             rot, pos = _mm(r_p, r_pc), p_p + _mv(r_p, p_pc)
         world.append((rot, pos))
         sw = _skew(w)
-        force = torch.cat([a[..., None], _skew(wd) + _mm(sw, sw), z36], dim=-1)
-        moment = torch.cat(
-            [torch.zeros_like(a)[..., None], -_skew(a), _inertia_map(wd) + _mm(sw, _inertia_map(w))],
-            dim=-1,
-        )
-        force_w = _mm(rot, force)
-        moment_w = _mm(rot, moment) + _mm(_skew(pos), force_w)
+        # F = [a | ([wd] + [w][w]) | 0] and N = [0 | -[a] | L(wd) + [w] L(w)] over the
+        # columns (m | h | I); only the non-zero parts are rotated into the world frame
+        f_m = _mv(rot, a)
+        f_h = _mm(rot, _skew(wd) + _mm(sw, sw))
+        n_h = -_mm(rot, _skew(a))
+        n_i = _mm(rot, _inertia_map(wd) + _mm(sw, _inertia_map(w)))
+        sp = _skew(pos)
+        force_w = torch.cat([f_m[..., None], f_h, torch.zeros_like(n_i)], dim=-1)
+        moment_w = torch.cat([_mv(sp, f_m)[..., None], n_h + _mm(sp, f_h), n_i], dim=-1)
         blocks.append(torch.cat([moment_w, force_w], dim=-2))  # (..., 6, 10)
         z = _mv(rot, c["axis"].expand(*batch, 3))
         if b.type == "revolute":

@@ -66,6 +66,7 @@ def test_inconsistent_base_parameters_warn():
     with pytest.warns(UserWarning, match="no physically consistent parameters"):
         out = consistent_parameters(lib, base, beta)
     assert not out.success and out.violation > 1e-3
+    assert out.min_eigenvalue.min() > 0  # still a consistent representative
 
 
 def test_pseudo_inertia_of_a_point_mass_is_rank_one():
