@@ -30,8 +30,10 @@ from sklearn.base import clone
 from .urdf import inertia_matrix
 
 # Smallest eigenvalue kept in the scaled pseudo-inertias (relative to the mean mass):
-# the last, affine step moves them by about 1e-11 (measured), so they stay > 0.
-MARGIN = 1e-8
+# the last, affine step moves the parameters by about the stopping tolerance (1e-10
+# relative), so a margin 1e4 times larger keeps them positive definite (with 1e-8 an
+# inconsistent reference ended at -1e-10).
+MARGIN = 1e-6
 
 
 def pseudo_inertia(params) -> np.ndarray:
@@ -128,7 +130,10 @@ def consistent_parameters(library, base, beta, reference=None, max_iter=20000, t
     masses = ref[0:n_link:10]
     traces = np.array([np.trace(inertia_matrix(ref[10 * b : 10 * b + 10])) for b in range(n_bodies)])
     heavy = masses > 0
-    length = float(np.sqrt(np.mean(traces[heavy] / masses[heavy]))) if heavy.any() else 1.0
+    usable = heavy & (traces > 0)
+    # a typical radius of gyration (median: one inconsistent reference body must not
+    # decide the units)
+    length = float(np.sqrt(np.median(traces[usable] / masses[usable]))) if usable.any() else 1.0
     a = _scaled_map(length)
     g_body = a.T @ a
     metric = np.zeros((n_terms, n_terms))
@@ -142,6 +147,7 @@ def consistent_parameters(library, base, beta, reference=None, max_iter=20000, t
         return x - g_inv_kt @ np.linalg.solve(gram, k_mat @ x - beta)
 
     a_pinv = np.linalg.pinv(a)
+    mass_scale = max(masses.max(initial=0.0), 1e-300)
     # clip at a small margin, so that the final (affine) step keeps J positive definite
     margin = MARGIN * (masses[heavy].mean() if heavy.any() else 1.0)
 
@@ -171,6 +177,10 @@ def consistent_parameters(library, base, beta, reference=None, max_iter=20000, t
         if gap <= tol * scale:
             break
     pi = to_affine(x)
+    # the affine step's last correction (about the stopping tolerance times the base
+    # parameters, measured 1e-11) on rotor inertias that sit at their bound 0
+    tiny = 1e-9 * max(np.abs(beta).max(initial=0.0), mass_scale * length**2)
+    pi[n_link:] = np.where(pi[n_link:] > -tiny, np.maximum(pi[n_link:], 0.0), pi[n_link:])
     lam = feasibility(pi, n_bodies)
     success = bool(lam.min() > 0 and np.all(pi[n_link:] >= 0))
     if not success:  # keep the consistent point; it misses the base parameters

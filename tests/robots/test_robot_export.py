@@ -76,3 +76,15 @@ def test_pseudo_inertia_of_a_point_mass_is_rank_one():
     params[4:] = [i[0, 0], i[0, 1], i[1, 1], i[0, 2], i[1, 2], i[2, 2]]
     w = np.linalg.eigvalsh(pseudo_inertia(params))
     assert abs(w[:3]).max() < 1e-12 and w[3] > 0
+
+
+def test_inconsistent_reference_is_projected_onto_the_consistent_set():
+    lib = CandidateLibrary.from_urdf(ARM7, ARM7_JOINTS)
+    base = base_parameters(lib)
+    beta = base.values(lib.nominal_)
+    reference = lib.nominal_.copy()
+    reference[14] = -0.5  # link 2: Ixx < 0, no mass distribution has it
+    assert feasibility(reference, 7).min() < 0
+    out = consistent_parameters(lib, base, beta, reference=reference)
+    assert out.success and out.min_eigenvalue.min() > 0
+    np.testing.assert_allclose(base.values(out.parameters), beta, rtol=0, atol=1e-9)
