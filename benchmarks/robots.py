@@ -61,7 +61,11 @@ def friction_columns(qd):
     n, d = qd.shape
     eye = np.eye(d)
     return np.concatenate(
-        [qd[:, :, None] * eye, np.sign(qd)[:, :, None] * eye, np.broadcast_to(eye, (n, d, d))],
+        [
+            qd[:, :, None] * eye,
+            np.sign(qd)[:, :, None] * eye,
+            np.broadcast_to(eye, (n, d, d)),
+        ],
         axis=2,
     )
 
@@ -86,10 +90,14 @@ def pinocchio_columns(lib, q, qd, qdd):
         q0 = pin.neutral(model)
         for name, value in tree.locked.items():
             q0[model.joints[model.getJointId(name)].idx_q] = value
-        model = pin.buildReducedModel(model, [model.getJointId(n) for n in tree.locked], q0)
+        model = pin.buildReducedModel(
+            model, [model.getJointId(n) for n in tree.locked], q0
+        )
     data = model.createData()
     idx = [model.joints[model.getJointId(c)].idx_v for c in tree.coordinates]
-    cols = np.concatenate([10 * (model.getJointId(b.joint) - 1) + np.arange(10) for b in tree.bodies])
+    cols = np.concatenate(
+        [10 * (model.getJointId(b.joint) - 1) + np.arange(10) for b in tree.bodies]
+    )
     out = np.empty((q.shape[0], len(idx), len(cols)))
     qp, vp, ap = np.zeros(model.nq), np.zeros(model.nv), np.zeros(model.nv)
     for s in range(q.shape[0]):
@@ -123,7 +131,11 @@ def _fit(name, cols_fn, lib, base, split, states, tauf, extra=None):
         coef = lstsq(cols[:split], tauf[:split])
     pred = np.einsum("ndp,p->nd", cols[split:], coef)
     return dict(
-        name=name, coef=coef, r2=r2_per_joint(tauf[split:], pred), t_reg=reg, t_ls=ls,
+        name=name,
+        coef=coef,
+        r2=r2_per_joint(tauf[split:], pred),
+        t_reg=reg,
+        t_ls=ls,
         n_base=base.n_base,
     )
 
@@ -132,7 +144,12 @@ def seven_joint(duration, el_samples):
     import torch
 
     from lagsindy import CandidateLibrary
-    from lagsindy.robots import base_parameters, consistent_parameters, euler_lagrange_columns, to_urdf
+    from lagsindy.robots import (
+        base_parameters,
+        consistent_parameters,
+        euler_lagrange_columns,
+        to_urdf,
+    )
 
     from .robots_data import seven_joint_arm
 
@@ -155,17 +172,30 @@ def seven_joint(duration, el_samples):
     j, k_true, rest = data.spring
     spring_col = np.zeros((n, d, 1))
     spring_col[:, j, 0] = q[:, j]
-    with_spring = _fit("lagsindy + spring column", ours_fn, lib, base, split, (q, qd, qdd), tauf, spring_col)
+    with_spring = _fit(
+        "lagsindy + spring column",
+        ours_fn,
+        lib,
+        base,
+        split,
+        (q, qd, qdd),
+        tauf,
+        spring_col,
+    )
     # the true model at the same filtered states
     truth = lib.nominal_.copy()
     truth[-d:] = data.armature
     full = lib.euler_lagrange_columns(q[split:], qd[split:], qdd[split:])
-    true_tau = full @ truth + friction_columns(qd[split:]) @ np.r_[data.viscous, data.coulomb, data.offset]
+    true_tau = (
+        full @ truth
+        + friction_columns(qd[split:]) @ np.r_[data.viscous, data.coulomb, data.offset]
+    )
     true_tau[:, j] += k_true * (q[split:, j] - rest)
     r2_true = r2_per_joint(tauf[split:], true_tau)
     nb = base.n_base
     visc_err = {
-        r["name"]: np.abs(r["coef"][nb : nb + d] / data.viscous - 1) for r in (ours, theirs, with_spring)
+        r["name"]: np.abs(r["coef"][nb : nb + d] / data.viscous - 1)
+        for r in (ours, theirs, with_spring)
     }
     # cost of the term function and of its torch.func Euler-Lagrange columns
     terms = lib.torch_terms()
@@ -178,16 +208,39 @@ def seven_joint(duration, el_samples):
     # consistent parameters for the identified base parameters, and the write-back
     beta = with_spring["coef"][:nb]
     with _quiet(), _clock() as t_cons:
-        cons = consistent_parameters(lib, base, beta, max_iter=200 if _tiny() else 20000)
+        cons = consistent_parameters(
+            lib, base, beta, max_iter=200 if _tiny() else 20000
+        )
     with tempfile.TemporaryDirectory() as tmp:  # consistent even when not success
-        path = to_urdf(lib, cons.parameters, os.path.join(tmp, "arm7_identified.urdf"),
-                       damping=with_spring["coef"][nb : nb + d], friction=with_spring["coef"][nb + d : nb + 2 * d])
+        path = to_urdf(
+            lib,
+            cons.parameters,
+            os.path.join(tmp, "arm7_identified.urdf"),
+            damping=with_spring["coef"][nb : nb + d],
+            friction=with_spring["coef"][nb + d : nb + 2 * d],
+        )
         back = CandidateLibrary.from_urdf(path, data.joints, locked=data.locked)
-        round_trip = float(np.abs(back.nominal_[: 10 * 7] - cons.parameters[: 10 * 7]).max())
+        round_trip = float(
+            np.abs(back.nominal_[: 10 * 7] - cons.parameters[: 10 * 7]).max()
+        )
     return dict(
-        data=data, n=n, split=split, base=base, ours=ours, theirs=theirs, with_spring=with_spring,
-        r2_true=r2_true, visc_err=visc_err, t_sim=t_sim, t_fn=t_fn, t_el=t_el, el_samples=el_samples,
-        cons=cons, t_cons=t_cons, round_trip=round_trip, n_terms=len(lib),
+        data=data,
+        n=n,
+        split=split,
+        base=base,
+        ours=ours,
+        theirs=theirs,
+        with_spring=with_spring,
+        r2_true=r2_true,
+        visc_err=visc_err,
+        t_sim=t_sim,
+        t_fn=t_fn,
+        t_el=t_el,
+        el_samples=el_samples,
+        cons=cons,
+        t_cons=t_cons,
+        round_trip=round_trip,
+        n_terms=len(lib),
     )
 
 
@@ -242,7 +295,9 @@ def _row(label, values, fmt="{:.4f}"):
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="short record: results/robots_quick.md")
+    parser.add_argument(
+        "--quick", action="store_true", help="short record: results/robots_quick.md"
+    )
     args = parser.parse_args(argv)
     import pinocchio  # noqa: F401  (ImportError: the runner skips this benchmark)
 
@@ -261,8 +316,12 @@ def main(argv=None) -> int:
     frac = n_train / res["n"]
     fit_cpu = res["ours"]["t_reg"].cpu * frac + res["ours"]["t_ls"].cpu
     fit_wall = res["ours"]["t_reg"].wall * frac + res["ours"]["t_ls"].wall
-    lines = [header("Robot arms: prototype fit (base parameters + friction, least squares)",
-                    _common.command("robots", argv)).rstrip()]
+    lines = [
+        header(
+            "Robot arms: prototype fit (base parameters + friction, least squares)",
+            _common.command("robots", argv),
+        ).rstrip()
+    ]
     lines += [
         "",
         f"Data: `benchmarks/robots_data.py`, 7-joint arm `tests/robots/data/arm7.urdf` "
@@ -308,9 +367,18 @@ def main(argv=None) -> int:
         "",
         "| step | wall s | CPU s |",
         "|---|---|---|",
-        _trow(f"lagsindy regressor, {res['n']} samples (Newton-Euler in torch)", res["ours"]["t_reg"]),
-        _trow(f"pinocchio regressor, {res['n']} samples (Python loop over samples)", res["theirs"]["t_reg"]),
-        _trow(f"least squares, {n_train} x 7 rows, {res['base'].n_base + 21} columns", res["ours"]["t_ls"]),
+        _trow(
+            f"lagsindy regressor, {res['n']} samples (Newton-Euler in torch)",
+            res["ours"]["t_reg"],
+        ),
+        _trow(
+            f"pinocchio regressor, {res['n']} samples (Python loop over samples)",
+            res["theirs"]["t_reg"],
+        ),
+        _trow(
+            f"least squares, {n_train} x 7 rows, {res['base'].n_base + 21} columns",
+            res["ours"]["t_ls"],
+        ),
         _trow(f"term function `fn_batch`, {res['el_samples']} samples", res["t_fn"]),
         _trow(
             f"Euler-Lagrange columns by torch.func (`euler_lagrange_columns`), {res['el_samples']} samples",

@@ -70,7 +70,9 @@ class RobotData:
     noise_tau: np.ndarray
 
 
-def fourier_trajectory(t, lower, upper, vmax, rng, harmonics=5, period=10.0, margin=0.1):
+def fourier_trajectory(
+    t, lower, upper, vmax, rng, harmonics=5, period=10.0, margin=0.1
+):
     """An exciting finite Fourier series per joint within limits: (q, qd, qdd).
 
     ``q_j(t) = c_j + sum_l a_jl sin(l w t) + b_jl cos(l w t)`` with ``w = 2 pi / period``
@@ -88,9 +90,21 @@ def fourier_trajectory(t, lower, upper, vmax, rng, harmonics=5, period=10.0, mar
         centre = 0.5 * (lo + hi)
         a = rng.normal(size=harmonics) / np.arange(1, harmonics + 1)
         b = rng.normal(size=harmonics) / np.arange(1, harmonics + 1)
-        pos = sum(a[l] * np.sin((l + 1) * w * t) + b[l] * np.cos((l + 1) * w * t) for l in range(harmonics))
-        vel = sum((l + 1) * w * (a[l] * np.cos((l + 1) * w * t) - b[l] * np.sin((l + 1) * w * t)) for l in range(harmonics))
-        acc = sum(-((l + 1) * w) ** 2 * (a[l] * np.sin((l + 1) * w * t) + b[l] * np.cos((l + 1) * w * t)) for l in range(harmonics))
+        pos = sum(
+            a[h] * np.sin((h + 1) * w * t) + b[h] * np.cos((h + 1) * w * t)
+            for h in range(harmonics)
+        )
+        vel = sum(
+            (h + 1)
+            * w
+            * (a[h] * np.cos((h + 1) * w * t) - b[h] * np.sin((h + 1) * w * t))
+            for h in range(harmonics)
+        )
+        acc = sum(
+            -(((h + 1) * w) ** 2)
+            * (a[h] * np.sin((h + 1) * w * t) + b[h] * np.cos((h + 1) * w * t))
+            for h in range(harmonics)
+        )
         scale = 0.5 * span / np.abs(pos).max()
         if np.isfinite(vmax[j]):
             scale = min(scale, 0.8 * vmax[j] / np.abs(vel).max())
@@ -111,8 +125,23 @@ def _velocity_limits(urdf, joints):
     return np.array(out)
 
 
-def simulate(urdf, joints, locked, *, duration, rate, armature, viscous, coulomb, offset,
-             spring, noise_q, noise_tau_rel, random_state, period=10.0):
+def simulate(
+    urdf,
+    joints,
+    locked,
+    *,
+    duration,
+    rate,
+    armature,
+    viscous,
+    coulomb,
+    offset,
+    spring,
+    noise_q,
+    noise_tau_rel,
+    random_state,
+    period=10.0,
+):
     """Torques along an exciting trajectory from pinocchio's inverse dynamics + extras."""
     import pinocchio as pin
 
@@ -126,12 +155,19 @@ def simulate(urdf, joints, locked, *, duration, rate, armature, viscous, coulomb
         q0 = pin.neutral(model)
         for name, value in tree.locked.items():
             q0[model.joints[model.getJointId(name)].idx_q] = value
-        model = pin.buildReducedModel(model, [model.getJointId(n) for n in tree.locked], q0)
+        model = pin.buildReducedModel(
+            model, [model.getJointId(n) for n in tree.locked], q0
+        )
     data = model.createData()
     idx = [model.joints[model.getJointId(c)].idx_v for c in tree.coordinates]
     t = np.arange(int(round(duration * rate))) / rate
     q, qd, qdd = fourier_trajectory(
-        t, tree.lower, tree.upper, _velocity_limits(urdf, tree.coordinates), rng, period=period
+        t,
+        tree.lower,
+        tree.upper,
+        _velocity_limits(urdf, tree.coordinates),
+        rng,
+        period=period,
     )
     tau = np.empty_like(q)
     qp, vp, ap = np.zeros(model.nq), np.zeros(model.nv), np.zeros(model.nv)
@@ -164,10 +200,14 @@ def simulate(urdf, joints, locked, *, duration, rate, armature, viscous, coulomb
     )
 
 
-def seven_joint_arm(duration=40.0, rate=1000.0, urdf=ARM7, joints=None, locked=None, random_state=0):
+def seven_joint_arm(
+    duration=40.0, rate=1000.0, urdf=ARM7, joints=None, locked=None, random_state=0
+):
     """The 7-joint arm data set (see the module docstring); spring on joint 4."""
     joints = ARM7_JOINTS if joints is None and Path(urdf) == ARM7 else joints
-    locked = {"finger_joint1": 0.02} if locked is None and Path(urdf) == ARM7 else locked
+    locked = (
+        {"finger_joint1": 0.02} if locked is None and Path(urdf) == ARM7 else locked
+    )
     return simulate(
         urdf,
         joints,

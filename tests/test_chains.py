@@ -247,7 +247,10 @@ def relative_two_link_arm(damping=None):
     from lagsindy.systems.base import System
 
     absolute, _, _ = chain_lagrangian(
-        [1.3, 0.7], [0.45, 0.35], com=[0.22, 0.17], inertia=[0.024, 0.0083],
+        [1.3, 0.7],
+        [0.45, 0.35],
+        com=[0.22, 0.17],
+        inertia=[0.024, 0.0083],
         names=["t1", "t2"],
     )
     (t1, t2), (t1d, t2d), _ = symbols_for(["t1", "t2"])
@@ -257,7 +260,10 @@ def relative_two_link_arm(damping=None):
     )
     ranges = {"q1": (-1, 1), "q2": (-1, 1), "q1_dot": (-1, 1), "q2_dot": (-1, 1)}
     return System(
-        lagrangian, ["q1", "q2"], angles=["q1", "q2"], initial_ranges=ranges,
+        lagrangian,
+        ["q1", "q2"],
+        angles=["q1", "q2"],
+        initial_ranges=ranges,
         name="relative two-link arm",
     )
 
@@ -274,7 +280,9 @@ def test_relative_chain_library_terms():
         "sin(q1 + q2)",
     ]
     three = CandidateLibrary.chain(["q1", "q2", "q3"], relative=True)
-    assert "q1_dot*(q1_dot + q2_dot + q3_dot)*cos(q2 + q3)" in [str(t) for t in three.terms_]
+    assert "q1_dot*(q1_dot + q2_dot + q3_dot)*cos(q2 + q3)" in [
+        str(t) for t in three.terms_
+    ]
     assert len(three) == len(CandidateLibrary.chain(["q1", "q2", "q3"])) == 12
     cart = CandidateLibrary.chain(["x", "q1", "q2"], angles=["q1", "q2"], relative=True)
     assert "x_dot*(q1_dot + q2_dot)*cos(q1 + q2)" in [str(t) for t in cart.terms_]

@@ -8,7 +8,11 @@
   parameters for identified base parameters, written back into a copy of the URDF.
 """
 
-from .base_parameters import BaseParameters, base_parameters, base_parameters_from_columns
+from .base_parameters import (
+    BaseParameters,
+    base_parameters,
+    base_parameters_from_columns,
+)
 from .energy import RobotTerms, euler_lagrange_columns
 from .export import ConsistentParameters, consistent_parameters, feasibility, to_urdf
 from .library import RobotLibrary

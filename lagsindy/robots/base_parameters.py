@@ -26,7 +26,6 @@ import numpy as np
 import scipy.linalg
 import torch
 
-
 # Relative tolerances. Measured on Panda, UR5 and the test URDFs (unit columns, 100
 # random states): the last kept QR pivot is >= 0.38 of the first, the first dropped
 # one <= 8e-16; zero columns are exactly 0, the smallest non-zero one 4e-3 of the
@@ -82,7 +81,9 @@ class BaseParameters:
         return list(zip(self.labels, vals))
 
     def __str__(self) -> str:
-        return "\n".join(f"beta{i + 1:<3d} = {lab}" for i, lab in enumerate(self.labels))
+        return "\n".join(
+            f"beta{i + 1:<3d} = {lab}" for i, lab in enumerate(self.labels)
+        )
 
 
 def exciting_states(lower, upper, n_samples, rng, speed=2.0, acceleration=5.0):
@@ -157,7 +158,9 @@ def base_parameters_from_columns(columns, names) -> BaseParameters:
             basis = np.concatenate([basis, (res / rn)[:, None]], axis=1)
             kept.append(j)
     kept_arr = np.array(kept, dtype=int)
-    dependent = np.array([j for j in range(n) if j not in kept and not zero[j]], dtype=int)
+    dependent = np.array(
+        [j for j in range(n) if j not in kept and not zero[j]], dtype=int
+    )
     matrix = np.zeros((len(kept), n))
     matrix[np.arange(len(kept)), kept_arr] = 1.0
     if dependent.size:

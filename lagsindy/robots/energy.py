@@ -164,7 +164,11 @@ class RobotTerms:
             if b.parent < 0:
                 rot, pos = r_pc, p_pc
                 w = joint_rate if b.type == "revolute" else torch.zeros_like(joint_rate)
-                v = joint_rate if b.type == "prismatic" else torch.zeros_like(joint_rate)
+                v = (
+                    joint_rate
+                    if b.type == "prismatic"
+                    else torch.zeros_like(joint_rate)
+                )
             else:
                 r_p, p_p, v_p, w_p = out[b.parent]
                 rot = r_p @ r_pc
@@ -191,7 +195,14 @@ class RobotTerms:
             h_terms = _cross(v, w) + g_body
             wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
             i_terms = torch.stack(
-                [0.5 * wx * wx, wx * wy, 0.5 * wy * wy, wx * wz, wy * wz, 0.5 * wz * wz],
+                [
+                    0.5 * wx * wx,
+                    wx * wy,
+                    0.5 * wy * wy,
+                    wx * wz,
+                    wy * wz,
+                    0.5 * wz * wz,
+                ],
                 dim=-1,
             )
             parts += [m_term[..., None], h_terms, i_terms]
@@ -215,7 +226,10 @@ class RobotTerms:
         return torch.cat(
             [
                 joint_torque_regressor(
-                    self, q[s : s + COLUMN_CHUNK], qd[s : s + COLUMN_CHUNK], qdd[s : s + COLUMN_CHUNK]
+                    self,
+                    q[s : s + COLUMN_CHUNK],
+                    qd[s : s + COLUMN_CHUNK],
+                    qdd[s : s + COLUMN_CHUNK],
                 )
                 for s in range(0, n, COLUMN_CHUNK)
             ]
@@ -232,7 +246,9 @@ class RobotTerms:
 
         ``parameters`` has one value per term (``len(names)``).
         """
-        p = torch.as_tensor(np.asarray(parameters, float), dtype=q.dtype, device=q.device)
+        p = torch.as_tensor(
+            np.asarray(parameters, float), dtype=q.dtype, device=q.device
+        )
         kin_only = self.fn_batch(q, qd) - self.fn_batch(q, torch.zeros_like(qd))
         kinetic = kin_only @ p
         potential = -(self.fn_batch(q, torch.zeros_like(qd)) @ p)
@@ -258,7 +274,9 @@ def euler_lagrange_columns(fn, q, qd, qdd, chunk_size: int = 8192) -> torch.Tens
         # torch's own notice when forward AD first loads, not the caller's concern
         warnings.filterwarnings("ignore", message=".*torch.jit.script.*is deprecated")
         parts = [
-            batched(q[s : s + chunk_size], qd[s : s + chunk_size], qdd[s : s + chunk_size])
+            batched(
+                q[s : s + chunk_size], qd[s : s + chunk_size], qdd[s : s + chunk_size]
+            )
             for s in range(0, n, chunk_size)
         ]
     return torch.cat(parts, dim=0)

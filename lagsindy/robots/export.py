@@ -51,7 +51,10 @@ def feasibility(params, n_bodies: int) -> np.ndarray:
     """Smallest eigenvalue of each body's pseudo-inertia (>= 0: consistent)."""
     params = np.asarray(params, dtype=float)
     return np.array(
-        [np.linalg.eigvalsh(pseudo_inertia(params[10 * b : 10 * b + 10]))[0] for b in range(n_bodies)]
+        [
+            np.linalg.eigvalsh(pseudo_inertia(params[10 * b : 10 * b + 10]))[0]
+            for b in range(n_bodies)
+        ]
     )
 
 
@@ -89,7 +92,9 @@ class ConsistentParameters:
     success: bool
 
 
-def consistent_parameters(library, base, beta, reference=None, max_iter=20000, tol=1e-10):
+def consistent_parameters(
+    library, base, beta, reference=None, max_iter=20000, tol=1e-10
+):
     """Physically consistent full parameters whose base parameters are ``beta``.
 
     The projection of ``reference`` onto the intersection of the affine set
@@ -128,12 +133,18 @@ def consistent_parameters(library, base, beta, reference=None, max_iter=20000, t
     beta = np.asarray(beta, dtype=float)
     k_mat = base.matrix
     masses = ref[0:n_link:10]
-    traces = np.array([np.trace(inertia_matrix(ref[10 * b : 10 * b + 10])) for b in range(n_bodies)])
+    traces = np.array(
+        [np.trace(inertia_matrix(ref[10 * b : 10 * b + 10])) for b in range(n_bodies)]
+    )
     heavy = masses > 0
     usable = heavy & (traces > 0)
     # a typical radius of gyration (median: one inconsistent reference body must not
     # decide the units)
-    length = float(np.sqrt(np.median(traces[usable] / masses[usable]))) if usable.any() else 1.0
+    length = (
+        float(np.sqrt(np.median(traces[usable] / masses[usable])))
+        if usable.any()
+        else 1.0
+    )
     a = _scaled_map(length)
     g_body = a.T @ a
     metric = np.zeros((n_terms, n_terms))
@@ -153,11 +164,15 @@ def consistent_parameters(library, base, beta, reference=None, max_iter=20000, t
 
     def to_consistent(x):
         out = x.copy()
-        js = np.einsum("ij,bj->bi", a, x[:n_link].reshape(n_bodies, 10)).reshape(-1, 4, 4)
+        js = np.einsum("ij,bj->bi", a, x[:n_link].reshape(n_bodies, 10)).reshape(
+            -1, 4, 4
+        )
         w, v = np.linalg.eigh(0.5 * (js + js.transpose(0, 2, 1)))
         low = w[:, 0] < margin
         if low.any():
-            clipped = np.einsum("bij,bj,bkj->bik", v[low], np.maximum(w[low], margin), v[low])
+            clipped = np.einsum(
+                "bij,bj,bkj->bik", v[low], np.maximum(w[low], margin), v[low]
+            )
             out[:n_link].reshape(n_bodies, 10)[low] = clipped.reshape(-1, 16) @ a_pinv.T
         out[n_link:] = np.maximum(x[n_link:], 0.0)
         return out
@@ -180,7 +195,9 @@ def consistent_parameters(library, base, beta, reference=None, max_iter=20000, t
     # the affine step's last correction (about the stopping tolerance times the base
     # parameters, measured 1e-11) on rotor inertias that sit at their bound 0
     tiny = 1e-9 * max(np.abs(beta).max(initial=0.0), mass_scale * length**2)
-    pi[n_link:] = np.where(pi[n_link:] > -tiny, np.maximum(pi[n_link:], 0.0), pi[n_link:])
+    pi[n_link:] = np.where(
+        pi[n_link:] > -tiny, np.maximum(pi[n_link:], 0.0), pi[n_link:]
+    )
     lam = feasibility(pi, n_bodies)
     success = bool(lam.min() > 0 and np.all(pi[n_link:] >= 0))
     if not success:  # keep the consistent point; it misses the base parameters
@@ -238,7 +255,9 @@ def to_urdf(library, parameters, path, *, damping=None, friction=None):
     tree = library.tree_
     parameters = np.asarray(parameters, dtype=float)
     if parameters.shape != (len(library),):
-        raise ValueError(f"parameters must have shape ({len(library)},), got {parameters.shape}")
+        raise ValueError(
+            f"parameters must have shape ({len(library)},), got {parameters.shape}"
+        )
     doc = ET.parse(tree.path)
     root = doc.getroot()
     links = {el.get("name"): el for el in root.findall("link")}
@@ -260,7 +279,9 @@ def to_urdf(library, parameters, path, *, damping=None, friction=None):
             old = links[name].find("inertial")
             if old is not None:
                 links[name].remove(old)
-                links[name].insert(0, ET.Comment(f" lagsindy: inertia merged into {body.name} "))
+                links[name].insert(
+                    0, ET.Comment(f" lagsindy: inertia merged into {body.name} ")
+                )
         el = links[body.name]
         old = el.find("inertial")
         if old is not None:
@@ -284,7 +305,9 @@ def to_urdf(library, parameters, path, *, damping=None, friction=None):
     for k, name in enumerate(tree.coordinates):
         el = joints[name]
         if len(parameters) > n_link:
-            el.append(ET.Comment(f" lagsindy: armature {_fmt(parameters[n_link + k])} "))
+            el.append(
+                ET.Comment(f" lagsindy: armature {_fmt(parameters[n_link + k])} ")
+            )
         if damping is None and friction is None:
             continue
         dyn = el.find("dynamics")

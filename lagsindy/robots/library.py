@@ -83,7 +83,9 @@ class RobotLibrary(BaseEstimator):
         self.gravity = gravity
 
     def _key(self):
-        return repr(sorted((k, repr(v)) for k, v in self.get_params(deep=False).items()))
+        return repr(
+            sorted((k, repr(v)) for k, v in self.get_params(deep=False).items())
+        )
 
     def build(self):
         """Read the URDF and make the term function; returns ``self``."""
@@ -118,7 +120,9 @@ class RobotLibrary(BaseEstimator):
         if name in ("terms_", "coordinates_", "tree_", "locked_", "nominal_"):
             self.build()
             return self.__dict__[name]
-        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        raise AttributeError(
+            f"{type(self).__name__!r} object has no attribute {name!r}"
+        )
 
     def __len__(self) -> int:
         return len(self._ensure_built().terms_)
@@ -157,7 +161,9 @@ class RobotLibrary(BaseEstimator):
             ``"autograd"``: ``torch.func`` on the term function (slower, the same
             numbers to round-off).
         """
-        t = [torch.as_tensor(np.ascontiguousarray(a, dtype=float)) for a in (q, qd, qdd)]
+        t = [
+            torch.as_tensor(np.ascontiguousarray(a, dtype=float)) for a in (q, qd, qdd)
+        ]
         for a in t:
             if a.ndim != 2 or a.shape[1] != len(self.coordinates_):
                 raise ValueError(

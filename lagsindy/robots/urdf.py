@@ -294,7 +294,9 @@ def _locked_positions(joints, coordinates, locked):
         if j.mimic is not None:
             target = j.mimic[0]
             if target not in by_name:
-                raise ValueError(f"joint {name!r} mimics {target!r}, which is not a joint")
+                raise ValueError(
+                    f"joint {name!r} mimics {target!r}, which is not a joint"
+                )
             if target in coordinates:
                 raise ValueError(
                     f"joint {name!r} mimics {target!r}, which is a coordinate; mimic "
@@ -357,9 +359,13 @@ def build_tree(
             )
         for link in (j.parent, j.child):
             if link not in links:
-                raise ValueError(f"joint {j.name!r} names link {link!r}, which is not defined")
+                raise ValueError(
+                    f"joint {j.name!r} names link {link!r}, which is not defined"
+                )
     if joints is None:
-        coordinates = [j.name for j in urdf_joints if j.type in MOVING and j.mimic is None]
+        coordinates = [
+            j.name for j in urdf_joints if j.type in MOVING and j.mimic is None
+        ]
     else:
         coordinates = [joints] if isinstance(joints, str) else list(joints)
         for c in coordinates:
@@ -369,7 +375,9 @@ def build_tree(
                     f"{[j.name for j in urdf_joints if j.type in MOVING]}"
                 )
             if by_name[c].type not in MOVING:
-                raise ValueError(f"joint {c!r} is {by_name[c].type}; it cannot be a coordinate")
+                raise ValueError(
+                    f"joint {c!r} is {by_name[c].type}; it cannot be a coordinate"
+                )
             if by_name[c].mimic is not None:
                 raise ValueError(
                     f"joint {c!r} mimics {by_name[c].mimic[0]!r}; a mimic joint cannot be "
@@ -378,11 +386,15 @@ def build_tree(
         if len(set(coordinates)) != len(coordinates):
             raise ValueError(f"joints lists a joint twice: {coordinates}")
     if not coordinates:
-        raise ValueError(f"{Path(path).name} has no moving joint to use as a coordinate")
+        raise ValueError(
+            f"{Path(path).name} has no moving joint to use as a coordinate"
+        )
     locked = dict(locked or {})
     for k in locked:
         if k not in by_name or by_name[k].type not in MOVING:
-            raise ValueError(f"locked names {k!r}, which is not a moving joint of the URDF")
+            raise ValueError(
+                f"locked names {k!r}, which is not a moving joint of the URDF"
+            )
         if k in coordinates:
             raise ValueError(f"joint {k!r} is both a coordinate and locked")
     positions = _locked_positions(urdf_joints, coordinates, locked)
@@ -403,7 +415,9 @@ def build_tree(
             jrot = rot @ rpy_matrix(j.rpy)
             jtrans = trans + rot @ j.xyz
             if j.type in MOVING and not np.linalg.norm(j.axis) > 0:
-                raise ValueError(f"joint {j.name!r} has a zero axis; give <axis xyz=...>")
+                raise ValueError(
+                    f"joint {j.name!r} has a zero axis; give <axis xyz=...>"
+                )
             axis = j.axis / np.linalg.norm(j.axis) if j.type in MOVING else j.axis
             if j.name in coordinates:
                 bodies.append(
@@ -429,7 +443,9 @@ def build_tree(
                 else:
                     jrot = jrot @ axis_rotation(axis, v)
             if body >= 0:
-                bodies[body].parameters = bodies[body].parameters + transform_parameters(
+                bodies[body].parameters = bodies[
+                    body
+                ].parameters + transform_parameters(
                     link_parameters(links[j.child]), jrot, jtrans
                 )
                 bodies[body].links.append(j.child)
@@ -439,7 +455,9 @@ def build_tree(
     found = {b.joint for b in bodies}
     missing = [c for c in coordinates if c not in found]
     if missing:
-        raise ValueError(f"joints {missing} are not reachable from the root link {roots[0]!r}")
+        raise ValueError(
+            f"joints {missing} are not reachable from the root link {roots[0]!r}"
+        )
     idx = [by_name[c] for c in coordinates]
     return RobotTree(
         name=name,

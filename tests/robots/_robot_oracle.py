@@ -19,7 +19,10 @@ def example_robot(relative: str) -> str:
         dist = importlib.metadata.distribution("example-robot-data")
     except importlib.metadata.PackageNotFoundError:
         pytest.skip("example-robot-data is not installed (pip install -e '.[robots]')")
-    path = Path(dist.locate_file("cmeel.prefix/share/example-robot-data/robots")) / relative
+    path = (
+        Path(dist.locate_file("cmeel.prefix/share/example-robot-data/robots"))
+        / relative
+    )
     if not path.exists():
         pytest.skip(f"example-robot-data has no {relative}")
     return str(path)
@@ -61,6 +64,9 @@ def pinocchio_regressor(pin, model, tree, q, qd, qdd):
         y = pin.computeJointTorqueRegressor(model, data, qp, vp, ap)
         out.append(y[rows][:, cols])
     params = np.concatenate(
-        [model.inertias[model.getJointId(b.joint)].toDynamicParameters() for b in tree.bodies]
+        [
+            model.inertias[model.getJointId(b.joint)].toDynamicParameters()
+            for b in tree.bodies
+        ]
     )
     return np.stack(out), params

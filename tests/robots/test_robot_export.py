@@ -18,18 +18,24 @@ def test_write_back_round_trip(tmp_path):
     pi = lib.nominal_.copy()
     pi[-7:] = rng.uniform(0.05, 0.3, 7)  # rotor inertias
     damping, friction = rng.uniform(0.1, 1, 7), rng.uniform(0.1, 2, 7)
-    out = to_urdf(lib, pi, tmp_path / "arm7_identified.urdf", damping=damping, friction=friction)
+    out = to_urdf(
+        lib, pi, tmp_path / "arm7_identified.urdf", damping=damping, friction=friction
+    )
     back = reread(lib, out)
     n_link = 70
     # the hand and fingers now live in link7's inertial; measured max difference 2e-16
-    np.testing.assert_allclose(back.nominal_[:n_link], pi[:n_link], rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(
+        back.nominal_[:n_link], pi[:n_link], rtol=1e-10, atol=1e-14
+    )
     np.testing.assert_allclose(back.tree_.damping, damping, rtol=1e-11)
     np.testing.assert_allclose(back.tree_.friction, friction, rtol=1e-11)
     text = out.read_text()
     assert "lagsindy: armature" in text and "inertia merged into link7" in text
     # the written file reads alike whatever the (now massless) fingers' position
     other = reread(lib.set_params(locked={"finger_joint1": 0.0}), out)
-    np.testing.assert_allclose(other.nominal_[:n_link], pi[:n_link], rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(
+        other.nominal_[:n_link], pi[:n_link], rtol=1e-10, atol=1e-14
+    )
 
 
 def test_write_back_rejects_inconsistent_mass(tmp_path):
@@ -54,7 +60,9 @@ def test_consistent_parameters_reproduce_base_parameters():
     out = consistent_parameters(lib, base, beta)
     assert out.success and out.violation < 1e-8
     assert out.min_eigenvalue.min() > 0 and np.all(out.parameters[70:] >= 0)
-    np.testing.assert_allclose(base.values(out.parameters), beta, rtol=0, atol=1e-8 * np.abs(beta).max())
+    np.testing.assert_allclose(
+        base.values(out.parameters), beta, rtol=0, atol=1e-8 * np.abs(beta).max()
+    )
 
 
 def test_inconsistent_base_parameters_warn():
@@ -62,7 +70,9 @@ def test_inconsistent_base_parameters_warn():
     base = base_parameters(lib)
     beta = base.values(lib.nominal_)
     k = base.labels.index("Iyy_upper_arm + 0.2025*m_forearm + Ia_shoulder")
-    beta[k] = -0.05  # a negative inertia about the shoulder: no mass distribution has it
+    beta[
+        k
+    ] = -0.05  # a negative inertia about the shoulder: no mass distribution has it
     with pytest.warns(UserWarning, match="no physically consistent parameters"):
         out = consistent_parameters(lib, base, beta)
     assert not out.success and out.violation > 1e-3

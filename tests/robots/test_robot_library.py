@@ -26,7 +26,11 @@ def planar_lagrangian(q, qd, g=9.81):
     # rotation about +y: a point (0, 0, -c) goes to (-c sin q, 0, -c cos q)
     x2d = -l1 * np.cos(q1) * w1 - c2 * np.cos(q1 + q2) * w2
     z2d = l1 * np.sin(q1) * w1 + c2 * np.sin(q1 + q2) * w2
-    kinetic = 0.5 * (i1 + m1 * c1**2) * w1**2 + 0.5 * i2 * w2**2 + 0.5 * m2 * (x2d**2 + z2d**2)
+    kinetic = (
+        0.5 * (i1 + m1 * c1**2) * w1**2
+        + 0.5 * i2 * w2**2
+        + 0.5 * m2 * (x2d**2 + z2d**2)
+    )
     z1, z2 = -c1 * np.cos(q1), -l1 * np.cos(q1) - c2 * np.cos(q1 + q2)
     return kinetic - g * (m1 * z1 + m2 * z2)
 
@@ -38,11 +42,15 @@ def test_terms_reproduce_the_hand_written_lagrangian():
     q, qd = rng.uniform(-3, 3, (50, 2)), rng.uniform(-4, 4, (50, 2))
     phi = lib.torch_terms().fn_batch(torch.tensor(q), torch.tensor(qd)).numpy()
     # measured max |difference| 1.8e-15 (|L| up to 6)
-    np.testing.assert_allclose(phi @ lib.nominal_, planar_lagrangian(q, qd), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        phi @ lib.nominal_, planar_lagrangian(q, qd), rtol=0, atol=1e-12
+    )
 
 
 def test_term_function_contract():
-    terms = CandidateLibrary.from_urdf(MIXED, ["spin", "rail", "tilt", "side"]).torch_terms()
+    terms = CandidateLibrary.from_urdf(
+        MIXED, ["spin", "rail", "tilt", "side"]
+    ).torch_terms()
     assert len(terms.names) == terms.n_terms == 10 * 4 + 4
     rng = np.random.default_rng(1)
     q, qd = torch.tensor(rng.normal(size=(6, 4))), torch.tensor(rng.normal(size=(6, 4)))
@@ -113,7 +121,9 @@ def test_clear_errors(joints, locked, match):
 
 def test_unsupported_joint_and_bad_names(tmp_path):
     text = open(PLANAR).read()
-    (tmp_path / "float.urdf").write_text(text.replace('type="fixed"', 'type="floating"'))
+    (tmp_path / "float.urdf").write_text(
+        text.replace('type="fixed"', 'type="floating"')
+    )
     with pytest.raises(ValueError, match="floating base is not"):
         build_tree(tmp_path / "float.urdf")
     (tmp_path / "dash.urdf").write_text(text.replace('"elbow"', '"elbow-joint"'))
@@ -168,9 +178,13 @@ def test_planar_base_parameters_in_link_terms():
     assert "beta1   = mx_upper_arm" in str(bp)
 
 
-@pytest.mark.parametrize("path, joints", [(MIXED, ["tilt", "spin", "side", "rail"]), (PLANAR, None)])
+@pytest.mark.parametrize(
+    "path, joints", [(MIXED, ["tilt", "spin", "side", "rail"]), (PLANAR, None)]
+)
 def test_recursive_regressor_equals_autograd_columns(path, joints):
-    lib = CandidateLibrary.from_urdf(path, joints, locked={"finger_a_joint": 0.02} if joints else None)
+    lib = CandidateLibrary.from_urdf(
+        path, joints, locked={"finger_a_joint": 0.02} if joints else None
+    )
     rng = np.random.default_rng(4)
     n, d = 25, len(lib.coordinates_)
     q, qd, qdd = (rng.uniform(-3, 3, (n, d)) for _ in range(3))

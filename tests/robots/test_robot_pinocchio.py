@@ -2,7 +2,14 @@
 
 import numpy as np
 import pytest
-from _robot_oracle import DATA, ARM7_JOINTS, PANDA_JOINTS, example_robot, pinocchio_model, pinocchio_regressor
+from _robot_oracle import (
+    ARM7_JOINTS,
+    DATA,
+    PANDA_JOINTS,
+    example_robot,
+    pinocchio_model,
+    pinocchio_regressor,
+)
 
 from lagsindy import CandidateLibrary
 from lagsindy.robots import base_parameters
@@ -46,7 +53,9 @@ def test_regressor_equals_pinocchio(name, method):
     # measured max |difference| 2.2e-14 (Panda, entries up to 19)
     np.testing.assert_allclose(ours[:, :, :n_link], theirs, rtol=0, atol=1e-10)
     # the armature columns are qdd
-    np.testing.assert_allclose(ours[:, :, n_link:], qdd[:, :, None] * np.eye(tree.n_dof))
+    np.testing.assert_allclose(
+        ours[:, :, n_link:], qdd[:, :, None] * np.eye(tree.n_dof)
+    )
     # the merged and locked links' inertias are pinocchio's
     np.testing.assert_allclose(lib.nominal_[:n_link], params, rtol=0, atol=1e-12)
     # and the nominal model's torques are pinocchio's inverse dynamics
@@ -67,7 +76,9 @@ def test_locked_position_moves_the_merged_inertia():
     # pinocchio agrees at the other position too
     rng = np.random.default_rng(1)
     q, qd, qdd = (rng.uniform(-1, 1, (5, 4)) for _ in range(3))
-    theirs, params = pinocchio_regressor(pin, pinocchio_model(pin, b.tree_), b.tree_, q, qd, qdd)
+    theirs, params = pinocchio_regressor(
+        pin, pinocchio_model(pin, b.tree_), b.tree_, q, qd, qdd
+    )
     np.testing.assert_allclose(b.nominal_[: params.size], params, rtol=0, atol=1e-12)
 
 
