@@ -363,7 +363,8 @@ def main(argv=None) -> int:
         "## Time (this run, same process and data)",
         "",
         "Wall-clock and CPU seconds of this process (the machine was shared: CPU time is "
-        "what the work cost).",
+        "what the work cost; load average over the last 5 minutes at the end of the run: "
+        f"{os.getloadavg()[1]:.1f} on {os.cpu_count()} cores).",
         "",
         "| step | wall s | CPU s |",
         "|---|---|---|",
