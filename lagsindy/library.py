@@ -56,25 +56,35 @@ def _positive(term: sp.Expr) -> sp.Expr:
     return rest
 
 
-def _chain_terms(names, angles, sin_coupling, degree) -> list[sp.Expr]:
-    """The candidate terms of :meth:`CandidateLibrary.chain`, in documented order."""
+def _chain_terms(names, angles, sin_coupling, degree, relative=False) -> list[sp.Expr]:
+    """The candidate terms of :meth:`CandidateLibrary.chain`, in documented order.
+
+    With ``relative``, each angle is measured from the previous angle's link (in the
+    order of ``names``), so the absolute angle of link ``k`` is the sum of the angles
+    up to ``k`` and its angular velocity the sum of their velocities.
+    """
     q, qd, _ = symbols_for(names)
     rev = [i for i, n in enumerate(names) if n in angles]
     pri = [i for i, n in enumerate(names) if n not in angles]
-    out = [v**2 for v in qd]
+    theta, omega = {}, {}
+    for k, i in enumerate(rev):
+        upto = rev[: k + 1] if relative else [i]
+        theta[i] = sp.Add(*[q[j] for j in upto])
+        omega[i] = sp.Add(*[qd[j] for j in upto])
+    out = [omega[i] ** 2 if i in omega else qd[i] ** 2 for i in range(len(names))]
     for i, j in itertools.combinations(rev, 2):
-        out.append(_positive(qd[i] * qd[j] * sp.cos(q[i] - q[j])))
+        out.append(_positive(omega[i] * omega[j] * sp.cos(theta[i] - theta[j])))
         if sin_coupling:
-            out.append(_positive(qd[i] * qd[j] * sp.sin(q[i] - q[j])))
+            out.append(_positive(omega[i] * omega[j] * sp.sin(theta[i] - theta[j])))
     for i in pri:
         for j in rev:
-            out.append(qd[i] * qd[j] * sp.cos(q[j]))
-            out.append(qd[i] * qd[j] * sp.sin(q[j]))
+            out.append(qd[i] * omega[j] * sp.cos(theta[j]))
+            out.append(qd[i] * omega[j] * sp.sin(theta[j]))
     for i, j in itertools.combinations(pri, 2):
         out.append(qd[i] * qd[j])
     for i in range(len(names)):
         if i in rev:
-            out += [sp.cos(q[i]), sp.sin(q[i])]
+            out += [sp.cos(theta[i]), sp.sin(theta[i])]
         else:
             out += [q[i] ** d for d in range(1, degree + 1)]
     return out
@@ -124,6 +134,9 @@ class CandidateLibrary(BaseEstimator):
     sin_coupling : bool, default=False
         ``kind="chain"`` only: also the couplings ``q_i_dot*q_j_dot*sin(q_i - q_j)``
         of every pair of angles (see :meth:`chain`).
+    relative : bool, default=False
+        ``kind="chain"`` only: the angles are relative joint angles, each measured
+        from the previous link (see :meth:`chain`).
     remove_trivial : bool, default=True
         Drop terms whose Euler-Lagrange expression is identically zero.
     remove_dependent : bool, default=True
@@ -161,6 +174,7 @@ class CandidateLibrary(BaseEstimator):
         angles=None,
         raw_angles=False,
         sin_coupling=False,
+        relative=False,
         remove_trivial=True,
         remove_dependent=True,
     ):
@@ -171,6 +185,7 @@ class CandidateLibrary(BaseEstimator):
         self.angles = angles
         self.raw_angles = raw_angles
         self.sin_coupling = sin_coupling
+        self.relative = relative
         self.remove_trivial = remove_trivial
         self.remove_dependent = remove_dependent
 
@@ -226,6 +241,7 @@ class CandidateLibrary(BaseEstimator):
         degree=2,
         *,
         sin_coupling=False,
+        relative=False,
         **kwargs,
     ):
         """Terms of serial planar chains of revolute and prismatic joints.
@@ -254,6 +270,17 @@ class CandidateLibrary(BaseEstimator):
 
         Sizes (all revolute, measured by building them; none is removed by the
         reductions): 3 links 12 terms (15 with ``sin_coupling``), 7 links 42 (63).
+
+        **Relative angles** (``relative=True``): encoders report each joint's angle
+        relative to the previous link (an elbow's angle relative to the upper arm).
+        The angles, in the order of ``coordinates``, then form one serial chain:
+        link ``k``'s absolute angle is ``theta_k = q_1 + ... + q_k`` and its angular
+        velocity ``omega_k = q_1_dot + ... + q_k_dot``, and the families above are
+        written in them: ``omega_k**2``, ``omega_i*omega_j*cos(q_{i+1} + ... + q_j)``,
+        ``cos(theta_k)``, ``sin(theta_k)`` (and ``x_dot*omega_k*cos(theta_k)`` for a
+        prismatic coordinate). A two-link arm with a relative elbow is then 5 terms
+        (``(q1_dot + q2_dot)**2``, ``q1_dot*(q1_dot + q2_dot)*cos(q2)``, ...) of a
+        7-term library, where the generic degree-3 library needs 55.
         A cart-pole (``["x", "theta"]``, ``angles=["theta"]``) has 8 terms, a cart
         with a double pendulum 14.
 
@@ -268,6 +295,9 @@ class CandidateLibrary(BaseEstimator):
             Add ``q_i_dot*q_j_dot*sin(q_i - q_j)`` for every pair of angles (chains
             whose angle zeros are not aligned along the links, e.g. a link bent at a
             joint).
+        relative : bool, default=False
+            The angles are relative joint angles, each measured from the previous
+            link in the order of ``coordinates`` (see above).
         **kwargs
             Other parameters of :class:`CandidateLibrary` (``terms`` for extra
             candidates, ``remove_trivial``, ``remove_dependent``).
@@ -286,7 +316,32 @@ class CandidateLibrary(BaseEstimator):
             degree=degree,
             angles=angles,
             sin_coupling=sin_coupling,
+            relative=relative,
             **kwargs,
+        )
+
+    @classmethod
+    def from_urdf(
+        cls,
+        path,
+        joints=None,
+        *,
+        armature=True,
+        locked=None,
+        gravity=(0.0, 0.0, -9.81),
+    ):
+        """The energy regressor of a robot arm from its URDF (a :class:`RobotLibrary`).
+
+        Terms: the 10 inertial parameters of every moving link (``m_<link>``,
+        ``mx_<link>``, ..., ``Izz_<link>``) and a rotor inertia ``Ia_<joint>`` per
+        joint, evaluated in torch; see :class:`lagsindy.robots.RobotLibrary` for the
+        parameters and :func:`lagsindy.robots.base_parameters` for their
+        identifiable combinations.
+        """
+        from .robots.library import RobotLibrary
+
+        return RobotLibrary(
+            path, joints, armature=armature, locked=locked, gravity=gravity
         )
 
     @classmethod
@@ -322,7 +377,9 @@ class CandidateLibrary(BaseEstimator):
         angles = self._angle_names(names)
         q, qd, _ = symbols_for(names)
         if self.kind == "chain":
-            return _chain_terms(names, angles, bool(self.sin_coupling), self.degree)
+            return _chain_terms(
+                names, angles, bool(self.sin_coupling), self.degree, bool(self.relative)
+            )
         raw = [q[i] for i, n in enumerate(names) if n not in angles or self.raw_angles]
         trig = [
             f(q[i])

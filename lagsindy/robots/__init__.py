@@ -1,0 +1,34 @@
+"""Robot arms from URDF kinematics.
+
+* :class:`RobotLibrary` (also ``CandidateLibrary.from_urdf``): the energy regressor of
+  every moving link's 10 inertial parameters and a rotor inertia per joint, as torch
+  term functions (:class:`RobotTerms`);
+* :func:`base_parameters`: the identifiable combinations of those parameters;
+* :func:`consistent_parameters` and :func:`to_urdf`: physically consistent link
+  parameters for identified base parameters, written back into a copy of the URDF.
+"""
+
+from .base_parameters import (
+    BaseParameters,
+    base_parameters,
+    base_parameters_from_columns,
+)
+from .energy import RobotTerms, euler_lagrange_columns
+from .export import ConsistentParameters, consistent_parameters, feasibility, to_urdf
+from .library import RobotLibrary
+from .urdf import RobotTree, build_tree
+
+__all__ = [
+    "BaseParameters",
+    "ConsistentParameters",
+    "RobotLibrary",
+    "RobotTerms",
+    "RobotTree",
+    "base_parameters",
+    "base_parameters_from_columns",
+    "build_tree",
+    "consistent_parameters",
+    "euler_lagrange_columns",
+    "feasibility",
+    "to_urdf",
+]
