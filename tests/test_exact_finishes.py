@@ -11,8 +11,8 @@ from lagsindy.solvers import L1, GramQuadratic, fista, staged_fista
 from lagsindy.solvers.exact import _active_set, _active_set_batch, _kkt_distance
 from lagsindy.solvers.fista import fista_batch
 
-# the module (``lagsindy.solvers.fista`` is also the name of the function)
-fista_module = importlib.import_module("lagsindy.solvers.fista")
+# the module of the iterations
+loop_module = importlib.import_module("lagsindy.solvers._loop")
 
 
 def _kkt(G, b, lam, w, nn=None):
@@ -243,7 +243,7 @@ def test_fista_ends_by_the_active_set_search_where_it_wanders():
 def test_fista_without_the_search_wanders(monkeypatch):
     """The previous test's problem is one where the search matters."""
     G, b, lam, x = wandering_lasso()
-    monkeypatch.setattr(fista_module, "ACTIVE_SET_AT", frozenset())
+    monkeypatch.setattr(loop_module, "ACTIVE_SET_AT", frozenset())
     datafit = GramQuadratic(torch.tensor(G), torch.tensor(b), 0.0)
     res = fista(datafit, L1(lam), tol=1e-8, max_iter=20_000)
     assert res.n_iter > 500  # measured 940
