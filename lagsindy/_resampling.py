@@ -23,7 +23,6 @@ from .formulation.operator import EulerLagrangeOperator
 from .formulation.probes import without_probes
 from .formulation.scaling import _BALANCE_MAX_ITER, BalancedGram
 from .formulation.weak import trajectory_segments
-from .solvers.datafits import GramQuadratic
 
 
 # --------------------------------------------------------------------------- seam
@@ -75,9 +74,7 @@ def _solve_from_gram(fitted, gram, n_rows, start=None):
         gram, n_rows, n_features, normalize=fitted.normalize, project_psd=correct
     )
     identifiable = balanced.identifiable().cpu().numpy()
-    penalty = np.ones(n_features)
-    for term in fitted.unpenalized if fitted.unpenalized is not None else []:
-        penalty[fitted.fitted_.feature_index(term)] = 0.0
+    penalty = _penalty(fitted, n_features)
     if fitted.case_ == "forces":
         free = np.flatnonzero(identifiable)
         return _staged_solve(
@@ -99,16 +96,28 @@ def _staged_solve(fitted, balanced, free, target, sign, penalty, reference, star
     so the start changes only the iterations to reach ``solver_tol``, not the
     answer; later stages and the debiasing refit continue from it as in ``fit``.
     """
-    state = fitted.fitted_
-    n_terms = len(state.terms)
-    dissipative = [False] * n_terms + [t.dissipative for t in state.dissipation_terms]
-    solver = SparseSolve.from_params(
-        fitted.get_params(deep=False), n_terms, dissipative, verbose=0
-    )
-    coef, _ = solver.solve(
+    coef, _ = _solver(fitted).solve(
         balanced, free, target, sign, penalty, reference, 0, start=start
     )
     return coef
+
+
+def _solver(fitted):
+    """The :class:`~lagsindy.cases.SparseSolve` of ``fitted``'s settings (quiet)."""
+    state = fitted.fitted_
+    n_terms = len(state.terms)
+    dissipative = [False] * n_terms + [t.dissipative for t in state.dissipation_terms]
+    return SparseSolve.from_params(
+        fitted.get_params(deep=False), n_terms, dissipative, verbose=0
+    )
+
+
+def _penalty(fitted, n_features):
+    """L1 weight per feature: 0 for ``fitted``'s ``unpenalized`` terms."""
+    penalty = np.ones(n_features)
+    for term in fitted.unpenalized if fitted.unpenalized is not None else []:
+        penalty[fitted.fitted_.feature_index(term)] = 0.0
+    return penalty
 
 
 class _GroupStats:
@@ -317,130 +326,60 @@ def _batch_supported(fitted) -> bool:
 
 def _batched_resamples(fitted, stats, mults, start=None):
     """Case I resamples solved together: the staged solve of
-    :func:`_solve_from_gram` with every stage's FISTA iterations batched over the
-    resamples (:func:`~lagsindy.solvers.staged.staged_fista_batch`).
+    :func:`_solve_from_gram` on every resample at once
+    (:meth:`~lagsindy.cases.SparseSolve.solve_across`: every stage's FISTA
+    iterations batched over the resamples, every start of the path).
 
-    The per-resample steps (balancing, thresholds, the path's second start,
-    debiasing) are those of :class:`~lagsindy.cases.SparseSolve`, so each resample
-    gets what its own solve would, up to rounding. Returns a list with the
-    coefficients of each resample, or ``None`` where that resample must be solved
-    alone (a different set of identifiable columns, a step the divergence guard
-    would change, a failure).
+    The resamples are balanced together (:func:`_row_scales_many`), so each gets
+    what its own solve would, up to rounding. Returns a list with the coefficients
+    of each resample, or ``None`` where that resample must be solved alone (a
+    different set of identifiable columns, a step the divergence guard would
+    change, a failure).
     """
-    from .cases.sparse import LAM_STARTS, PATH_FLOOR, PATH_TIE
-    from .formulation.scaling import dense_residual
-    from .solvers.staged import staged_fista_batch
-
-    n_features = len(fitted.feature_names_)
-    correct = getattr(fitted, "noise_cov_", None) is not None
-    state = fitted.fitted_
-    n_terms = len(state.terms)
-    dissipative = [False] * n_terms + [t.dissipative for t in state.dissipation_terms]
-    solver = SparseSolve.from_params(
-        fitted.get_params(deep=False), n_terms, dissipative, verbose=0
-    )
-    penalty = np.ones(n_features)
-    for term in fitted.unpenalized if fitted.unpenalized is not None else []:
-        penalty[fitted.fitted_.feature_index(term)] = 0.0
     out = [None] * len(mults)
     if len(mults) == 0:
         return out
+    n_features = len(fitted.feature_names_)
+    correct = getattr(fitted, "noise_cov_", None) is not None
     summed = [stats.gram(m) for m in mults]
-    grams = np.stack([to_numpy(g) for g, _ in summed]).astype(np.float64)
-    n_rows = np.array([n for _, n in summed], dtype=np.float64)
-    g_bal, col_scale = _balance_many(
-        grams, n_rows, n_features, fitted.normalize, correct
+    rows = _row_scales_many(
+        np.stack([to_numpy(g) for g, _ in summed]).astype(np.float64),
+        np.array([n for _, n in summed], dtype=np.float64),
+        n_features,
+        fitted.normalize,
     )
-    big = np.maximum(col_scale.max(axis=1, initial=0.0), 1e-300)
-    identifiable = col_scale > 1e-12 * big[:, None]
-    free_ref = np.flatnonzero(identifiable[0])
-    y_scale = np.sqrt(np.maximum(g_bal[:, n_features, n_features], 0.0))
-    ok = (identifiable == identifiable[0]).all(axis=1) & (y_scale > 0)
-    ok &= np.isfinite(g_bal).all(axis=(1, 2))
-    problems = []  # (index, datafit)
-    scales = []
-    sf = col_scale[:, free_ref]
-    sf = np.where(sf > 0, sf, 1.0)
-    for i in np.flatnonzero(ok):
-        g = g_bal[i][np.ix_(free_ref, free_ref)] / (sf[i][:, None] * sf[i][None, :])
-        rhs = g_bal[i][free_ref, n_features] / (sf[i] * y_scale[i])
-        datafit = GramQuadratic(torch.from_numpy(g), torch.from_numpy(rhs), 1.0)
-        problems.append((i, datafit))
-        scales.append(y_scale[i] / sf[i])
-    if not problems:
-        return out
-    scales = np.stack(scales)
-    free = free_ref
-    p = len(free)
-    weights = torch.as_tensor(penalty[free], dtype=torch.float64)
-    thresholds = torch.as_tensor(solver.thresholds(free), dtype=torch.float64)
-    nonneg_t = solver.nonneg(free, "cpu")
-    w0 = np.zeros((len(problems), p))
-    if start is not None:
-        w0 = np.asarray(start)[free][None, :] / scales
-    if nonneg_t is not None:
-        w0 = np.where(nonneg_t.numpy()[None, :], np.maximum(w0, 0.0), w0)
-
-    def path(rows, lam):
-        """The staged schedule of every problem in ``rows`` (one batch);
-        ``(coefficients, relative residual)`` each, or ``None`` for all of them
-        when the batch's divergence guard gives up (then each is solved alone)."""
-        try:
-            solved = staged_fista_batch(
-                [problems[r][1] for r in rows],
-                lam=lam,
-                penalty_weights=[weights] * len(rows),
-                threshold=[thresholds] * len(rows),
-                nonneg=[nonneg_t] * len(rows),
-                w0=[torch.from_numpy(w0[r]) for r in rows],
-                **solver._schedule(),
-            )
-        except FloatingPointError:
-            return [None] * len(rows)
-        return [(res.coef.numpy(), res.cost) for res in solved]
-
-    rows = np.arange(len(problems))
-    first = path(rows, solver.lam)
-    chosen = list(first)
-    if solver.lam != 0 and LAM_STARTS > 1 and solver.lam_decay > 1:
-        again = []
-        for r, res in enumerate(first):
-            if res is None:
-                continue
-            bound = dense_residual(problems[r][1])
-            if res[1] > (1 + PATH_TIE) * bound + PATH_FLOOR:
-                again.append(r)
-        if LAM_STARTS > 2 and again:
-            return out  # more starts than one restart: not batched
-        if again:
-            second = path(np.array(again), solver.lam / solver.lam_decay)
-            for r, res in zip(again, second):
-                if res is None:
-                    chosen[r] = None
-                    continue
-                cands = [first[r], res]
-                best = min(x[1] for x in cands)
-                near = [x for x in cands if x[1] <= (1 + PATH_TIE) * best + 1e-12]
-                chosen[r] = min(near, key=lambda x: int((x[0] != 0).sum()))
-    for r, res in enumerate(chosen):
-        if res is None:
-            continue
-        i, _ = problems[r]
-        coef = np.zeros(n_features)
-        coef[free] = res[0] * scales[r]
-        if np.all(np.isfinite(coef)):
-            out[i] = coef
+    balanced = [
+        BalancedGram(
+            gram,
+            n,
+            n_features,
+            normalize=fitted.normalize,
+            project_psd=correct,
+            row_scale=torch.as_tensor(r, dtype=gram.dtype, device=gram.device),
+        )
+        for (gram, n), r in zip(summed, rows)
+    ]
+    identifiable = np.stack([to_numpy(b.identifiable()) for b in balanced])
+    same = np.flatnonzero((identifiable == identifiable[0]).all(axis=1))
+    solved = _solver(fitted).solve_across(
+        [balanced[i] for i in same],
+        np.flatnonzero(identifiable[0]),
+        n_features,
+        1.0,
+        _penalty(fitted, n_features),
+        0.0,
+        start=start,
+    )
+    for i, res in zip(same, solved):
+        if res is not None:
+            out[i] = res[0]
     return out
 
 
-def _balance_many(grams, n_rows, n_features, normalize, project_psd):
-    """:class:`~lagsindy.formulation.scaling.BalancedGram` of many Gram statistics.
-
-    The same alternating row/column scaling (each problem stops at its own
-    iteration), combined Gram matrix, positive semi-definite projection and column
-    scales, on stacked arrays. Returns the balanced Gram matrices (R, P, P) and the
-    column scales (R, n_features).
-    """
+def _row_scales_many(grams, n_rows, n_features, normalize):
+    """The row scales of :class:`~lagsindy.formulation.scaling.BalancedGram` of many
+    Gram statistics (R, n_dof, P, P): the same alternating row/column scaling (each
+    problem stops at its own iteration), on stacked arrays. Returns (R, n_dof)."""
     R, d = grams.shape[:2]
     diag = np.diagonal(grams, axis1=2, axis2=3)[:, :, :n_features]
     mean_sq = np.maximum(diag / n_rows[:, None, None], 0.0)
@@ -465,15 +404,7 @@ def _balance_many(grams, n_rows, n_features, normalize, project_psd):
                 live &= step & ~close
                 if not live.any():
                     break
-    weights = 1.0 / rows**2
-    gram = (grams * weights[:, :, None, None]).sum(axis=1) / (n_rows * d)[:, None, None]
-    if project_psd:
-        evals, evecs = np.linalg.eigh((gram + np.swapaxes(gram, 1, 2)) / 2)
-        gram = (evecs * np.maximum(evals, 0.0)[:, None, :]) @ np.swapaxes(evecs, 1, 2)
-    col = np.sqrt(np.maximum(np.diagonal(gram, axis1=1, axis2=2)[:, :n_features], 0))
-    if not normalize:
-        col = np.where(col > 0, 1.0, col)
-    return gram, col
+    return rows
 
 
 def _refit_resample(base, Xa, tau, groups_rows, mult, weak):

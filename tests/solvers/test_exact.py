@@ -1,23 +1,44 @@
-"""FISTA's exact finishes: the active-set search and the warm start's own support."""
+"""FISTA's exact finishes (lagsindy.solvers.exact): the minimiser of a steady
+support, the active-set search, and their use inside fista."""
 
 import importlib
 
 import numpy as np
 import pytest
 import torch
-from _lasso_problems import solve_stacked, wandering_lasso
+from lasso_problems import known_lasso, solve_stacked, wandering_lasso
 
-from lagsindy.solvers import L1, GramQuadratic, fista, staged_fista
-from lagsindy.solvers.exact import _active_set, _active_set_batch, _kkt_distance
-from lagsindy.solvers.fista import fista_batch
+from lagsindy.solvers import L1, GramQuadratic, fista, fista_batch, staged_fista
+from lagsindy.solvers.exact import (
+    _active_set,
+    _active_set_batch,
+    _kkt_distance,
+    _polish,
+)
 
 # the module of the iterations
 loop_module = importlib.import_module("lagsindy.solvers._loop")
 
 
-def _kkt(G, b, lam, w, nn=None):
-    from lagsindy.solvers.exact import _kkt_distance
+def test_polish_returns_the_minimiser_of_the_right_pattern_only():
+    G, b, lam, x = known_lasso()
+    lw = np.full((1, x.size), lam)
+    ones = np.ones((1, x.size))
+    near = x * (1 + 0.1 * np.cos(np.arange(x.size)))  # same support and signs
+    got, optimal, dist = _polish(G, b[None], lw, None, near[None], ones, 1e-10)
+    assert optimal[0] and dist[0] < 1e-10
+    np.testing.assert_allclose(got[0], x, rtol=0, atol=1e-10)  # measured 1e-14
+    missing = near.copy()
+    missing[4] = 0.0  # the support lacks a term: its KKT condition fails
+    _, optimal, _ = _polish(G, b[None], lw, None, missing[None], ones, 1e-10)
+    assert not optimal[0]
+    flipped = near.copy()
+    flipped[4] *= -1  # a wrong sign: the solve's sign disagrees
+    _, optimal, _ = _polish(G, b[None], lw, None, flipped[None], ones, 1e-10)
+    assert not optimal[0]
 
+
+def _kkt(G, b, lam, w, nn=None):
     return float(_kkt_distance(w, G @ w - b, np.full(w.size, lam), nn).max())
 
 
