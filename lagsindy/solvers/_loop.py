@@ -22,10 +22,10 @@ import math
 
 import numpy as np
 
-from .exact import _active_set, _active_set_batch, _kkt_distance, _polish
+from .exact import _active_set, _kkt_distance, _polish
 
 # Iterations at which a run on NumPy arrays that is still going tries to finish by
-# an active-set search from its iterate (see exact._active_set).
+# an active-set search from its iterate (exact._active_set).
 ACTIVE_SET_AT = frozenset(50 * 2**k for k in range(12))
 # An objective above the best so far by more than this (relative) is a rise; two
 # rises in a row (or a non-finite objective) halve the step (divergence guard).
@@ -286,7 +286,7 @@ class GramRows:
     Parameters
     ----------
     gram : ndarray of shape (m, m) or (R, m, m)
-    rhs, weights, w0 : ndarray of shape (R, m)
+    rhs, weights : ndarray of shape (R, m)
     const : ndarray of shape (R,)
     lam : float
     mask : ndarray of bool, shape (R, m)
@@ -317,7 +317,6 @@ class GramRows:
         self.fmask = fmask
         self.nn = None if nonneg is None else (nonneg & mask)[self.ids]
         self.cols = None  # the coordinates of a single row (1-d iterates)
-        self._step = None
         if self.ids.size == 1:
             self._single(0)
         else:
@@ -338,7 +337,6 @@ class GramRows:
             off = self.fmask == 0
             self._off = off
             self._nn_or_off = off if self.nn is None else off | self.nn
-        self._step = None
 
     def _single(self, j):
         """Iterate row ``j`` alone on its own coordinates (1-d)."""
@@ -445,19 +443,16 @@ class GramRows:
         return np.sign(w).astype(np.int8)
 
     def exact_finish(self, search, sel, w, stop, done, tol):
-        """End the rows ``sel`` that ``search`` (:func:`_polish`, or the active-set
-        search) solves to the KKT tolerance; returns the iterate."""
+        """End the rows ``sel`` that ``search`` (:func:`_polish` or
+        :func:`_active_set`) solves to the KKT tolerance (``stop`` and ``done``
+        updated in place); returns the iterate."""
         if w.ndim == 1:
-            if search is _polish:
-                x, ok, xdist = _polish_one(self.g, self.b, self.lw, self.nn, w, tol)
-            else:
-                x, ok, xdist = _active_set(self.g, self.b, self.lw, self.nn, w, tol)
+            x, ok, xdist = _one(search, self.g, self.b, self.lw, self.nn, w, tol)
             if ok:
                 stop[0], done[0] = xdist, True
                 return x
             return w
         pos = np.flatnonzero(sel)
-        search = _active_set_batch if search is _active_set else search
         x, ok, xdist = search(
             self.g if self.shared else self.g[pos],
             self.b[pos],
@@ -482,7 +477,7 @@ class GramRows:
         if not warm.any():
             return np.ones(self.n, dtype=bool)
         if w.ndim == 1:
-            x, ok, xdist = _polish_one(self.g, self.b, self.lw, self.nn, w, tol)
+            x, ok, xdist = _one(_polish, self.g, self.b, self.lw, self.nn, w, tol)
             ended, x, xdist = np.array([ok]), x[None], np.array([xdist])
         else:
             pos = np.flatnonzero(warm)
@@ -528,13 +523,14 @@ def _masked(gram, fmask):
     return gram * fmask[:, :, None] * fmask[:, None, :]
 
 
-def _polish_one(g, b, lw, nn, w, tol):
-    """:func:`_polish` of one problem (1-d arrays): ``(x, optimal, dist)``."""
-    x, optimal, dist = _polish(
+def _one(search, g, b, lw, nn, w, tol):
+    """An exact finish (``search``) of one problem (1-d arrays) as a batch of one:
+    ``(x, ok, dist)``."""
+    x, ok, dist = search(
         g, b[None], lw[None], None if nn is None else nn[None], w[None],
         np.ones((1, w.shape[0])), tol,
     )  # fmt: skip
-    return x[0], bool(optimal[0]), float(dist[0])
+    return x[0], bool(ok[0]), float(dist[0])
 
 
 # ------------------------------------------------------------------- torch row
