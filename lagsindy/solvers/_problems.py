@@ -153,7 +153,7 @@ class Alone(Problems):
         super().__init__(datafits, index, m, weights, thresholds, nonneg, w0)
 
     def stage(self, rows, on, w, lam, step, max_iter, tol):
-        out = StageRuns(np.zeros(on.shape), *(np.zeros(len(rows)) for _ in range(5)))
+        coef, runs = np.zeros(on.shape), []
         for i, r in enumerate(rows):
             support = np.flatnonzero(on[i])
             sub = self.datafits[r].restrict(support)
@@ -172,20 +172,25 @@ class Alone(Problems):
                 max_iter=max_iter,
                 tol=tol,
             )
-            out.coef[i, support] = res.coef.detach().cpu().numpy()
-            out.step[i], out.n_iter[i], out.converged[i] = (
-                res.step,
-                res.n_iter,
-                res.converged,
+            coef[i, support] = res.coef.detach().cpu().numpy()
+            runs.append(
+                (
+                    res.step,
+                    res.n_iter,
+                    res.converged,
+                    res.stop_crit,
+                    res.step_reductions,
+                )
             )
-            out.stop_crit[i], out.step_reductions[i] = (
-                res.stop_crit,
-                res.step_reductions,
-            )
-        out.n_iter = out.n_iter.astype(np.int64)
-        out.step_reductions = out.step_reductions.astype(np.int64)
-        out.converged = out.converged.astype(bool)
-        return out
+        step, n_iter, converged, stop, reductions = map(np.array, zip(*runs))
+        return StageRuns(
+            coef,
+            step,
+            n_iter.astype(np.int64),
+            converged.astype(bool),
+            stop,
+            reductions.astype(np.int64),
+        )
 
     def residuals(self, rows, w):
         return np.array(

@@ -173,9 +173,16 @@ def test_a_residual_at_the_floor_needs_no_bound(monkeypatch):
 
     dense_residuals = sparse.dense_residuals
     monkeypatch.setattr(sparse, "dense_residuals", counted)
+    starts = []
+    monkeypatch.setattr(sparse, "staged_fista_batch",
+                        lambda d, **kw: starts.append(len(d)) or staged_fista_batch(
+                            d, **kw))  # fmt: skip
     again = [(f, r, s, c, res) for (f, r, s, c, _), (_, res) in zip(jobs, ranked)]
     solver.solve_many(balanced, again, np.ones(5), 1.0)
     assert len(seen) == 2
+    # the two above the floor are at their bound (an independent column fitted by
+    # the others, measured 0.99 both): no second start
+    assert starts == []
     monkeypatch.setattr(sparse, "dense_residuals", lambda d: 1 / 0)
     f, r, s, c, first = again[0]
     coef, res = solver.solve(balanced, f, r, s, np.ones(5), 1.0, 0, first=first)

@@ -76,10 +76,23 @@ def test_the_stages_stop_at_the_residual_tolerance():
     A = rng.normal(size=(300, 6))
     y = A @ np.array([2.0, -1.0, 0.0, 0.0, 0.5, 0.0]) + 0.05 * rng.normal(size=300)
     first = staged_fista(gram_problem(A, y), lam=1e-2, max_stages=1).stages[0].cost
-    ends = staged_fista(gram_problem(A, y), lam=1e-2, tol=first * (1 + 1e-9))
+    ends = staged_fista(gram_problem(A, y), lam=1e-2, tol=first)
     assert len(ends.stages) == 1
     goes_on = staged_fista(gram_problem(A, y), lam=1e-2, tol=first * (1 - 1e-9))
     assert len(goes_on.stages) > 1
+
+
+def test_the_threshold_is_relative_to_the_reference_when_larger():
+    """Case III's fixed term (``reference``, in the variables' units) sets the
+    threshold's scale when it exceeds the largest coefficient: 0.3 is kept against
+    the largest (1.0) at threshold 0.05, dropped against a reference of 10."""
+    rng = np.random.default_rng(9)
+    A = rng.normal(size=(300, 4))
+    y = A @ np.array([1.0, 0.3, 0.0, 0.0]) + 0.01 * rng.normal(size=300)
+    kept = staged_fista(gram_problem(A, y), lam=1e-3, reference=0.0)
+    np.testing.assert_array_equal(kept.support, [0, 1])
+    dropped = staged_fista(gram_problem(A, y), lam=1e-3, reference=10.0)
+    np.testing.assert_array_equal(dropped.stages[0].support, [0])
 
 
 def test_fista_path_is_monotone_in_sparsity():
@@ -127,7 +140,8 @@ def test_staged_fista_batch_equals_staged_fista():
         weights.append(torch.ones(p, dtype=torch.float64))
         thresholds.append(torch.full((p,), 0.1, dtype=torch.float64))
     weights[1][0] = 0.0  # an unpenalised feature
-    nonneg = [None, torch.arange(p) % 2 == 0, None, None, None]
+    even = torch.arange(p) % 2 == 0
+    nonneg = [None, even, even, None, even]
     settings = dict(lam=1e-2, reference=0.0, tol=1e-6, solver_tol=1e-9)
     got = staged_fista_batch(
         datafits,
@@ -136,8 +150,13 @@ def test_staged_fista_batch_equals_staged_fista():
         nonneg=nonneg,
         **settings,
     )
+    binds = 0
     for d, w, t, nn, res in zip(datafits, weights, thresholds, nonneg, got):
         want = staged_fista(d, penalty_weights=w, threshold=t, nonneg=nn, **settings)
+        if nn is not None:
+            assert np.all(res.coef.numpy()[nn.numpy()] >= 0)
+            free = staged_fista(d, penalty_weights=w, threshold=t, **settings)
+            binds += bool(np.any(free.coef.numpy()[nn.numpy()] < 0))
         np.testing.assert_array_equal(res.support, want.support)
         np.testing.assert_allclose(res.coef.numpy(), want.coef.numpy(), atol=1e-12)
         assert res.cost == pytest.approx(want.cost, rel=1e-10, abs=1e-15)
@@ -146,6 +165,7 @@ def test_staged_fista_batch_equals_staged_fista():
             np.testing.assert_array_equal(a.support, b.support)
             np.testing.assert_allclose(a.coef, b.coef, atol=1e-8)
     assert len({len(r.support) for r in got}) > 1
+    assert binds == 2  # measured: the constraint binds in problems 2 and 4
 
 
 def test_staged_fista_batch_keeps_a_small_unpenalised_feature():
