@@ -374,9 +374,12 @@ class GramRows:
         return x.copy()
 
     def start(self, w0):
-        """The rows' starting iterates (from ``w0`` in the batch's coordinates)."""
+        """The rows' starting iterates (from ``w0`` in the batch's coordinates),
+        projected on ``w >= 0`` where required: an infeasible start would let the
+        exact finish of its own signs end the run outside the feasible set."""
         w = w0[self.ids]
-        return w[0, self.cols] if self.cols is not None else w
+        w = w[0, self.cols] if self.cols is not None else w
+        return w if self.nn is None else np.where(self.nn, np.maximum(w, 0.0), w)
 
     # ------------------------------------------------------------- arithmetic
     def times_gram(self, x):

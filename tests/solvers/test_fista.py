@@ -119,6 +119,67 @@ def test_divergent_step_is_reduced():
     np.testing.assert_allclose(res.coef.numpy(), [1.0, -2.0, 0, 0, 3.0], atol=1e-2)
 
 
+def test_a_step_above_two_over_l_is_halved_below_it_at_once():
+    """Just above 2/L: halved once; at 2/L and below: kept; far above: halved as
+    many times as needed, before iterating (not found by diverging)."""
+    lip = 3.0
+    steps, halvings = loop.initial_steps(
+        np.array([1e6, 2.0 * (1 + 1e-9), 2.0, 1.5]) / lip, lip, 4
+    )
+    np.testing.assert_array_equal(halvings, [19, 1, 0, 0])
+    np.testing.assert_allclose(steps * lip, [1e6 / 2**19, 1.0 + 1e-9, 2.0, 1.5])
+    default, none = loop.initial_steps(None, lip, 1)
+    assert default[0] == 1 / lip and none[0] == 0
+
+
+class _Bumpy(TensorGram):
+    """Reports its objective 1.0 too high at the given calls of ``value`` (the
+    first is the start, the next ones FISTA's checks)."""
+
+    def __init__(self, *args, bumps):
+        super().__init__(*args)
+        self.bumps, self.calls = set(bumps), 0
+
+    def value(self, w):
+        self.calls += 1
+        return super().value(w) + (1.0 if self.calls in self.bumps else 0.0)
+
+
+@pytest.mark.parametrize(
+    "bumps, halvings", [((2,), 0), ((2, 4), 0), ((2, 3), 1), ((3, 4, 5), 1)]
+)
+def test_two_rises_in_a_row_halve_the_step(bumps, halvings):
+    """The divergence guard: one rise of the objective, or two apart, leave the
+    step alone; two checks in a row above the best halve it (once: the count of
+    rises starts again)."""
+    G, b, lam, x = known_lasso()
+    datafit = _Bumpy(torch.tensor(G), torch.tensor(b), 0.0, bumps=bumps)
+    res = fista(datafit, L1(lam), tol=1e-8, max_iter=100_000)
+    assert res.converged and res.step_reductions == halvings
+    # measured: 1.6e-4 (the KKT tolerance on the collinear pair), 2.0e-5 halved
+    np.testing.assert_allclose(res.coef.numpy(), x, rtol=0, atol=5e-4)
+
+
+def test_an_infeasible_warm_start_is_projected_first():
+    """A start below zero on a non-negative coordinate is projected before the exact
+    finish of its own signs could end the run there (it did: (1, -0.5) came back
+    as converged after 0 iterations)."""
+    a = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], dtype=torch.float64)
+    y = a @ torch.tensor([1.0, -0.5], dtype=torch.float64)
+    datafit = GramQuadratic(a.T @ a, a.T @ y, float(y @ y))
+    nonneg = torch.tensor([False, True])
+    start = torch.tensor([1.0, -0.5], dtype=torch.float64)
+    # with w1 = 0 held, w0 fits (y0 + y2) / 2 = 0.75, less lam / 2
+    want = np.array([0.75 - 5e-7, 0.0])
+    res = fista(datafit, L1(1e-6, None, nonneg), start, tol=1e-12)
+    np.testing.assert_allclose(res.coef.numpy(), want, rtol=0, atol=1e-12)
+    out = fista_batch(datafit.gram.numpy(), datafit.rhs.numpy()[None],
+                      np.array([datafit.const]), 1e-6, np.ones((1, 2)),
+                      start.numpy()[None], np.ones((1, 2), bool),
+                      nonneg.numpy()[None], tol=1e-12)  # fmt: skip
+    np.testing.assert_allclose(out.coef[0], want, rtol=0, atol=1e-12)
+
+
 def test_contract_errors_name_missing_methods():
     class Broken:
         n_features = 2

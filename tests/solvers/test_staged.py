@@ -190,6 +190,25 @@ def test_staged_fista_batch_keeps_a_small_unpenalised_feature():
     assert 0 in got[0].support and 0 not in got[1].support
 
 
+def test_the_refit_keeps_non_negative_coefficients_in_a_batch_too():
+    """Least squares wants w = (1, -0.5); with w1 >= 0 the refit is the
+    non-negative least squares (0.75, 0), alone and in lockstep; a start below zero
+    there is projected (the stage's own solution stays feasible)."""
+    a = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], dtype=torch.float64)
+    y = a @ torch.tensor([1.0, -0.5], dtype=torch.float64)
+    datafit = GramQuadratic(a.T @ a, a.T @ y, float(y @ y))
+    nonneg = torch.tensor([False, True])
+    settings = dict(lam=1e-6, threshold=0.0)
+    both = staged_fista_batch([datafit, datafit], nonneg=[nonneg] * 2, **settings)
+    alone = staged_fista(datafit, nonneg=nonneg, **settings)
+    for res in [alone, *both]:
+        # measured: exact (the NNLS of projected FISTA to KKT 1e-12 ends on it)
+        np.testing.assert_allclose(res.coef.numpy(), [0.75, 0.0], rtol=0, atol=1e-9)
+    start = torch.tensor([1.0, -0.5], dtype=torch.float64)
+    raw = staged_fista(datafit, nonneg=nonneg, w0=start, debias=False, **settings)
+    assert float(raw.coef[1]) == 0.0 and raw.stages[0].coef[1] == 0.0
+
+
 def test_batches_group_what_can_run_in_lockstep():
     """CPU float64 Gram quadratics of one size go in lockstep (with ``shared``: all
     of them on it); a problem alone, another kind or dtype are solved alone."""
