@@ -68,8 +68,8 @@ class Problems:
     nonneg : list
         Each problem's non-negative features (bool, or ``None``).
     w0 : list
-        Each problem's starting point (``None``: zeros), projected on the
-        non-negative features.
+        Each problem's starting point (``None``: zeros; FISTA projects it on the
+        non-negative features).
     """
 
     def __init__(self, datafits, index, m, weights, thresholds, nonneg, w0):
@@ -93,8 +93,6 @@ class Problems:
                 if self.nonneg is None:
                     self.nonneg = np.zeros((n, m), dtype=bool)
                 self.nonneg[r, idx] = _numpy(nonneg[r], idx.size) > 0
-        if self.nonneg is not None:
-            self.start = np.where(self.nonneg, np.maximum(self.start, 0.0), self.start)
         self._like = [d.zeros() for d in datafits]
 
     def own(self, r, row):
