@@ -8,16 +8,23 @@ The pieces follow a small duck-typed contract (in the spirit of skglm):
   ``subdiff_distance(w, grad)`` and ``restrict(idx)``;
 * :func:`fista` minimises ``datafit + penalty`` and returns a :class:`SolverResult`;
 * :func:`staged_fista` runs the xL-SINDy schedule (stage, hard threshold, lower the
-  penalty, raise the step) and an optional unpenalised refit on the final support.
+  penalty, raise the step) and an optional unpenalised refit on the final support;
+* :class:`StagedFISTA` holds the schedule's settings, whose defaults (with
+  :data:`MAX_ITER` and :data:`SOLVER_TOL`) every entry point shares.
+
+One problem is a batch of one: :func:`fista` and :func:`fista_batch` run the same
+iterations, :func:`staged_fista` and :func:`~lagsindy.solvers.staged.staged_fista_batch`
+the same schedule.
 
 For the linear cases (I and III) the datafit is :class:`GramQuadratic`, which works
 on :math:`G = A^\top A / n` and :math:`b = A^\top y / n`, so an iteration costs
 :math:`O(p^2)` whatever the number of samples.
 
 The package holds one module per role: :mod:`~lagsindy.solvers.datafits`,
-:mod:`~lagsindy.solvers.penalties`, :mod:`~lagsindy.solvers.fista` (with its
-exact finishes in :mod:`~lagsindy.solvers.exact`) and
-:mod:`~lagsindy.solvers.staged`. The solvers know nothing of mechanics: the
+:mod:`~lagsindy.solvers.penalties`, :mod:`~lagsindy.solvers.fista` (its iterations
+in ``_loop``, its exact finishes in :mod:`~lagsindy.solvers.exact`),
+:mod:`~lagsindy.solvers.staged` (the problems it batches in ``_problems``) and
+:mod:`~lagsindy.solvers.settings`. The solvers know nothing of mechanics: the
 scaled problems they solve are made by
 :class:`lagsindy.formulation.scaling.BalancedGram`.
 """
@@ -25,20 +32,33 @@ scaled problems they solve are made by
 from __future__ import annotations
 
 from .datafits import AccelerationDatafit, GramQuadratic
-from .fista import SolverResult, fista, proximal_gradient
+from .fista import BatchResult, SolverResult, fista, fista_batch, proximal_gradient
 from .penalties import L1
-from .staged import Stage, StagedResult, fista_path, staged_fista, warn_not_converged
+from .settings import MAX_ITER, SOLVER_TOL, StagedFISTA
+from .staged import (
+    Stage,
+    StagedResult,
+    fista_path,
+    staged_fista,
+    staged_fista_batch,
+    warn_not_converged,
+)
 
 __all__ = [
     "L1",
+    "MAX_ITER",
+    "SOLVER_TOL",
     "AccelerationDatafit",
     "GramQuadratic",
     "SolverResult",
     "Stage",
+    "StagedFISTA",
     "StagedResult",
     "fista",
+    "fista_batch",
     "fista_path",
     "proximal_gradient",
     "staged_fista",
+    "staged_fista_batch",
     "warn_not_converged",
 ]

@@ -7,7 +7,7 @@ of a steady support and signs (one linear solve, :func:`_polish`), and an
 active-set search from a rough iterate (:func:`_active_set`). Both are kept only
 where the KKT conditions hold to the solver's tolerance (:func:`_kkt_distance`,
 FISTA's own stopping criterion), so they change when a run stops, not what it
-converges to.
+converges to. Both take a batch of problems (rows); one problem is a batch of one.
 """
 
 from __future__ import annotations
@@ -77,14 +77,20 @@ def _kkt_distance(w, grad, lw, nn):
     """Per row: distance of ``-grad`` to the subdifferential of the (weighted) L1
     penalty at ``w`` (rows of ``w``; ``lw`` zero outside a row's coordinates, where
     ``grad`` is not used)."""
+    return _kkt_signed(grad, lw, nn, w != 0, np.sign(w))
+
+
+def _kkt_signed(grad, lw, nn, nz, signs):
+    """:func:`_kkt_distance` given ``nz = w != 0`` and ``signs = np.sign(w)``."""
     at_zero = np.maximum(np.abs(grad) - lw, 0.0)
     if nn is not None:
         at_zero = np.where(nn, np.maximum(-grad - lw, 0.0), at_zero)
-    return np.where(w != 0, np.abs(grad + lw * np.sign(w)), at_zero)
+    return np.where(nz, np.abs(grad + lw * signs), at_zero)
 
 
-def _active_set(gram, b, lw, nn, x, tol, max_steps=None):
-    """Minimiser of ``0.5 x' G x - b' x + sum_k lw_k |x_k|`` by an active-set search.
+def _active_set(gram, b, lw, nn, x, fmask, tol, max_steps=None):
+    """Minimisers of ``0.5 x' G x - b' x + sum_k lw_k |x_k|`` by an active-set search,
+    for each row (one problem is a batch of one).
 
     The feature-sign search of Lee et al. (2007), started from an iterate ``x`` of
     :func:`fista` (coordinates in ``nn`` kept non-negative): on the active set
@@ -103,111 +109,10 @@ def _active_set(gram, b, lw, nn, x, tol, max_steps=None):
     (hundreds of iterations to settle), this needs a few solves from a rough
     iterate.
 
-    Returns
-    -------
-    x : ndarray
-    ok : bool
-        Whether ``x`` meets the KKT conditions to ``tol`` (the criterion of
-        :func:`fista`); ``False`` when a step fails to lower the objective, a block
-        is singular or ``max_steps`` (default ``2 p + 10``) run out: the caller
-        then goes on iterating.
-    dist : float
-        The KKT distance of ``x``.
-    """
-    p = x.size
-    max_steps = 2 * p + 10 if max_steps is None else max_steps
-    x = x if nn is None else np.where(nn, np.maximum(x, 0.0), x)
-    free = lw == 0 if nn is None else (lw == 0) & ~nn
-    penalised = ~free
-
-    gesv = get_lapack_funcs("gesv", (gram,))
-
-    def objective(points):
-        quad = np.einsum("ki,ki->k", points, points @ gram)
-        return 0.5 * quad - points @ b + np.abs(points) @ lw
-
-    f = objective(x[None])[0]
-    # A step is some 45 small NumPy calls whose overhead is its cost: method calls
-    # and whole-vector products rather than index-then-compute.
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        for _ in range(max_steps):
-            grad = gram @ x - b
-            nz = x != 0
-            signs = np.sign(x)
-            dist = _kkt_signed(grad, lw, nn, nz, signs)
-            worst = dist.max() if p else 0.0
-            if worst <= tol:
-                return x, True, float(worst)
-            on = nz | free
-            if not (dist[on] > tol).any():  # optimal on the active set: grow it
-                i = int(np.where(on, -1.0, dist).argmax())
-                on[i] = True
-                signs[i] = 1.0 if nn is not None and nn[i] else -np.sign(grad[i])
-            act = on.nonzero()[0]
-            # LAPACK's gesv directly (as np.linalg.solve, without its overhead,
-            # which dominated a step)
-            sub_gram = gram.take(act, 0).take(act, 1)
-            *_, sub, info = gesv(sub_gram, (b - lw * signs)[act])
-            if info != 0 or not math.isfinite(sub.sum()):  # singular: keep iterating
-                return x, False, float(worst)
-            target = np.zeros(p, dtype=x.dtype)
-            target[act] = sub
-            d = target - x
-            # Points where a coordinate of x reaches zero on the way to the target.
-            flips = np.sign(target) != signs
-            cross = np.where(nz & flips, x / -d, np.inf)
-            ts = np.sort(cross[(cross > 0) & (cross < 1)])
-            ts = np.concatenate((ts, [1.0]))
-            if nn is not None:  # a non-negative coordinate may not pass zero
-                limit = float(np.where(nn & (d < 0), x / -d, np.inf).min())
-                ts = ts[ts <= limit] if limit > 0 else ts[:0]
-            if ts.size == 0:
-                return x, False, float(worst)
-            n_ts = ts.size
-            # the points on the segment, the coordinate that reaches zero at each
-            # set to zero; the jump to the target with every coordinate whose sign
-            # it flips set to zero (many leave at once when the iterate is dense);
-            # and the segment's points before the target with every coordinate
-            # that passed zero on the way set to zero (CLAMP_POINTS)
-            on_segment = x + ts[:, None] * d
-            clamped = CLAMP_POINTS and n_ts > 2
-            points = np.empty((2 * n_ts if clamped else n_ts + 1, p), dtype=x.dtype)
-            points[:n_ts] = on_segment
-            points[:n_ts][cross == ts[:, None]] = 0.0
-            points[n_ts] = np.where(penalised & flips, 0.0, target)
-            if clamped:
-                passed = (cross <= ts[:-1, None]) & penalised
-                points[n_ts + 1 :] = np.where(passed, 0.0, on_segment[:-1])
-            if nn is not None:
-                points = np.where(nn, np.maximum(points, 0.0), points)
-            values = objective(points)
-            j = int(values.argmin())
-            if not values[j] < f:
-                return x, False, float(worst)
-            x, f = points[j], values[j]
-    dist = _kkt_distance(x, gram @ x - b, lw, nn)
-    worst = float(dist.max()) if p else 0.0
-    return x, worst <= tol, worst
-
-
-def _kkt_signed(grad, lw, nn, nz, signs):
-    """:func:`_kkt_distance` given ``nz = w != 0`` and ``signs = np.sign(w)``."""
-    at_zero = np.maximum(np.abs(grad) - lw, 0.0)
-    if nn is not None:
-        at_zero = np.where(nn, np.maximum(-grad - lw, 0.0), at_zero)
-    return np.where(nz, np.abs(grad + lw * signs), at_zero)
-
-
-def _active_set_batch(gram, b, lw, nn, x, fmask, tol, max_steps=None):
-    """:func:`_active_set` of several problems at once, in lockstep.
-
-    Every row runs the steps of :func:`_active_set` (the same linear solves on the
-    active sets, the same points tried and the same choice among them, the same
-    stopping rules and ``2 p + 10`` steps for a problem of ``p`` coordinates), but
-    apart from the solves a step is some 60 NumPy calls for all the rows together
-    instead of some 45 per row: a batch costs about as much as its longest search.
-    The objective at the candidate points is evaluated in the batch's coordinates,
-    so the results equal :func:`_active_set`'s up to rounding.
+    The rows search in lockstep, each with its own solves, points and stopping
+    rules: apart from the solves (one LAPACK call per row) a step is some 60 NumPy
+    calls for all the rows together, so a batch costs about as much as its
+    longest search.
 
     Parameters
     ----------
@@ -229,8 +134,11 @@ def _active_set_batch(gram, b, lw, nn, x, fmask, tol, max_steps=None):
     -------
     x : ndarray of shape (R, m)
     ok : ndarray of bool, shape (R,)
+        Whether ``x`` meets the KKT conditions to ``tol`` (the criterion of
+        :func:`fista`); ``False`` when a step fails to lower the objective, a block
+        is singular or the steps run out: the caller then goes on iterating.
     dist : ndarray of shape (R,)
-        As :func:`_active_set` returns them, row by row.
+        The KKT distance of ``x``.
     """
     n_rows, m = x.shape
     shared = gram.ndim == 2
@@ -295,8 +203,9 @@ def _active_set_batch(gram, b, lw, nn, x, fmask, tol, max_steps=None):
                 signs[gi, i] = (
                     joined if nn is None else np.where(nn[gi, i], 1.0, joined)
                 )
-            # The minimisers on the active sets, one LAPACK solve each (as in
-            # _active_set: a batched solve of padded matrices costs as much).
+            # The minimisers on the active sets, one LAPACK solve each (gesv
+            # directly: np.linalg.solve's overhead dominated a step; a batched
+            # solve of padded matrices costs as much).
             rhs = b - lw * signs
             target = np.zeros(x.shape)
             failed = np.zeros(n_live, dtype=bool)
@@ -326,7 +235,7 @@ def _active_set_batch(gram, b, lw, nn, x, fmask, tol, max_steps=None):
             failed |= n_ts == 0
             top = int(n_ts.max())
             if top:
-                # The candidates of _active_set, in its order (segment points,
+                # The candidates, in order (segment points,
                 # jump, clamped points), padded to the longest row's.
                 tv = ts[:, :top, None]
                 on_segment = x[:, None] + tv * d[:, None]

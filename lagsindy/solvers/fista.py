@@ -1,4 +1,10 @@
-"""FISTA and plain proximal gradient, with the duck-typed datafit/penalty contract."""
+"""FISTA (one problem, or many in lockstep) and plain proximal gradient, with the
+duck-typed datafit/penalty contract.
+
+The iterations are written once (:mod:`~lagsindy.solvers._loop`): :func:`fista` runs
+them on one problem as a batch of one, :func:`fista_batch` on many quadratics at
+once.
+"""
 
 from __future__ import annotations
 
@@ -8,14 +14,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from ._loop import ContractRow, GramRows, run
 from .datafits import GramQuadratic
-from .exact import _active_set, _active_set_batch, _kkt_distance, _polish
 from .penalties import L1
-
-# Iterations at which a run on NumPy arrays that is still going tries to finish by
-# an active-set search from its iterate (see _active_set; a batch searches for all
-# its running problems at once, _active_set_batch).
-ACTIVE_SET_AT = frozenset(50 * 2**k for k in range(12))
+from .settings import CHECK_EVERY, MAX_ITER, MAX_STEP_REDUCTIONS, SOLVER_TOL
 
 _REQUIRED = {
     "datafit": (
@@ -42,7 +44,10 @@ def _check_contract(obj, role, solver):
 # --------------------------------------------------------------------------- FISTA
 @dataclass
 class SolverResult:
-    """Outcome of :func:`fista`."""
+    """Outcome of :func:`fista` (and :func:`proximal_gradient`).
+
+    ``step`` is the last step used; ``objective`` the objective at every check.
+    """
 
     coef: torch.Tensor
     n_iter: int
@@ -53,17 +58,42 @@ class SolverResult:
     step_reductions: int = 0
 
 
+@dataclass
+class BatchResult:
+    """Outcome of :func:`fista_batch`: one entry (row) per problem.
+
+    ``step`` is nan for a problem whose warm start was already optimal (it ended
+    before iterating, ``n_iter`` 0) and 0 for one without coordinates.
+    """
+
+    coef: np.ndarray
+    n_iter: np.ndarray
+    converged: np.ndarray
+    stop_crit: np.ndarray
+    step: np.ndarray
+    step_reductions: np.ndarray
+
+    @classmethod
+    def start(cls, coef):
+        """Problems not yet solved, at ``coef`` (converged, no iterations)."""
+        n = coef.shape[0]
+        zeros = np.zeros(n, dtype=np.int64)
+        return cls(
+            coef, zeros, np.ones(n, bool), np.zeros(n), np.zeros(n), zeros.copy()
+        )
+
+
 def fista(
     datafit,
     penalty,
     w0: torch.Tensor | None = None,
     *,
     step: float | None = None,
-    max_iter: int = 10_000,
-    tol: float = 1e-8,
-    check_every: int = 10,
+    max_iter: int = MAX_ITER,
+    tol: float = SOLVER_TOL,
+    check_every: int = CHECK_EVERY,
     restart: bool = True,
-    max_step_reductions: int = 40,
+    max_step_reductions: int = MAX_STEP_REDUCTIONS,
 ) -> SolverResult:
     r"""Accelerated proximal gradient (FISTA) for ``datafit(w) + penalty(w)``.
 
@@ -73,13 +103,18 @@ def fista(
     adaptive restart of O'Donoghue and Candes (momentum is reset when it points
     uphill), which keeps FISTA's rate and removes its oscillations.
 
-    On the CPU (the NumPy fast path) a run whose support and signs have not
-    changed between two checks tries the exact minimiser for them, one linear
-    solve on the support; where it keeps the signs and meets the stopping
-    criterion the run ends there. FISTA finds the support long before its
-    iterates converge on nearly collinear columns: on a problem with condition
-    number 3e4 this ended after 20 iterations at the minimiser (error 1e-13),
-    where the iterations alone took 1150 and stopped 1.6e-4 from it.
+    A :class:`GramQuadratic` with an :class:`L1` penalty on the CPU is iterated on
+    NumPy arrays (the iterations of a small problem cost mostly per-call overhead,
+    several times lower than torch's), as :func:`fista_batch` iterates a batch of
+    one; there a run whose support and signs have not changed between two checks
+    tries the exact minimiser for them, one linear solve on the support; where it
+    keeps the signs and meets the stopping criterion the run ends there. FISTA
+    finds the support long before its iterates converge on nearly collinear
+    columns: on a problem with condition number 3e4 this ended after 20 iterations
+    at the minimiser (error 1e-13), where the iterations alone took 1150 and
+    stopped 1.6e-4 from it. A warm start that already has the minimiser's support
+    and signs ends before iterating. Other problems (tensors on a GPU, other
+    datafits and penalties) run the same iterations through their methods.
 
     Parameters
     ----------
@@ -89,8 +124,8 @@ def fista(
         Starting point (zeros by default).
     step : float, optional
         Step size :math:`\alpha`. ``None``: ``1 / datafit.lipschitz()``.
-    max_iter : int, default=10000
-    tol : float, default=1e-8
+    max_iter : int, default=20000
+    tol : float, default=1e-7
         Stop when the KKT violation (distance of ``-grad`` to the subdifferential
         of the penalty) is below ``tol``.
     check_every : int, default=10
@@ -121,238 +156,148 @@ def fista(
     w = datafit.zeros() if w0 is None else w0.clone()
     if p == 0:
         return SolverResult(w, 0, True, 0.0, 0.0)
-    lip = datafit.lipschitz()
-    like = w
-    numpy_loop = _numpy_problem(datafit, penalty, w)
-    if numpy_loop is not None:
-        # Small CPU problems: the same iterations on NumPy arrays, whose per-call
-        # overhead is several times lower than torch's (the loop is overhead-bound).
-        datafit, penalty, w = numpy_loop
-    # Divergence shows as inf/nan objectives, handled below: no NumPy warnings.
-    with np.errstate(over="ignore", invalid="ignore"):
-        res = _fista_loop(
-            datafit,
-            penalty,
-            w,
-            step,
-            lip,
-            max_iter,
-            tol,
-            check_every,
-            restart,
-            max_step_reductions,
-        )
-    res.coef = _back(res.coef, like)
-    return res
-
-
-def _fista_loop(
-    datafit,
-    penalty,
-    w,
-    step,
-    lip,
-    max_iter,
-    tol,
-    check_every,
-    restart,
-    max_step_reductions,
-    state=None,
-):
-    """The iterations of :func:`fista` (on tensors or NumPy arrays).
-
-    ``state``: a dict that continues a run from its iteration ``it`` (keys
-    ``it w_prev best_w best_obj k rises guard reductions stop``, ``step`` the
-    current step), as :func:`fista_batch` hands over its last running problem.
-    """
-    copy = _copy
-    if state is None:
-        reductions = 0
-        if step is None:
-            step = 1.0 / lip if lip > 0 else 1.0
-        step = float(step)
-        if lip is not None and lip > 0 and math.log2(step) + math.log2(lip) > 1.0:
-            # A step above 2/L diverges along the top eigenvector whatever the
-            # momentum: halve it below 2/L at once instead of discovering it by
-            # iterating.
-            n_halvings = math.ceil(math.log2(step) + math.log2(lip) - 1.0)
-            step = step / 2.0**n_halvings
-            reductions += n_halvings
-        w_prev = copy(w)
-        best_w, best_obj = copy(w), datafit.value(w) + penalty.value(w)
-        k, rises, guard, stop, first = 1, 0, 0, math.inf, 1
-    else:
-        step, reductions, w_prev = float(step), state["reductions"], state["w_prev"]
-        best_w, best_obj = state["best_w"], state["best_obj"]
-        k, rises, guard = state["k"], state["rises"], state["guard"]
-        stop, first = state["stop"], state["it"] + 1
-    history = [best_obj]
-    n_iter = first - 1
-    # NumPy problems (fista's fast path) end on the exact minimiser of a steady
-    # support (see _polish); the pattern of signs at the last check:
-    polish = isinstance(datafit, _NumpyQuadratic) and isinstance(penalty, _NumpyL1)
-    last_pattern = None if state is None else state.get("pattern")
-    if polish and last_pattern is None:
-        last_pattern = np.zeros(w.shape, dtype=np.int8)
-        if np.any(w != 0):
-            # A warm start (the previous stage's thresholded solution) often has
-            # the support and signs of the minimiser already: try it first.
-            found = _polish_one(datafit, penalty, w, tol)
-            if found is not None:
-                x, dist = found
-                return SolverResult(x, 0, True, dist, step, history, reductions)
-    for it in range(first, max_iter + 1):
-        n_iter = it
-        beta = (k - 2) / (k + 1) if k > 1 else 0.0
-        v = w + beta * (w - w_prev)
-        w_new = penalty.prox(v - step * datafit.gradient(v), step)
-        if restart and float((v - w_new) @ (w_new - w)) > 0:
-            k = 1  # momentum points uphill: restart
-        else:
-            k += 1
-        w_prev, w = w, w_new
-        if it % check_every == 0 or it == max_iter:
-            obj = datafit.value(w) + penalty.value(w)
-            history.append(obj)
-            if not math.isfinite(obj) or obj > best_obj + 1e-10 * max(
-                1.0, abs(best_obj)
-            ):
-                rises += 1
-                if not math.isfinite(obj) or rises >= 2:
-                    if guard >= max_step_reductions:
-                        raise FloatingPointError(
-                            "FISTA diverged: the objective kept growing after the step "
-                            f"was halved {guard} times (step now {step:.3g}); use a "
-                            "smaller step (alpha) or alpha=None"
-                        )
-                    step *= 0.5
-                    guard += 1
-                    reductions += 1
-                    w, w_prev, k, rises = copy(best_w), copy(best_w), 1, 0
-                    continue
-            else:
-                rises = 0
-                if obj <= best_obj:
-                    best_obj, best_w = obj, copy(w)
-            stop = penalty.subdiff_distance(w, datafit.gradient(w))
-            if stop <= tol:
-                return SolverResult(w, it, True, stop, step, history, reductions)
-            if polish:
-                pattern = np.sign(w).astype(np.int8)
-                if np.array_equal(pattern, last_pattern):
-                    found = _polish_one(datafit, penalty, w, tol)
-                    if found is not None:
-                        x, dist = found
-                        return SolverResult(
-                            x, it, True, dist, step, history, reductions
-                        )
-                last_pattern = pattern
-                if it in ACTIVE_SET_AT:
-                    x, ok, xdist = _active_set(
-                        datafit.gram,
-                        datafit.rhs,
-                        penalty.lam * penalty.weights,
-                        penalty.nonneg,
-                        w,
-                        tol,
-                    )
-                    if ok:
-                        return SolverResult(
-                            x, it, True, xdist, step, history, reductions
-                        )
-    return SolverResult(w, n_iter, False, stop, step, history, reductions)
-
-
-def _polish_one(datafit, penalty, w, tol):
-    """:func:`_polish` of one NumPy problem at ``w``: ``(x, dist)`` where optimal."""
-    x, optimal, xdist = _polish(
-        datafit.gram,
-        datafit.rhs[None],
-        (penalty.lam * penalty.weights)[None],
-        None if penalty.nonneg is None else penalty.nonneg[None],
-        w[None],
-        np.ones((1, w.shape[0])),
-        tol,
+    settings = dict(
+        max_iter=max_iter,
+        tol=tol,
+        check_every=check_every,
+        restart=restart,
+        max_step_reductions=max_step_reductions,
     )
-    return (x[0], float(xdist[0])) if optimal[0] else None
-
-
-def _copy(x):
-    return x.copy() if isinstance(x, np.ndarray) else x.clone()
-
-
-def _back(w, like: torch.Tensor) -> torch.Tensor:
-    """``w`` as a tensor like ``like`` (a no-op for tensors)."""
-    if isinstance(w, np.ndarray):
-        return torch.from_numpy(w).to(dtype=like.dtype, device=like.device)
-    return w
-
-
-class _NumpyQuadratic:
-    """:class:`GramQuadratic` on NumPy arrays (value and gradient only)."""
-
-    def __init__(self, gram, rhs, const):
-        self.gram, self.rhs, self.const = gram, rhs, const
-
-    def value(self, w):
-        return float(0.5 * w @ (self.gram @ w) - self.rhs @ w + 0.5 * self.const)
-
-    def gradient(self, w):
-        return self.gram @ w - self.rhs
-
-
-class _NumpyL1:
-    """:class:`L1` on NumPy arrays (value, prox and KKT distance only)."""
-
-    def __init__(self, lam, weights, nonneg):
-        self.lam, self.weights, self.nonneg = lam, weights, nonneg
-        self._step = None
-
-    def value(self, w):
-        return float(self.lam * (self.weights * np.abs(w)).sum())
-
-    def prox(self, w, step):
-        # One clip: w - clip(w, lo, hi) is the soft threshold sign(w) max(|w| - t, 0)
-        # bit for bit, and its projection on w >= 0 where lo is -inf. The bounds
-        # change only with the step.
-        if step != self._step:
-            thr = step * self.lam * self.weights
-            self._hi = thr
-            self._lo = (
-                -thr if self.nonneg is None else np.where(self.nonneg, -np.inf, -thr)
-            )
-            self._step = step
-        return w - np.minimum(np.maximum(w, self._lo), self._hi)
-
-    def subdiff_distance(self, w, grad):
-        dist = _kkt_distance(w, grad, self.lam * self.weights, self.nonneg)
-        return float(dist.max()) if dist.size else 0.0
-
-
-def _numpy_problem(datafit, penalty, w):
-    """NumPy copies of a CPU :class:`GramQuadratic` and :class:`L1`, else ``None``."""
-    if (
-        type(datafit) is not GramQuadratic
-        or type(penalty) is not L1
-        or w.device.type != "cpu"
-        or w.dtype not in (torch.float32, torch.float64)
-    ):
-        return None
+    steps = None if step is None else np.array([float(step)])
+    history = []
+    if not _on_numpy(datafit, penalty, w):
+        rows = ContractRow(datafit, penalty)
+        run(rows, w, steps, history=history, **settings)
+        coef, n_iter, converged, stop, last_step, reductions = rows.result
+        return SolverResult(
+            coef, n_iter, converged, stop, last_step, history, reductions
+        )
 
     def arr(t):
-        return t.detach().cpu().numpy().copy()
+        return t.detach().cpu().numpy()[None]
 
-    weights = (
-        np.ones(w.shape[0], dtype=arr(w).dtype)
-        if penalty.weights is None
-        else arr(penalty.weights)
-    )
+    gram = datafit.gram.detach().cpu().numpy()
+    weights = np.ones((1, p)) if penalty.weights is None else arr(penalty.weights)
     nonneg = None if penalty.nonneg is None else arr(penalty.nonneg).astype(bool)
-    return (
-        _NumpyQuadratic(arr(datafit.gram), arr(datafit.rhs), datafit.const),
-        _NumpyL1(penalty.lam, weights, nonneg),
-        arr(w),
+    out = BatchResult.start(arr(w).astype(gram.dtype))
+    rows = GramRows(
+        gram,
+        arr(datafit.rhs),
+        np.array([datafit.const]),
+        penalty.lam,
+        weights.astype(gram.dtype),
+        np.ones((1, p), dtype=bool),
+        nonneg,
+        out,
+        np.array([datafit.lipschitz()]),
     )
+    run(rows, rows.start(out.coef), steps, history=history, **settings)
+    coef = torch.from_numpy(out.coef[0]).to(dtype=w.dtype, device=w.device)
+    return SolverResult(
+        coef,
+        int(out.n_iter[0]),
+        bool(out.converged[0]),
+        float(out.stop_crit[0]),
+        float(out.step[0]),
+        history,
+        int(out.step_reductions[0]),
+    )
+
+
+def _on_numpy(datafit, penalty, w) -> bool:
+    """Whether :func:`fista` iterates on NumPy arrays: a CPU float
+    :class:`GramQuadratic` (exactly: a subclass may change its methods) with an
+    :class:`L1` penalty."""
+    return (
+        type(datafit) is GramQuadratic
+        and type(penalty) is L1
+        and w.device.type == "cpu"
+        and w.dtype in (torch.float32, torch.float64)
+    )
+
+
+def fista_batch(
+    gram,
+    rhs,
+    const,
+    lam,
+    weights,
+    w0,
+    mask,
+    nonneg=None,
+    *,
+    step=None,
+    max_iter: int = MAX_ITER,
+    tol: float = SOLVER_TOL,
+    check_every: int = CHECK_EVERY,
+    restart: bool = True,
+    max_step_reductions: int = MAX_STEP_REDUCTIONS,
+) -> BatchResult:
+    r""":func:`fista` on ``R`` L1-penalised quadratic problems at once (NumPy).
+
+    Problem ``r`` minimises
+    ``0.5 w' G_r w - rhs[r]' w + 0.5 const[r] + lam sum_k weights[r, k] |w_k|``
+    over the coordinates ``mask[r]`` (the others stay zero), where ``G_r`` is
+    ``gram`` (one matrix shared by the problems, e.g. sub-blocks of one Gram matrix
+    carved out by the masks) or ``gram[r]``. The iterations are those of
+    :func:`fista`, written once (same momentum, restart, checks every
+    ``check_every`` iterations, divergence guard, KKT stop and exact finishes),
+    each problem with its own step ``1/L`` (``L`` the largest eigenvalue of its
+    masked Gram matrix) unless ``step`` is given. The problems advance in lockstep
+    and each stops at its own check, so the result is that of :func:`fista` on
+    every problem (restricted to its mask) up to rounding; the last problem still
+    running goes on alone, on its own coordinates. The iterations of a small
+    problem cost mostly interpreter overhead, which a batched iteration pays once
+    for all the problems; with a shared ``gram`` the gradients of all the problems
+    are one matrix product.
+
+    Parameters
+    ----------
+    gram : ndarray of shape (p, p) or (R, p, p)
+        Symmetric positive semi-definite.
+    rhs : ndarray of shape (R, p)
+    const : ndarray of shape (R,)
+    lam : float
+        The L1 weight (one value for all the problems).
+    weights : ndarray of shape (R, p)
+        Per-coordinate L1 weights.
+    w0 : ndarray of shape (R, p)
+        Starting points (only their entries in ``mask`` are used).
+    mask : ndarray of bool, shape (R, p)
+        The coordinates of each problem.
+    nonneg : ndarray of bool, shape (R, p), optional
+        Coordinates projected onto ``w >= 0``.
+    step : ndarray of shape (R,), optional
+        Step sizes; ``None``: ``1 / L`` per problem.
+    max_iter, tol, check_every, restart, max_step_reductions
+        As in :func:`fista`.
+
+    Returns
+    -------
+    BatchResult
+    """
+    gram = np.asarray(gram)
+    mask = np.asarray(mask, dtype=bool)
+    out = BatchResult.start(np.where(mask, w0, 0.0).astype(gram.dtype))
+    if out.coef.shape[0] == 0:
+        return out
+    nonneg = None if nonneg is None else np.asarray(nonneg, dtype=bool)
+    rows = GramRows(gram, rhs, const, lam, weights, mask, nonneg, out, None)
+    if rows.n:
+        steps = None
+        if step is not None:
+            steps = (np.asarray(step, dtype=float) * np.ones(len(mask)))[rows.ids]
+        run(
+            rows,
+            rows.start(out.coef),
+            steps,
+            max_iter=max_iter,
+            tol=tol,
+            check_every=check_every,
+            restart=restart,
+            max_step_reductions=max_step_reductions,
+        )
+    return out
 
 
 def proximal_gradient(
@@ -361,8 +306,8 @@ def proximal_gradient(
     w0: torch.Tensor | None = None,
     *,
     step: float | None = None,
-    max_iter: int = 10_000,
-    tol: float = 1e-8,
+    max_iter: int = MAX_ITER,
+    tol: float = SOLVER_TOL,
     max_backtracks: int = 60,
 ) -> SolverResult:
     r"""Monotone proximal gradient with backtracking, for non-convex datafits.
@@ -409,387 +354,3 @@ def proximal_gradient(
         if change <= tol:
             return SolverResult(w, it, True, change, step, history, reductions)
     return SolverResult(w, n_iter, False, change, step, history, reductions)
-
-
-# ------------------------------------------------------------------ batched FISTA
-@dataclass
-class BatchResult:
-    """Outcome of :func:`fista_batch`: one entry (row) per problem.
-
-    ``step`` is nan for a problem whose warm start was already optimal (it ended
-    before iterating, ``n_iter`` 0) and 0 for one without coordinates.
-    """
-
-    coef: np.ndarray
-    n_iter: np.ndarray
-    converged: np.ndarray
-    stop_crit: np.ndarray
-    step: np.ndarray
-    step_reductions: np.ndarray
-
-
-def fista_batch(
-    gram,
-    rhs,
-    const,
-    lam,
-    weights,
-    w0,
-    mask,
-    nonneg=None,
-    *,
-    step=None,
-    max_iter: int = 10_000,
-    tol: float = 1e-8,
-    check_every: int = 10,
-    restart: bool = True,
-    max_step_reductions: int = 40,
-) -> BatchResult:
-    r""":func:`fista` on ``R`` L1-penalised quadratic problems at once (NumPy).
-
-    Problem ``r`` minimises
-    ``0.5 w' G_r w - rhs[r]' w + 0.5 const[r] + lam sum_k weights[r, k] |w_k|``
-    over the coordinates ``mask[r]`` (the others stay zero), where ``G_r`` is
-    ``gram`` (one matrix shared by the problems, e.g. sub-blocks of one Gram matrix
-    carved out by the masks) or ``gram[r]``. The iterations are those of
-    :func:`fista` (same momentum, restart, checks every ``check_every``
-    iterations, divergence guard and KKT stop), each problem with its own step
-    ``1/L`` (``L`` the largest eigenvalue of its masked Gram matrix) unless ``step``
-    is given. The problems advance in lockstep and each stops at the iteration
-    where :func:`fista` stops it, so the result is that of :func:`fista` on every
-    problem (restricted to its mask) up to rounding. The iterations of a small
-    problem cost mostly interpreter overhead, which a batched iteration pays once
-    for all the problems; with a shared ``gram`` the gradients of all the problems
-    are one matrix product.
-
-    Parameters
-    ----------
-    gram : ndarray of shape (p, p) or (R, p, p)
-        Symmetric positive semi-definite.
-    rhs : ndarray of shape (R, p)
-    const : ndarray of shape (R,)
-    lam : float
-        The L1 weight (one value for all the problems).
-    weights : ndarray of shape (R, p)
-        Per-coordinate L1 weights.
-    w0 : ndarray of shape (R, p)
-        Starting points (only their entries in ``mask`` are used).
-    mask : ndarray of bool, shape (R, p)
-        The coordinates of each problem.
-    nonneg : ndarray of bool, shape (R, p), optional
-        Coordinates projected onto ``w >= 0``.
-    step : ndarray of shape (R,), optional
-        Step sizes; ``None``: ``1 / L`` per problem.
-    max_iter, tol, check_every, restart, max_step_reductions
-        As in :func:`fista`.
-
-    Returns
-    -------
-    BatchResult
-    """
-    gram = np.asarray(gram)
-    n_prob = rhs.shape[0]
-    mask = np.asarray(mask, dtype=bool)
-    fmask = mask.astype(gram.dtype)
-    out = BatchResult(
-        np.where(mask, w0, 0.0).astype(gram.dtype),
-        np.zeros(n_prob, dtype=np.int64),
-        np.ones(n_prob, dtype=bool),
-        np.zeros(n_prob),
-        np.zeros(n_prob),
-        np.zeros(n_prob, dtype=np.int64),
-    )
-    if n_prob == 0:
-        return out
-    sizes = mask.sum(1)
-    live = np.flatnonzero(sizes > 0)
-    warm = live[np.any(out.coef[live] != 0, axis=1)]
-    if warm.size:
-        # Warm starts that already have the support and signs of the minimiser
-        # (as the stages after the first usually do) end before iterating, with
-        # no step taken (step nan).
-        nn_warm = None if nonneg is None else np.asarray(nonneg, dtype=bool)[warm]
-        x, optimal, xdist = _polish(
-            gram if gram.ndim == 2 else _masked(gram[warm], fmask[warm]),
-            np.where(mask, rhs, 0.0)[warm],
-            lam * np.where(mask, weights, 0.0)[warm],
-            None if nn_warm is None else nn_warm & mask[warm],
-            out.coef[warm],
-            fmask[warm],
-            tol,
-        )
-        hit = warm[optimal]
-        out.coef[hit] = x[optimal]
-        out.stop_crit[hit] = xdist[optimal]
-        out.step[hit] = np.nan
-        solved = np.zeros(n_prob, dtype=bool)
-        solved[hit] = True
-        live = live[~solved[live]]
-    if live.size == 0:
-        return out
-    # The Lipschitz constants of the problems that iterate (one batched
-    # eigenvalue call: a few ms for 40 problems of 40 coordinates), of each
-    # problem's Gram matrix with zeros off its coordinates (only now: the stages
-    # whose warm starts all end above do not need it).
-    stacked = _masked(gram, fmask)
-    lip = np.zeros(n_prob)
-    lip[live] = np.clip(np.linalg.eigvalsh(stacked[live])[:, -1], 0.0, None)
-    reductions = np.zeros(n_prob, dtype=np.int64)
-    if step is None:
-        st = np.where(lip > 0, 1.0 / np.where(lip > 0, lip, 1.0), 1.0)
-    else:
-        # A step above 2/L is halved below it at once, as in fista.
-        st = np.asarray(step, dtype=float) * np.ones(n_prob)
-        excess = np.log2(st) + np.log2(np.where(lip > 0, lip, 1.0)) - 1.0
-        halve = (lip > 0) & (excess > 0)
-        n_halvings = np.where(halve, np.ceil(np.where(halve, excess, 0.0)), 0.0)
-        st = st / 2.0**n_halvings
-        reductions += n_halvings.astype(np.int64)
-    out.step[live] = st[live]
-    with np.errstate(over="ignore", invalid="ignore"):
-        _batch_loop(
-            out,
-            live,
-            gram if gram.ndim == 2 else stacked,
-            np.where(mask, rhs, 0.0),
-            np.asarray(const, dtype=float) * np.ones(n_prob),
-            float(lam),
-            np.where(mask, weights, 0.0),
-            fmask,
-            None if nonneg is None else np.asarray(nonneg, dtype=bool) & mask,
-            st,
-            reductions,
-            max_iter,
-            tol,
-            check_every,
-            restart,
-            max_step_reductions,
-        )
-    return out
-
-
-def _masked(gram, fmask):
-    """``gram`` (one matrix, or one per row) with zeros off each row's ``fmask``."""
-    return gram * fmask[:, :, None] * fmask[:, None, :]
-
-
-def _batch_loop(
-    out,
-    live,
-    gram,
-    b,
-    c,
-    lam,
-    wts,
-    fmask,
-    nonneg,
-    step,
-    reductions,
-    max_iter,
-    tol,
-    check_every,
-    restart,
-    max_step_reductions,
-):
-    """The lockstep iterations of :func:`fista_batch`; fills ``out`` in place.
-
-    The arrays are compacted to the problems still running whenever some stop.
-    """
-    shared = gram.ndim == 2
-    rows = live
-    g = gram if shared else gram[rows]
-    b, c, wts, fmask = b[rows], c[rows], wts[rows], fmask[rows]
-    nn = None if nonneg is None else nonneg[rows]
-    step, red = step[rows].copy(), reductions[rows].copy()
-    w = out.coef[rows].copy()
-    w_prev = w.copy()
-
-    def times_gram(x):
-        # Rows of x are zero outside their masks and g is symmetric; entries of the
-        # product outside the masks are never used (the iterates are masked).
-        if shared:
-            return x @ g
-        return np.matmul(g, x[:, :, None])[:, :, 0]
-
-    def values(x):
-        fit = 0.5 * np.einsum("ri,ri->r", x, times_gram(x)) - (b * x).sum(1) + 0.5 * c
-        return fit + lam * (wts * np.abs(x)).sum(1)
-
-    best_w, best_obj = w.copy(), values(w)
-    # fista's momentum (k - 2) / (k + 1), 0 for k = 1, looked up by the counter k
-    counts = np.arange(max_iter + 2, dtype=float)
-    momentum = np.maximum((counts - 2) / (counts + 1), 0.0)
-    k = np.ones(len(rows), dtype=np.int64)
-    rises = np.zeros(len(rows), dtype=np.int64)
-    guard = np.zeros(len(rows), dtype=np.int64)
-    stop = np.full(len(rows), math.inf)
-    last_pattern = np.zeros(w.shape, dtype=np.int8)
-    col_step = step[:, None]
-    # The proximal step as one clip: w = z - clip(z, lo, hi) is the soft threshold
-    # sign(z) max(|z| - thr, 0) (bit for bit), projected on w >= 0 where lo is
-    # -inf, and 0 off the problem's coordinates where both bounds are infinite.
-    off = fmask == 0
-    nn_or_off = off if nn is None else off | nn
-
-    def bounds(step):
-        thr = (step * lam)[:, None] * wts
-        return np.where(nn_or_off, -np.inf, -thr), np.where(off, np.inf, thr)
-
-    lo, hi = bounds(step)
-
-    def exact_finish(search, sel):
-        """End the rows ``sel`` that ``search`` (:func:`_polish` or
-        :func:`_active_set_batch`) solves to the KKT tolerance."""
-        x, ok, xdist = search(
-            g if shared else g[sel],
-            b[sel],
-            lw[sel],
-            None if nn is None else nn[sel],
-            w[sel],
-            fmask[sel],
-            tol,
-        )
-        hit = sel[ok]
-        w[hit] = x[ok]
-        stop[hit] = xdist[ok]
-        done[hit] = True
-
-    def finish(sel, it, converged):
-        o = rows[sel]
-        out.coef[o] = w[sel]
-        out.n_iter[o] = it
-        out.converged[o] = converged
-        out.stop_crit[o] = stop[sel]
-        out.step[o] = step[sel]
-        out.step_reductions[o] = red[sel]
-
-    for it in range(1, max_iter + 1):
-        v = w + momentum[k][:, None] * (w - w_prev)
-        z = v - col_step * (times_gram(v) - b)
-        w_new = z - np.minimum(np.maximum(z, lo), hi)
-        if restart:
-            uphill = np.einsum("ri,ri->r", v - w_new, w_new - w) > 0
-            k = np.where(uphill, 1, k + 1)
-        else:
-            k = k + 1
-        w_prev, w = w, w_new
-        if it % check_every != 0 and it != max_iter:
-            continue
-        obj = values(w)
-        finite = np.isfinite(obj)
-        up = ~finite | (obj > best_obj + 1e-10 * np.maximum(1.0, np.abs(best_obj)))
-        rises = np.where(up, rises + 1, 0)
-        reset = up & (~finite | (rises >= 2))
-        if np.any(reset):
-            spent = reset & (guard >= max_step_reductions)
-            if np.any(spent):
-                bad = int(np.flatnonzero(spent)[0])
-                raise FloatingPointError(
-                    "FISTA diverged: the objective kept growing after the step was "
-                    f"halved {int(guard[bad])} times (step now {step[bad]:.3g}); "
-                    "use a smaller step (alpha) or alpha=None"
-                )
-            step = np.where(reset, step * 0.5, step)
-            col_step = step[:, None]
-            lo, hi = bounds(step)
-            guard = guard + reset
-            red = red + reset
-            w = np.where(reset[:, None], best_w, w)
-            w_prev = np.where(reset[:, None], best_w, w_prev)
-            k = np.where(reset, 1, k)
-            rises = np.where(reset, 0, rises)
-        better = ~up & (obj <= best_obj)
-        best_obj = np.where(better, obj, best_obj)
-        best_w = np.where(better[:, None], w, best_w)
-        # KKT distance (fista's subdiff_distance) of the rows that were not reset.
-        grad = times_gram(w) - b
-        lw = lam * wts
-        dist = np.where(fmask > 0, _kkt_distance(w, grad, lw, nn), 0.0).max(1)
-        stop = np.where(reset, stop, dist)
-        done = ~reset & (dist <= tol)
-        # Rows whose support and signs held since the last check: try the exact
-        # minimiser on them (see _polish).
-        pattern = np.sign(w).astype(np.int8)
-        steady = ~done & ~reset & np.all(pattern == last_pattern, axis=1)
-        last_pattern = pattern
-        if np.any(steady):
-            exact_finish(_polish, np.flatnonzero(steady))
-        if it in ACTIVE_SET_AT and np.any(~done & ~reset):
-            exact_finish(_active_set_batch, np.flatnonzero(~done & ~reset))
-        if it == max_iter:
-            finish(np.arange(len(rows)), it, done)
-            return
-        if np.any(done):
-            finish(np.flatnonzero(done), it, True)
-            keep = ~done
-            if not keep.any():
-                return
-            rows, b, c, wts, fmask = (
-                rows[keep],
-                b[keep],
-                c[keep],
-                wts[keep],
-                fmask[keep],
-            )
-            g = g if shared else g[keep]
-            nn = None if nn is None else nn[keep]
-            step, red, w, w_prev = step[keep], red[keep], w[keep], w_prev[keep]
-            best_w, best_obj, k = best_w[keep], best_obj[keep], k[keep]
-            rises, guard, stop = rises[keep], guard[keep], stop[keep]
-            last_pattern = last_pattern[keep]
-            col_step, lo, hi = col_step[keep], lo[keep], hi[keep]
-            off, nn_or_off = off[keep], nn_or_off[keep]
-            if len(rows) == 1:  # one problem left: fista's own loop, cheaper
-                state = dict(
-                    g=g, b=b, c=c, wts=wts, fmask=fmask, nn=nn, lam=lam, w=w,
-                    w_prev=w_prev, best_w=best_w, best_obj=best_obj, k=k,
-                    rises=rises, guard=guard, red=red, stop=stop, step=step,
-                    last_pattern=last_pattern,
-                )  # fmt: skip
-                _hand_over(out, rows[0], state, it, shared, max_iter, tol,
-                           check_every, restart, max_step_reductions)  # fmt: skip
-                return
-
-
-def _hand_over(
-    out, row, st, it, shared, max_iter, tol, check_every, restart, max_step_reductions
-):
-    """Finish the last running problem of :func:`_batch_loop` with fista's loop."""
-    on = st["fmask"][0] > 0
-    gram = st["g"][np.ix_(on, on)] if shared else st["g"][0][np.ix_(on, on)]
-    datafit = _NumpyQuadratic(gram, st["b"][0, on], float(st["c"][0]))
-    nn = st["nn"]
-    penalty = _NumpyL1(st["lam"], st["wts"][0, on], None if nn is None else nn[0, on])
-    state = {
-        "it": it,
-        "w_prev": st["w_prev"][0, on].copy(),
-        "best_w": st["best_w"][0, on].copy(),
-        "best_obj": float(st["best_obj"][0]),
-        "k": int(st["k"][0]),
-        "rises": int(st["rises"][0]),
-        "guard": int(st["guard"][0]),
-        "reductions": int(st["red"][0]),
-        "stop": float(st["stop"][0]),
-        "pattern": st["last_pattern"][0, on].copy(),
-    }
-    res = _fista_loop(
-        datafit,
-        penalty,
-        st["w"][0, on].copy(),
-        float(st["step"][0]),
-        None,
-        max_iter,
-        tol,
-        check_every,
-        restart,
-        max_step_reductions,
-        state,
-    )
-    coef = np.zeros(on.shape[0], dtype=out.coef.dtype)
-    coef[on] = res.coef
-    out.coef[row] = coef
-    out.n_iter[row] = res.n_iter
-    out.converged[row] = res.converged
-    out.stop_crit[row] = res.stop_crit
-    out.step[row] = res.step
-    out.step_reductions[row] = res.step_reductions

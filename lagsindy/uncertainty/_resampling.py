@@ -20,8 +20,7 @@ from .. import pipeline
 from .._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
 from ..formulation.forms import StrongForm, WeakForm, group_rows
 from ..formulation.probes import without_probes
-from ..formulation.scaling import BalancedGram, dense_residual
-from ..solvers.staged import staged_fista_batch
+from ..formulation.scaling import BalancedGram
 
 # The weak statistics are built at these multiples of the full fit's sampling
 # interval (any three distinct values interpolate the quadratic exactly).
@@ -175,20 +174,17 @@ def batch_supported(setup, dtype) -> bool:
 
 
 def batched_resamples(setup, stats, mults, start=None):
-    """Case I resamples solved together: every stage's FISTA iterations batched
-    over the resamples (:func:`~lagsindy.solvers.staged.staged_fista_batch`).
+    """Case I resamples solved together: the setup's staged solve on every resample
+    at once (:meth:`~lagsindy.cases.SparseSolve.solve_across`: every stage's FISTA
+    iterations batched over the resamples, every start of the path).
 
-    The per-resample steps (balancing, thresholds, the path's second start,
-    debiasing) are those of :class:`~lagsindy.cases.SparseSolve`, so each resample
-    gets what its own solve would, up to rounding. Returns a list with the
-    coefficients of each resample, or ``None`` where that resample must be solved
-    alone (a different set of identifiable columns, a step the divergence guard
-    would change, a failure).
+    The resamples are balanced together (:meth:`BalancedGram.many`), so each gets
+    what its own solve would, up to rounding. Returns a list with the coefficients
+    of each resample, or ``None`` where that resample must be solved alone (a
+    different set of identifiable columns, a step the divergence guard would
+    change, a failure).
     """
-    from ..cases.sparse import LAM_STARTS, PATH_FLOOR, PATH_TIE
-
-    n_features, solver = setup.n_features, setup.solver
-    penalty = setup.penalty()
+    n_features = setup.n_features
     out = [None] * len(mults)
     if len(mults) == 0:
         return out
@@ -201,75 +197,19 @@ def batched_resamples(setup, stats, mults, start=None):
         summed[0].corrected,
     )
     ident = np.stack([b.identifiable().cpu().numpy() for b in balanced])
-    free = np.flatnonzero(ident[0])
-    problems = []  # (index, datafit, scale)
-    for i, b in enumerate(balanced):
-        if not np.array_equal(ident[i], ident[0]) or b.target_scale(n_features) <= 0:
-            continue
-        if not bool(torch.isfinite(b.gram).all()):
-            continue
-        datafit, to_coef = b.problem(free, n_features, 1.0)
-        problems.append((i, datafit, to_numpy(to_coef(torch.ones_like(datafit.rhs)))))
-    if not problems:
-        return out
-    weights = torch.as_tensor(penalty[free], dtype=torch.float64)
-    thresholds = torch.as_tensor(solver.thresholds(free), dtype=torch.float64)
-    nonneg_t = solver.nonneg(free, "cpu")
-    scales = np.stack([s for _, _, s in problems])
-    w0 = np.zeros((len(problems), len(free)))
-    if start is not None:
-        w0 = np.asarray(start)[free][None, :] / scales
-    if nonneg_t is not None:
-        w0 = np.where(nonneg_t.numpy()[None, :], np.maximum(w0, 0.0), w0)
-
-    def path(rows, lam):
-        """The staged schedule of every problem in ``rows`` (one batch);
-        ``(coefficients, relative residual)`` each, or ``None`` for all of them
-        when the batch's divergence guard gives up (then each is solved alone)."""
-        try:
-            solved = staged_fista_batch(
-                [problems[r][1] for r in rows],
-                lam=lam,
-                penalty_weights=[weights] * len(rows),
-                threshold=[thresholds] * len(rows),
-                nonneg=[nonneg_t] * len(rows),
-                w0=[torch.from_numpy(w0[r]) for r in rows],
-                **solver._schedule(),
-            )
-        except FloatingPointError:
-            return [None] * len(rows)
-        return [(res.coef.numpy(), res.cost) for res in solved]
-
-    first = path(np.arange(len(problems)), solver.lam)
-    chosen = list(first)
-    if solver.lam != 0 and LAM_STARTS > 1 and solver.lam_decay > 1:
-        again = []
-        for r, res in enumerate(first):
-            if res is None:
-                continue
-            bound = dense_residual(problems[r][1])
-            if res[1] > (1 + PATH_TIE) * bound + PATH_FLOOR:
-                again.append(r)
-        if LAM_STARTS > 2 and again:
-            return out  # more starts than one restart: not batched
-        if again:
-            second = path(np.array(again), solver.lam / solver.lam_decay)
-            for r, res in zip(again, second):
-                if res is None:
-                    chosen[r] = None
-                    continue
-                cands = [first[r], res]
-                best = min(x[1] for x in cands)
-                near = [x for x in cands if x[1] <= (1 + PATH_TIE) * best + 1e-12]
-                chosen[r] = min(near, key=lambda x: int((x[0] != 0).sum()))
-    for r, res in enumerate(chosen):
-        if res is None:
-            continue
-        i = problems[r][0]
-        coef = np.zeros(n_features)
-        coef[free] = res[0] * scales[r]
-        if np.all(np.isfinite(coef)):
-            out[i] = coef
+    same = np.flatnonzero((ident == ident[0]).all(axis=1))
+    solved = setup.solver.solve_across(
+        [balanced[i] for i in same],
+        np.flatnonzero(ident[0]),
+        n_features,
+        1.0,
+        setup.penalty(),
+        0.0,
+        start=start,
+    )
+    for i, res in zip(same, solved):
+        if res is not None:
+            out[i] = res[0]
     return out
 
 

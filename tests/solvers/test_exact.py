@@ -1,31 +1,54 @@
-"""FISTA's exact finishes: the active-set search and the warm start's own support."""
+"""FISTA's exact finishes (lagsindy.solvers.exact): the minimiser of a steady
+support, the active-set search, and their use inside fista."""
 
 import importlib
 
 import numpy as np
 import pytest
 import torch
-from _lasso_problems import solve_stacked, wandering_lasso
+from lasso_problems import known_lasso, solve_stacked, wandering_lasso
 
-from lagsindy.solvers import L1, GramQuadratic, fista, staged_fista
-from lagsindy.solvers.exact import _active_set, _active_set_batch, _kkt_distance
-from lagsindy.solvers.fista import fista_batch
+from lagsindy.solvers import L1, GramQuadratic, fista, fista_batch, staged_fista
+from lagsindy.solvers.exact import _active_set, _kkt_distance, _polish
 
-# the module (``lagsindy.solvers.fista`` is also the name of the function)
-fista_module = importlib.import_module("lagsindy.solvers.fista")
+# the module of the iterations
+loop_module = importlib.import_module("lagsindy.solvers._loop")
+
+
+def test_polish_returns_the_minimiser_of_the_right_pattern_only():
+    G, b, lam, x = known_lasso()
+    lw = np.full((1, x.size), lam)
+    ones = np.ones((1, x.size))
+    near = x * (1 + 0.1 * np.cos(np.arange(x.size)))  # same support and signs
+    got, optimal, dist = _polish(G, b[None], lw, None, near[None], ones, 1e-10)
+    assert optimal[0] and dist[0] < 1e-10
+    np.testing.assert_allclose(got[0], x, rtol=0, atol=1e-10)  # measured 1e-14
+    missing = near.copy()
+    missing[4] = 0.0  # the support lacks a term: its KKT condition fails
+    _, optimal, _ = _polish(G, b[None], lw, None, missing[None], ones, 1e-10)
+    assert not optimal[0]
+    flipped = near.copy()
+    flipped[4] *= -1  # a wrong sign: the solve's sign disagrees
+    _, optimal, _ = _polish(G, b[None], lw, None, flipped[None], ones, 1e-10)
+    assert not optimal[0]
+
+
+def _search(G, b, lw, nn, start, tol, max_steps=None):
+    """The active-set search of one problem (1-d arrays), a batch of one."""
+    x, ok, dist = _active_set(
+        G, b[None], lw[None], None if nn is None else nn[None], start[None],
+        np.ones((1, b.size)), tol, max_steps,
+    )  # fmt: skip
+    return x[0], bool(ok[0]), float(dist[0])
 
 
 def _kkt(G, b, lam, w, nn=None):
-    from lagsindy.solvers.exact import _kkt_distance
-
     return float(_kkt_distance(w, G @ w - b, np.full(w.size, lam), nn).max())
 
 
 def test_active_set_search_finds_the_known_minimiser_from_zero():
     G, b, lam, x = wandering_lasso()
-    got, ok, dist = _active_set(
-        G, b, np.full(x.size, lam), None, np.zeros_like(x), 1e-10
-    )
+    got, ok, dist = _search(G, b, np.full(x.size, lam), None, np.zeros_like(x), 1e-10)
     assert ok and dist <= 1e-10
     np.testing.assert_allclose(got, x, rtol=0, atol=1e-10)  # measured 2e-12
 
@@ -40,14 +63,14 @@ def test_active_set_search_drops_many_coordinates_at_once():
     for _ in range(5):  # off-support signs opposite to the full-set solve's
         signs[off] = -np.sign(np.linalg.solve(G, b - lw * signs)[off])
     start = np.where(off, 1e-3 * signs, x)
-    got, ok, _ = _active_set(G, b, lw, None, start, 1e-10, max_steps=13)
+    got, ok, _ = _search(G, b, lw, None, start, 1e-10, max_steps=13)
     assert ok  # measured: 13 steps (16 with the one-coordinate steps alone)
     np.testing.assert_allclose(got, x, rtol=0, atol=1e-10)
 
 
 def _steps_to_finish(G, b, lw, start, nn=None):
     for k in range(1, 100):
-        x, ok, _ = _active_set(G, b, lw, nn, start, 1e-10, max_steps=k)
+        x, ok, _ = _search(G, b, lw, nn, start, 1e-10, max_steps=k)
         if ok:
             return k, x
     raise AssertionError("the search did not finish")
@@ -86,7 +109,7 @@ def test_active_set_search_keeps_non_negative_coordinates():
     G, b, lam, x = wandering_lasso()
     nn = x > 0  # the positive coordinates of the minimiser, and no others
     start = np.where(nn, -0.5, 0.3)  # infeasible where non-negative: projected first
-    got, ok, _ = _active_set(G, b, np.full(x.size, lam), nn, start, 1e-10)
+    got, ok, _ = _search(G, b, np.full(x.size, lam), nn, start, 1e-10)
     assert ok
     np.testing.assert_allclose(got, x, rtol=0, atol=1e-10)
     assert np.all(got[nn] >= 0)
@@ -94,7 +117,7 @@ def test_active_set_search_keeps_non_negative_coordinates():
 
 def test_active_set_search_reports_failure_instead_of_a_wrong_answer():
     G, b, lam, x = wandering_lasso()
-    got, ok, dist = _active_set(
+    got, ok, dist = _search(
         G, b, np.full(x.size, lam), None, np.zeros_like(x), 1e-10, max_steps=3
     )
     # three steps add at most three of the fifteen coordinates: not optimal, said so
@@ -104,7 +127,7 @@ def test_active_set_search_reports_failure_instead_of_a_wrong_answer():
 
 def test_batched_search_gives_each_rows_own_search():
     """Rows of their own matrices, one with non-negative coordinates, one with a
-    step budget that runs out: each row's outcome is _active_set's."""
+    step budget that runs out: each row's outcome is that of its own search."""
     problems = [_clamp_problem(s) for s in (0, 1, 2)]
     G, b, lam, x = wandering_lasso()
     problems.append((G, b, np.full(30, lam), np.where(x > 0, -0.5, 0.3)))
@@ -112,12 +135,10 @@ def test_batched_search_gives_each_rows_own_search():
     nn[3] = x > 0
     gram = np.stack([p[0] for p in problems])
     rhs, lw, start = (np.stack([p[k] for p in problems]) for k in (1, 2, 3))
-    got, ok, dist = _active_set_batch(
-        gram, rhs, lw, nn, start, np.ones_like(rhs), 1e-10
-    )
+    got, ok, dist = _active_set(gram, rhs, lw, nn, start, np.ones_like(rhs), 1e-10)
     assert ok.all()
     for r, (G_r, b_r, lw_r, start_r) in enumerate(problems):
-        want, ok_r, _ = _active_set(G_r, b_r, lw_r, nn[r] if r == 3 else None,
+        want, ok_r, _ = _search(G_r, b_r, lw_r, nn[r] if r == 3 else None,
                                     start_r, 1e-10)  # fmt: skip
         assert ok_r
         assert np.array_equal(got[r] != 0, want != 0)
@@ -140,10 +161,10 @@ def test_batched_search_where_non_negativity_binds():
     lw[1][[0, 5, 9]] = 0.0
     nn, lw, start = np.array(nn), np.array(lw), np.array(start)
     rhs = np.tile(b, (3, 1))
-    got, ok, dist = _active_set_batch(G, rhs, lw, nn, start, np.ones_like(rhs), 1e-10)
+    got, ok, dist = _active_set(G, rhs, lw, nn, start, np.ones_like(rhs), 1e-10)
     assert ok.all()
     for r in range(3):
-        want, ok_r, _ = _active_set(G, b, lw[r], nn[r], start[r], 1e-10)
+        want, ok_r, _ = _search(G, b, lw[r], nn[r], start[r], 1e-10)
         assert ok_r
         np.testing.assert_allclose(got[r], want, rtol=0, atol=1e-14)  # measured 0
         assert np.all(got[r][nn[r]] >= 0)
@@ -155,13 +176,13 @@ def test_batched_search_where_non_negativity_binds():
     needed = [_steps_to_finish(G, b, lw[r], start[r], nn[r])[0] for r in range(3)]
     assert needed == [20, 20, 19]  # measured
     for k in range(min(needed) - 1, max(needed) + 1):
-        _, ok, _ = _active_set_batch(G, rhs, lw, nn, start, np.ones_like(rhs), 1e-10, k)
+        _, ok, _ = _active_set(G, rhs, lw, nn, start, np.ones_like(rhs), 1e-10, k)
         assert ok.tolist() == [n <= k for n in needed]
 
 
 @pytest.mark.parametrize("clamp", [True, False])
 def test_batched_search_takes_the_steps_of_the_one_row_search(monkeypatch, clamp):
-    """In lockstep, each row finishes in as many steps as _active_set alone (with
+    """In lockstep, each row finishes in as many steps as its search alone (with
     and without the clamped points): one step fewer leaves it unfinished."""
     exact = importlib.import_module("lagsindy.solvers.exact")
     monkeypatch.setattr(exact, "CLAMP_POINTS", clamp)
@@ -173,9 +194,9 @@ def test_batched_search_takes_the_steps_of_the_one_row_search(monkeypatch, clamp
     assert needed == ([8, 10, 11] if clamp else [19, 15, 17])
     ones = np.ones_like(rhs)
     for k in sorted(set(needed)):
-        _, ok, _ = _active_set_batch(gram, rhs, lw, None, start, ones, 1e-10, k)
+        _, ok, _ = _active_set(gram, rhs, lw, None, start, ones, 1e-10, k)
         assert ok.tolist() == [n <= k for n in needed]
-        _, ok, _ = _active_set_batch(gram, rhs, lw, None, start, ones, 1e-10, k - 1)
+        _, ok, _ = _active_set(gram, rhs, lw, None, start, ones, 1e-10, k - 1)
         assert ok.tolist() == [n <= k - 1 for n in needed]
 
 
@@ -198,21 +219,21 @@ def test_batched_search_on_blocks_of_one_matrix_with_a_failing_row():
     rhs = b * masks
     lw = lam * masks
     start = 0.3 * np.cos(np.arange(30)) * masks
-    got, ok, dist = _active_set_batch(gram, rhs, lw, None, start, masks, 1e-10)
+    got, ok, dist = _active_set(gram, rhs, lw, None, start, masks, 1e-10)
     for r in range(3):
         on = masks[r] > 0
-        want, ok_r, _ = _active_set(G[np.ix_(on, on)], b[on], lw[r, on], None,
+        want, ok_r, _ = _search(G[np.ix_(on, on)], b[on], lw[r, on], None,
                                     start[r, on], 1e-10)  # fmt: skip
         assert ok[r] and ok_r
         np.testing.assert_allclose(got[r, on], want, rtol=0, atol=1e-13)  # measured 0
         assert np.all(got[r, ~on] == 0)
     np.testing.assert_allclose(got[0], x, rtol=0, atol=1e-10)
-    want, ok_3, dist_3 = _active_set(singular, b, lw[3], None, start[3], 1e-10)
+    want, ok_3, dist_3 = _search(singular, b, lw[3], None, start[3], 1e-10)
     assert start[3, 4] != 0
     assert not ok[3] and not ok_3  # the zero column makes the full block singular
     assert dist[3] == pytest.approx(dist_3)
     # the same shared matrix without a batch dimension
-    shared, ok_s, _ = _active_set_batch(G, rhs[:3], lw[:3], None, start[:3],
+    shared, ok_s, _ = _active_set(G, rhs[:3], lw[:3], None, start[:3],
                                         masks[:3], 1e-10)  # fmt: skip
     assert ok_s.all()
     np.testing.assert_allclose(shared, got[:3], rtol=0, atol=1e-13)
@@ -243,7 +264,7 @@ def test_fista_ends_by_the_active_set_search_where_it_wanders():
 def test_fista_without_the_search_wanders(monkeypatch):
     """The previous test's problem is one where the search matters."""
     G, b, lam, x = wandering_lasso()
-    monkeypatch.setattr(fista_module, "ACTIVE_SET_AT", frozenset())
+    monkeypatch.setattr(loop_module, "ACTIVE_SET_AT", frozenset())
     datafit = GramQuadratic(torch.tensor(G), torch.tensor(b), 0.0)
     res = fista(datafit, L1(lam), tol=1e-8, max_iter=20_000)
     assert res.n_iter > 500  # measured 940

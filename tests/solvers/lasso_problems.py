@@ -1,8 +1,9 @@
-"""L1 problems with a known minimiser, for the solver tests."""
+"""L1 problems for the solver tests: known minimisers, random Gram statistics."""
 
 import numpy as np
+import torch
 
-from lagsindy.solvers.fista import fista_batch
+from lagsindy.solvers import GramQuadratic, fista_batch
 
 
 def known_lasso(p=8, collinear=1e-2, seed=0):
@@ -53,3 +54,25 @@ def solve_stacked(problems):
     return fista_batch(
         G, b, np.zeros(len(problems)), lam, ones, np.zeros_like(b), ones > 0
     )
+
+
+def gram_problem(A, y):
+    """The :class:`GramQuadratic` of least squares ``y ~ A w``."""
+    n = A.shape[0]
+    A, y = torch.tensor(A), torch.tensor(y)
+    return GramQuadratic(A.T @ A / n, A.T @ y / n, float(y @ y / n))
+
+
+def random_gram(rng, n_rows, p, collinear=1e-3, n_true=3):
+    """Gram statistics ``(G, b, c)`` of a noisy sparse regression whose first two
+    columns are nearly collinear (slow directions: long FISTA runs)."""
+    A = rng.standard_normal((n_rows, p))
+    A[:, 1] = A[:, 0] + collinear * A[:, 1]
+    truth = rng.choice([-1.0, 1.0], n_true) * rng.uniform(0.3, 1.0, n_true)
+    y = A[:, :n_true] @ truth + 0.01 * rng.standard_normal(n_rows)
+    return A.T @ A / n_rows, A.T @ y / n_rows, float(y @ y / n_rows)
+
+
+class TensorGram(GramQuadratic):
+    """A Gram quadratic that :func:`fista` iterates through the datafit contract
+    (torch tensors, no exact finishes), as it does one on a GPU."""
