@@ -586,6 +586,101 @@ class TermEvaluator:
                 self._numpy = NumpyParts.from_torch(self)
         return self._numpy
 
+    # ------------------------------------------------------------- one model
+    def numpy_model(self, coef) -> Callable:
+        """Mass matrix and bias of one model as a NumPy function of the state.
+
+        The model is ``L = sum_k coef[k] phi_k`` with forces ``sum_j coef[n_terms
+        + j] Q_j``: ``f(q, qd) -> (M, h)``, ``M`` of shape (S, n_dof, n_dof) and
+        ``h`` of shape (S, n_dof), so that ``M qdd + h = tau``.
+
+        Parameters
+        ----------
+        coef : array-like of shape (n_columns,)
+
+        Returns
+        -------
+        callable
+            Sympy terms: :meth:`numpy_parts` combined with ``coef``. A torch term
+            function: reverse-mode derivatives of the scalar ``L`` (two passes and
+            one per coordinate, whatever the number of terms: per call much cheaper
+            than the per-term forward-mode parts).
+        """
+        coef = np.asarray(coef, dtype=float)
+        if coef.shape != (self.n_columns,):
+            raise ValueError(
+                f"coef must have one entry per column ({self.n_columns}), got shape "
+                f"{coef.shape}"
+            )
+        p = self.n_terms
+        if self.provider is None:
+            parts = self.numpy_parts()
+
+            def combined(q, qd):
+                mass, rest = parts.parts(q, qd)
+                return (
+                    np.einsum("skij,k->sij", mass, coef[:p]),
+                    np.einsum("ski,k->si", rest, coef),
+                )
+
+            return combined
+
+        def reverse(q, qd):
+            q_t = torch.as_tensor(np.asarray(q, dtype=float))
+            qd_t = torch.as_tensor(np.asarray(qd, dtype=float))
+            mass, bias = self._model_parts(coef, q_t, qd_t)
+            return mass.numpy(), bias.numpy()
+
+        return reverse
+
+    def _model_parts(self, coef, q: torch.Tensor, qd: torch.Tensor):
+        """``(M, h)`` of one model by reverse-mode derivatives of its scalar ``L``."""
+        d, n, p = self.n_dof, q.shape[0], self.n_terms
+        x = torch.cat([q, qd], 1).detach().requires_grad_(True)
+        c = torch.as_tensor(coef[:p], dtype=q.dtype, device=q.device)
+        zeros = torch.zeros_like(x)
+        with torch.enable_grad():
+            lagrangian = self.values(x[:, :d], x[:, d:]) @ c
+            grad = _grad_or_zero(lagrangian.sum(), x, zeros, create_graph=True)
+            rows = [_grad_or_zero(grad[:, d + i].sum(), x, zeros) for i in range(d)]
+        second = torch.stack(rows, 1) if rows else x.new_zeros((n, 0, 2 * d))
+        mass, cross = second[:, :, d:], second[:, :, :d]
+        bias = torch.einsum("sij,sj->si", cross, qd) - grad[:, :d].detach()
+        if self.n_forces:
+            w = torch.as_tensor(coef[p:], dtype=q.dtype, device=q.device)
+            bias = bias - self.force_values(q, qd) @ w
+        return mass.detach(), bias
+
+    def energies(self, coef, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
+        """Energy ``qd . dL/dqd - L`` of ``L = sum_k coef[k] phi_k`` at each sample.
+
+        Parameters
+        ----------
+        coef : array-like of shape (n_terms,)
+        q, qd : Tensor of shape (n_samples, n_dof)
+
+        Returns
+        -------
+        Tensor of shape (n_samples,)
+        """
+        d = self.n_dof
+        x = torch.cat([q, qd], 1).detach().requires_grad_(True)
+        c = torch.as_tensor(np.asarray(coef, dtype=float)[: self.n_terms]).to(q)
+        with torch.enable_grad():
+            lagrangian = self.values(x[:, :d], x[:, d:]) @ c
+            grad = _grad_or_zero(lagrangian.sum(), x, torch.zeros_like(x))
+        return ((qd * grad[:, d:]).sum(1) - lagrangian).detach()
+
+
+def _grad_or_zero(output, x, zeros, create_graph=False):
+    """``d output / d x`` (zeros where ``output`` does not depend on ``x``)."""
+    if not output.requires_grad:
+        return zeros
+    (grad,) = torch.autograd.grad(
+        output, x, create_graph=create_graph, retain_graph=True, allow_unused=True
+    )
+    return zeros if grad is None else grad
+
 
 # ------------------------------------------------------------------- numpy path
 def euler_lagrange_parts(phi: sp.Expr, q: Sequence, qd: Sequence):
