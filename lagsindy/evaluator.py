@@ -45,22 +45,26 @@ Force vectors are always sympy expressions (one per coordinate).
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import warnings
 from collections.abc import Callable, Sequence
 
 import numpy as np
 import sympy as sp
 import torch
-from torch.func import jacfwd, jvp, vmap
+from torch.func import vmap
 
 from ._batched import TermKernels, compile_terms
 from ._expr import compile_torch, symbols_for
-
-DEFAULT_CHUNK_SIZE = 32_768
-
-TermFunction = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+from ._torchfunc import (  # noqa: F401  (DEFAULT_CHUNK_SIZE, TermFunction: re-exported)
+    DEFAULT_CHUNK_SIZE,
+    TermFunction,
+    general_columns,
+    general_components,
+    lagrangian_columns,
+    lagrangian_components,
+    lagrangian_gradients,
+    lagrangian_hessians,
+)
 
 
 class TorchTerms:
@@ -101,170 +105,6 @@ class TorchTerms:
 def is_term_function(terms) -> bool:
     """Whether ``terms`` is a torch term function (``names`` and ``fn``), not a list."""
     return hasattr(terms, "names") and callable(getattr(terms, "fn", None))
-
-
-# ----------------------------------------------------------- torch.func (general)
-@contextlib.contextmanager
-def _quiet_forward_ad():
-    """Silence torch's own deprecation notice raised when forward AD first loads."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*torch.jit.script.*is deprecated")
-        yield
-
-
-def _chunks(n: int, size: int):
-    size = max(1, int(size))
-    return (slice(start, min(n, start + size)) for start in range(0, n, size))
-
-
-def _columns_one(fn: TermFunction):
-    grad_qd = jacfwd(fn, argnums=1)  # (p, dof)
-
-    def one(q, qd, qdd):
-        _, total = jvp(grad_qd, (q, qd), (qd, qdd))  # M qdd + N qd, (p, dof)
-        o = jacfwd(fn, argnums=0)(q, qd)  # (p, dof)
-        return (total - o).transpose(0, 1)  # (dof, p)
-
-    return one
-
-
-def _gradients_one(fn: TermFunction):
-    """``[d phi / dq, d phi / dqd]`` of one sample, (p, 2 dof)."""
-
-    def grads(q1, qd1):
-        return torch.cat(
-            [jacfwd(fn, argnums=0)(q1, qd1), jacfwd(fn, argnums=1)(q1, qd1)], 1
-        )
-
-    return grads
-
-
-def lagrangian_columns(
-    fn: TermFunction,
-    q: torch.Tensor,
-    qd: torch.Tensor,
-    qdd: torch.Tensor,
-    *,
-    chunk_size: int = DEFAULT_CHUNK_SIZE,
-) -> torch.Tensor:
-    """Euler-Lagrange columns of candidate functions at each sample.
-
-    Parameters
-    ----------
-    fn : callable
-        ``fn(q, qd) -> Tensor (n_terms,)`` for one sample (see
-        :func:`lagsindy._expr.compile_torch`), differentiated by ``torch.func``; or
-        :class:`lagsindy._batched.TermKernels` (from
-        :func:`lagsindy._batched.compile_terms`), whose terms in the batched
-        monomial form are evaluated as a few batched kernels instead.
-    q, qd, qdd : Tensor of shape (n_samples, n_dof)
-        Positions, velocities and accelerations.
-    chunk_size : int, default=32768
-        Samples processed at once (bounds memory).
-
-    Returns
-    -------
-    Tensor of shape (n_samples, n_dof, n_terms)
-        ``Theta[s, i, k] = (M_k qdd + N_k qd - O_k)_i`` at sample ``s``.
-    """
-    if isinstance(fn, TermKernels):
-        return fn.columns_t(q, qd, qdd, _general_columns(chunk_size)).permute(2, 0, 1)
-    batched = vmap(_columns_one(fn))
-    with _quiet_forward_ad():
-        parts = [
-            batched(q[sl], qd[sl], qdd[sl]) for sl in _chunks(q.shape[0], chunk_size)
-        ]
-    return torch.cat(parts, dim=0)
-
-
-def lagrangian_components(
-    fn: TermFunction,
-    q: torch.Tensor,
-    qd: torch.Tensor,
-    *,
-    chunk_size: int = DEFAULT_CHUNK_SIZE,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The paper's ``M_k``, ``N_k`` and ``O_k`` for every candidate at each sample.
-
-    Parameters
-    ----------
-    fn : callable or TermKernels
-        As for :func:`lagrangian_columns`.
-    q, qd : Tensor of shape (n_samples, n_dof)
-    chunk_size : int, default=32768
-
-    Returns
-    -------
-    M : Tensor of shape (n_samples, n_terms, n_dof, n_dof)
-        ``d2 phi_k / dqd_i dqd_j``.
-    N : Tensor of shape (n_samples, n_terms, n_dof, n_dof)
-        ``d2 phi_k / dqd_i dq_j``.
-    O : Tensor of shape (n_samples, n_terms, n_dof)
-        ``d phi_k / dq_i``.
-    """
-    if isinstance(fn, TermKernels):
-        return fn.components(q, qd, _general_components(chunk_size))
-    grad_qd = jacfwd(fn, argnums=1)
-
-    def one(q1, qd1):
-        n_mat, m_mat = jacfwd(grad_qd, argnums=(0, 1))(q1, qd1)
-        o = jacfwd(fn, argnums=0)(q1, qd1)
-        return m_mat, n_mat, o
-
-    batched = vmap(one)
-    ms, ns, os_ = [], [], []
-    for sl in _chunks(q.shape[0], chunk_size):
-        with _quiet_forward_ad():
-            m_mat, n_mat, o = batched(q[sl], qd[sl])
-        ms.append(m_mat)
-        ns.append(n_mat)
-        os_.append(o)
-    return torch.cat(ms), torch.cat(ns), torch.cat(os_)
-
-
-def lagrangian_hessians(fn: TermFunction, q: torch.Tensor, qd: torch.Tensor):
-    """Hessians of the terms over ``x = [q, qd]`` by ``torch.func``, (n, p, 2d, 2d).
-
-    ``out[s, k, a, b] = d^2 phi_k / dx_a dx_b``: the general path of
-    :meth:`lagsindy._batched.TermKernels.hessians`.
-    """
-    with _quiet_forward_ad():
-        jq, jqd = vmap(jacfwd(_gradients_one(fn), argnums=(0, 1)))(q, qd)
-    return torch.cat([jq, jqd], dim=3)
-
-
-def lagrangian_gradients(
-    fn: TermFunction,
-    q: torch.Tensor,
-    qd: torch.Tensor,
-    *,
-    chunk_size: int = DEFAULT_CHUNK_SIZE,
-) -> torch.Tensor:
-    """``[d phi_k / dq, d phi_k / dqd]`` per sample, (n_samples, n_terms, 2 n_dof)."""
-    if isinstance(fn, TermKernels):
-
-        def general(f, q1, qd1):
-            return lagrangian_gradients(f, q1, qd1, chunk_size=chunk_size)
-
-        return fn.gradients(q, qd, general)
-    batched = vmap(_gradients_one(fn))
-    with _quiet_forward_ad():
-        parts = [batched(q[sl], qd[sl]) for sl in _chunks(q.shape[0], chunk_size)]
-    return torch.cat(parts, dim=0)
-
-
-def _general_columns(chunk_size):
-    def general(f, q, qd, qdd):
-        return lagrangian_columns(f, q, qd, qdd, chunk_size=chunk_size)
-
-    return general
-
-
-def _general_components(chunk_size):
-    def general(f, q, qd):
-        return lagrangian_components(f, q, qd, chunk_size=chunk_size)
-
-    return general
 
 
 # ------------------------------------------------------------------- evaluator
@@ -461,7 +301,7 @@ class TermEvaluator:
         parts = []
         if kernels is not None:
             parts.append(
-                kernels.columns_t(q, qd, qdd, _general_columns(self.chunk_size))
+                kernels.columns_t(q, qd, qdd, general_columns(self.chunk_size))
             )
         if self._force_fn is not None:
             parts.append(-self.force_values(q, qd).permute(1, 2, 0))
@@ -481,7 +321,7 @@ class TermEvaluator:
             return out
         p = self.n_terms
         kernels.columns_into(
-            q, qd, qdd, out[:, :p], _general_columns(self.chunk_size), work
+            q, qd, qdd, out[:, :p], general_columns(self.chunk_size), work
         )
         if self._force_fn is not None:
             out[:, p:] = -self.force_values(q, qd).permute(1, 2, 0)
@@ -522,14 +362,14 @@ class TermEvaluator:
         """``M_k`` of every term, shape (n_samples, n_terms, n_dof, n_dof)."""
         kernels = self.kernels
         if kernels is not None:
-            return kernels.mass_matrices(q, qd, _general_components(self.chunk_size))
+            return kernels.mass_matrices(q, qd, general_components(self.chunk_size))
         return self.components(q, qd)[0]
 
     def mass_matrices_t(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
         """:meth:`mass_matrices` in the layout (n_terms, n_dof, n_dof, n_samples)."""
         kernels = self.kernels
         if kernels is not None:
-            return kernels.mass_matrices_t(q, qd, _general_components(self.chunk_size))
+            return kernels.mass_matrices_t(q, qd, general_components(self.chunk_size))
         return self.mass_matrices(q, qd).permute(1, 2, 3, 0)
 
     def gradients(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
