@@ -102,6 +102,26 @@ class TorchTerms:
         return f"TorchTerms({self.names})"
 
 
+def _checked_provider(provider, n_dof: int):
+    """The provider's ``fn``, after one call at a zero state shows its output."""
+    zero = torch.zeros(n_dof, dtype=torch.float64)
+    try:
+        out = provider.fn(zero, zero)
+    except Exception as exc:
+        raise ValueError(
+            f"the torch term function {provider!r} failed on one sample (q and qd "
+            f"of shape ({n_dof},), float64): {exc}"
+        ) from exc
+    n = len(provider.names)
+    if not torch.is_tensor(out) or tuple(out.shape) != (n,):
+        shape = tuple(out.shape) if torch.is_tensor(out) else type(out).__name__
+        raise ValueError(
+            f"the torch term function {provider!r} must return a tensor of shape "
+            f"({n},) (one value per name) for one sample, got {shape}"
+        )
+    return provider.fn
+
+
 def is_term_function(terms) -> bool:
     """Whether ``terms`` is a torch term function (``names`` and ``fn``), not a list."""
     return hasattr(terms, "names") and callable(getattr(terms, "fn", None))
@@ -151,7 +171,7 @@ class TermEvaluator:
             self.names = [str(t) for t in self.terms]
         q, qd, _ = symbols_for(self.coordinates)
         self._symbols = (q, qd)
-        self._kernels = None
+        self._compiled_fn = None
         self._forces_compiled = None
         self._numpy = None
 
@@ -185,14 +205,18 @@ class TermEvaluator:
         terms): the batched kernels (:class:`lagsindy._batched.TermKernels`, also
         callable per sample) for sympy terms, the provider's ``fn`` otherwise."""
         if self.provider is not None:
-            return self.provider.fn if self.n_terms else None
+            if not self.n_terms:
+                return None
+            if self._compiled_fn is None:  # checked once: the provider's fn itself
+                self._compiled_fn = _checked_provider(self.provider, self.n_dof)
+            return self._compiled_fn
         if not self.terms:
             return None
-        if self._kernels is None:
+        if self._compiled_fn is None:
             # monomials in q, qd, sin and cos of linear forms of q go through
             # batched kernels, the others through torch.func (lagsindy._batched)
-            self._kernels = compile_terms(self.terms, self.coordinates)
-        return self._kernels
+            self._compiled_fn = compile_terms(self.terms, self.coordinates)
+        return self._compiled_fn
 
     @property
     def kernels(self) -> TermKernels | None:

@@ -307,6 +307,23 @@ def test_empty_evaluators_give_empty_parts():
     assert [t.shape for t in ev.components(q, qd)] == [(5, 0, 2, 2)] * 2 + [(5, 0, 2)]
 
 
+def test_a_torch_term_function_of_the_wrong_shape_is_refused():
+    """A provider whose fn gives one value too few (or a column) would broadcast
+    into wrong parts: the evaluator says what it returned instead."""
+    short = TorchTerms(["a", "b"], lambda q, qd: qd[:1] ** 2)
+    column = TorchTerms(["a", "b"], lambda q, qd: torch.stack([qd, q]))
+    broken = TorchTerms(["a"], lambda q, qd: q.item())
+    q, qd, qdd = random_states(2, 4, 8)
+    for provider, match in (
+        (short, r"shape \(2,\).*got \(1,\)"),
+        (column, r"got \(2, 2\)"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            TermEvaluator(ARM, provider).columns(q, qd, qdd)
+    with pytest.raises(ValueError, match="failed on one sample"):
+        TermEvaluator(ARM, broken).mass_matrices(q, qd)
+
+
 def test_evaluator_pickles_without_compiled_code():
     xd = symbols_for(ARM)[1]
     ev = TermEvaluator(ARM, _arm_sympy(), forces=[[-xd[0], 0 * xd[0]]])

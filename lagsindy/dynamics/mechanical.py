@@ -106,8 +106,10 @@ class _TermNumeric:
             model.forces[i] - sp.diff(model.dissipation, qd[i]) for i in range(n)
         ]
         forces = [generalized] if any(g != 0 for g in generalized) else []
-        self.evaluator = TermEvaluator(model.coordinates, model.terms, forces)
-        self.coef = np.asarray(model.coef, dtype=float)
+        self.evaluator = TermEvaluator(
+            model.coordinates, model.lagrangian_terms, forces
+        )
+        self.coef = np.asarray(model.lagrangian_coef, dtype=float)
         weights = np.concatenate([self.coef, np.ones(len(forces))])
         self.mass_and_rest = self.evaluator.numpy_model(weights)
 
@@ -145,9 +147,9 @@ class MechanicalModel:
     ----------
     n_dof : int
     n_inputs : int
-    terms : sequence of sympy.Expr, torch term function or None
+    lagrangian_terms : sequence of sympy.Expr, torch term function or None
         The terms of a model given by terms (:meth:`from_terms`), else None.
-    coef : ndarray of shape (n_terms,) or None
+    lagrangian_coef : ndarray of shape (n_terms,) or None
         Their coefficients.
 
     Examples
@@ -171,7 +173,7 @@ class MechanicalModel:
     ):
         self.coordinates = check_coordinate_names(coordinates)
         self.lagrangian = canonical(lagrangian, self.coordinates)
-        self.terms, self.coef = None, None
+        self._terms, self._coef = None, None
         self._set_forces_and_inputs(dissipation, forces, input_matrix, name)
 
     def _set_forces_and_inputs(self, dissipation, forces, input_matrix, name):
@@ -250,9 +252,19 @@ class MechanicalModel:
             )
         if not is_term_function(terms):
             self.lagrangian = sp.Add(*[sp.Float(c) * t for c, t in zip(coef, terms)])
-        self.terms, self.coef = terms, coef
+        self._terms, self._coef = terms, coef
         self._set_forces_and_inputs(dissipation, forces, input_matrix, name)
         return self
+
+    @property
+    def lagrangian_terms(self):
+        """The terms of a model given by terms (:meth:`from_terms`), else None."""
+        return self.__dict__.get("_terms")
+
+    @property
+    def lagrangian_coef(self) -> np.ndarray | None:
+        """The coefficients of :attr:`lagrangian_terms`, else None."""
+        return self.__dict__.get("_coef")
 
     # ------------------------------------------------------------------ symbolic
     @property
@@ -314,7 +326,7 @@ class MechanicalModel:
         """The numeric evaluation (compiled once; dropped when pickled)."""
         cache = self.__dict__.get("_compiled")
         if cache is None:
-            terms = self.__dict__.get("terms")
+            terms = self.__dict__.get("_terms")
             cache = (_SymbolicNumeric if terms is None else _TermNumeric)(self)
             self._compiled = cache
         return cache
@@ -470,7 +482,7 @@ class MechanicalModel:
 
         if self.lagrangian is None:  # a torch term function
             lagrangian = " + ".join(
-                f"{c:.{precision}g}*{n}" for c, n in zip(self.coef, self.terms.names)
+                f"{c:.{precision}g}*{n}" for c, n in zip(self._coef, self._terms.names)
             )
             lines = [f"L = {lagrangian or 0}"]
         else:
@@ -483,7 +495,7 @@ class MechanicalModel:
         return "\n".join(lines)
 
     def __repr__(self) -> str:
-        lagrangian = self.lagrangian if self.lagrangian is not None else self.terms
+        lagrangian = self.lagrangian if self.lagrangian is not None else self._terms
         return (
             f"MechanicalModel({self.name!r}, coordinates={self.coordinates}, "
             f"L={lagrangian})"

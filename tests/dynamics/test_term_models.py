@@ -85,7 +85,7 @@ def test_torch_term_model_simulates_as_the_sympy_double_pendulum(models):
 
 def test_term_models_describe_themselves_and_refuse_symbolic_methods(models):
     _, torch_model, sympy_terms = models
-    assert torch_model.lagrangian is None and torch_model.terms is LINKS
+    assert torch_model.lagrangian is None and torch_model.lagrangian_terms is LINKS
     assert torch_model.equation(3) == "L = 1*T1 + 1*T2 + 1*U1 + 1*U2"
     assert "T1" in repr(torch_model)
     with pytest.raises(TypeError, match="torch term function"):
