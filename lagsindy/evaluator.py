@@ -162,13 +162,12 @@ class TermEvaluator:
         self.forces = [list(f) for f in (forces or [])]
         self.chunk_size = chunk_size
         if is_term_function(terms):
-            self.provider = terms
-            self.terms = None
-            self.names = [str(n) for n in terms.names]
+            self.provider, self.terms = terms, None
+            self._names = [str(n) for n in terms.names]
         else:
-            self.provider = None
-            self.terms = list(terms)
-            self.names = [str(t) for t in self.terms]
+            # names of sympy terms are printed when asked for: printing costs
+            # milliseconds per library, and operators are built by the dozen
+            self.provider, self.terms, self._names = None, list(terms), None
         q, qd, _ = symbols_for(self.coordinates)
         self._symbols = (q, qd)
         self._compiled_fn = None
@@ -180,8 +179,15 @@ class TermEvaluator:
         return len(self.coordinates)
 
     @property
+    def names(self) -> list:
+        """One name per term: the provider's, or the sympy terms printed."""
+        if self._names is None:
+            self._names = [str(t) for t in self.terms]
+        return self._names
+
+    @property
     def n_terms(self) -> int:
-        return len(self.names)
+        return len(self.terms) if self.provider is None else len(self._names)
 
     @property
     def n_forces(self) -> int:
