@@ -564,7 +564,7 @@ SEARCH_STEPS = [
     ("Gram statistics (weak form)", "formulation/__init__.py", ("gram_statistics",)),
     (
         "- of which the noise correction",
-        ("formulation/operator.py", "formulation/weak.py"),
+        ("formulation/weak_integrals.py", "formulation/testfunctions.py"),
         ("_noise_sensitivities", "_noise_block"),
     ),
     ("case III search (`fit_fixed`)", "cases/fixed.py", ("fit_fixed",)),
@@ -591,10 +591,14 @@ SEARCH_STEPS = [
 # The same for one ``diagnose`` of the case I model.
 DIAGNOSE_STEPS = [
     ("whole diagnose", "diagnostics/search.py", ("diagnose",)),
-    ("weak Gram statistics, every call", "formulation/operator.py", ("weak_grams",)),
+    (
+        "weak Gram statistics, every call",
+        "formulation/weak_integrals.py",
+        ("weak_grams",),
+    ),
     (
         "- of which the noise correction",
-        ("formulation/operator.py", "formulation/weak.py"),
+        ("formulation/weak_integrals.py", "formulation/testfunctions.py"),
         ("_noise_sensitivities", "_noise_block"),
     ),
     (

@@ -628,6 +628,15 @@ class TermKernels:
         """``[d phi / dq, d phi / dqd]`` per sample, shape (n, p, 2 d)."""
         return self._per_term("grad", (2 * self.n_dof,), q, qd, general_gradients)
 
+    def gradients_t(self, q, qd, general_gradients):
+        """:meth:`gradients` in the layout (p, 2 d, n) (samples last).
+
+        The kernel's own layout: without general terms no copy is made.
+        """
+        if self.plan is not None and not self.general.size:
+            return self._batched("grad", q, qd).view(self.n_terms, 2 * self.n_dof, -1)
+        return self.gradients(q, qd, general_gradients).permute(1, 2, 0)
+
     def hessians(self, q, qd, general_hessians):
         r"""Hessians of every term over ``x = [q, qd]``, shape (n, p, 2 d, 2 d).
 

@@ -495,7 +495,7 @@ def _reduce_forces(lagrangian_terms, force_terms, coordinates, tol) -> dict:
     """:func:`reduce_forces` computed: {index of a removed candidate: reason}."""
     import torch
 
-    from .euler_lagrange import EulerLagrangeOperator
+    from .evaluator import TermEvaluator
 
     n_dof = len(coordinates)
     rng = np.random.default_rng(0)
@@ -507,10 +507,11 @@ def _reduce_forces(lagrangian_terms, force_terms, coordinates, tol) -> dict:
         ],
         axis=1,
     )
-    op = EulerLagrangeOperator(
+    ev = TermEvaluator(
         coordinates, lagrangian_terms, forces=[t.forces for t in force_terms]
     )
-    cols = op.columns(torch.as_tensor(X, dtype=torch.float64)).numpy()
+    Xt = torch.as_tensor(X, dtype=torch.float64)
+    cols = ev.columns(*torch.split(Xt, n_dof, dim=1)).numpy()
     cols = cols.reshape(-1, cols.shape[2])  # (n_points * n_dof, p + f)
     n_l = len(lagrangian_terms)
     basis = np.zeros((cols.shape[0], 0))

@@ -24,7 +24,6 @@ import warnings
 from numbers import Integral
 
 import numpy as np
-import sympy as sp
 import torch
 from scipy import sparse
 from scipy.optimize import least_squares
@@ -32,9 +31,9 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
-from ._expr import symbols_for
 from ._torch import resolve_dtype
-from .formulation.weak import _jumps, estimate_sampling_interval, trajectory_segments
+from .evaluator import TermEvaluator
+from .formulation.weak import position_jumps, estimate_sampling_interval, trajectory_segments
 
 # A coefficient that moves by more than this (relative) is reported: the equation
 # error and the rollouts then disagree about the model, which a missing effect or
@@ -97,56 +96,16 @@ class Refinement:
         )
 
 
-class _Dynamics:
+def _Dynamics(coordinates, terms, forces):  # was a class; its callers keep the name
     """Per-term Euler-Lagrange parts as one numpy function of the state.
 
-    For Lagrangian terms, ``M_k = d2 phi_k / dqd2`` and
-    ``h_k = (d2 phi_k / dqd dq) qd - d phi_k / dq``; for force terms ``M_k = 0`` and
-    ``h_k = -Q_k``. The model ``sum_k c_k phi_k`` then has
-    ``M(c) qdd + h(c) = tau``. One sympy derivation and one vectorised function (with
-    common subexpressions shared) serve every coefficient vector.
+    The evaluator's NumPy path (:meth:`lagsindy.evaluator.TermEvaluator.numpy_parts`,
+    compiled once per term set): ``parts(q, qd)`` gives, for Lagrangian terms,
+    ``M_k = d2 phi_k / dqd2`` and ``h_k = (d2 phi_k / dqd dq) qd - d phi_k / dq``,
+    for force terms ``M_k = 0`` and ``h_k = -Q_k``, so that the model
+    ``sum_k c_k phi_k`` has ``M(c) qdd + h(c) = tau``.
     """
-
-    def __init__(self, coordinates, terms, forces):
-        q, qd, _ = symbols_for(coordinates)
-        d = len(q)
-        mass, rest = [], []
-        for phi in terms:
-            grad_v = [sp.diff(phi, v) for v in qd]
-            mass.append([sp.diff(g, v) for g in grad_v for v in qd])
-            rest.append(
-                [
-                    sum(sp.diff(grad_v[i], q[j]) * qd[j] for j in range(d))
-                    - sp.diff(phi, q[i])
-                    for i in range(d)
-                ]
-            )
-        for force in forces:
-            rest.append([-f for f in force])
-        self.n_dof, self.n_lagrangian, self.n_terms = d, len(terms), len(rest)
-        flat = [e for row in mass for e in row] + [e for row in rest for e in row]
-        self._n_out = len(flat)
-        # Constant entries (most of them zero) are set once; only the others are
-        # evaluated, by one function that shares their common subexpressions.
-        self._varying = [i for i, e in enumerate(flat) if e.free_symbols]
-        self._constants = np.array(
-            [0.0 if e.free_symbols else float(e) for e in flat], dtype=float
-        )
-        self._fn = sp.lambdify(
-            [*q, *qd], [flat[i] for i in self._varying], modules="numpy", cse=True
-        )
-
-    def parts(self, q, qd):
-        """``M`` (S, n_lagrangian, d, d) and ``h`` (S, n_terms, d)."""
-        s, d = q.shape[0], self.n_dof
-        values = np.tile(self._constants, (s, 1))
-        if self._varying:
-            values[:, self._varying] = np.column_stack(self._fn(*q.T, *qd.T))
-        k = self.n_lagrangian * d * d
-        return (
-            values[:, :k].reshape(s, self.n_lagrangian, d, d),
-            values[:, k:].reshape(s, self.n_terms, d),
-        )
+    return TermEvaluator(coordinates, terms, forces).numpy_parts()
 
 
 class _Rollouts:
@@ -418,7 +377,7 @@ def refine(
             if seg.size > 2
             for part in np.split(
                 seg,
-                np.flatnonzero(_jumps(Xt[seg, :d], Xt[seg, d : 2 * d], dt).numpy()) + 1,
+                np.flatnonzero(position_jumps(Xt[seg, :d], Xt[seg, d : 2 * d], dt).numpy()) + 1,
             )
             if part.size
         ]

@@ -41,17 +41,17 @@ def fit_rows(monkeypatch):
 @pytest.fixture
 def reused_grams(monkeypatch):
     """One entry per weak-form statistics served from kept ones from here on
-    (``EulerLagrangeOperator._reused_grams``, see ``reuse_weak_columns``)."""
-    from lagsindy.formulation.operator import EulerLagrangeOperator
+    (``weak_integrals._reused_grams``, see ``reuse_weak_columns``)."""
+    from lagsindy.formulation import weak_integrals
 
     calls = []
-    original = EulerLagrangeOperator._reused_grams
+    original = weak_integrals._reused_grams
 
-    def spy(self, *args, **kwargs):
+    def spy(*args, **kwargs):
         calls.append(1)
-        return original(self, *args, **kwargs)
+        return original(*args, **kwargs)
 
-    monkeypatch.setattr(EulerLagrangeOperator, "_reused_grams", spy)
+    monkeypatch.setattr(weak_integrals, "_reused_grams", spy)
     return calls
 
 

@@ -20,7 +20,7 @@ LAYERS = [
     ("differentiation", ["differentiation"]),
     (
         "terms and forces",
-        ["_batched", "evaluator", "library", "dissipation", "force_kinds", "robots"],
+        ["_batched", "_torchfunc", "evaluator", "library", "dissipation", "force_kinds", "robots"],
     ),
     ("mechanics", ["dynamics"]),
     ("solvers", ["solvers"]),

@@ -11,13 +11,12 @@ from _sympy_reference import random_states, sympy_columns
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy._batched import compile_terms
 from lagsindy._expr import compile_torch, symbols_for
-from lagsindy.euler_lagrange import (
-    EulerLagrangeOperator,
+from lagsindy.evaluator import (
     lagrangian_columns,
     lagrangian_components,
     lagrangian_gradients,
+    lagrangian_hessians,
 )
-from lagsindy.formulation.operator import lagrangian_hessians
 from lagsindy.library import _KINDS
 
 # Every generated kind of library (a kind added to library._KINDS is tested too),
@@ -71,20 +70,32 @@ def test_batched_components_and_gradients_match_torch_func(kind, names, angles, 
         lagrangian_hessians(plain, q, qd).numpy(),
         "hessians",
     )
-    op = EulerLagrangeOperator(names, lib.terms_)
+    general = _general_components()
     _assert_close(
-        op.mass_matrices(q, qd).numpy(),
+        kernels.mass_matrices(q, qd, general).numpy(),
         lagrangian_components(plain, q, qd)[0].numpy(),
         "mass matrices",
     )
     # samples last: the same values (bit for bit: one kernel, no arithmetic)
     assert torch.equal(
-        op.mass_matrices_t(q, qd), op.mass_matrices(q, qd).permute(1, 2, 3, 0)
+        kernels.mass_matrices_t(q, qd, general),
+        kernels.mass_matrices(q, qd, general).permute(1, 2, 3, 0),
     )
     assert torch.equal(
         kernels.hessians_t(q, qd, lagrangian_hessians),
         kernels.hessians(q, qd, lagrangian_hessians).permute(1, 2, 3, 0),
     )
+    assert torch.equal(
+        kernels.gradients_t(q, qd, lagrangian_gradients),
+        kernels.gradients(q, qd, lagrangian_gradients).permute(1, 2, 0),
+    )
+
+
+def _general_components():
+    def general(f, q, qd):
+        return lagrangian_components(f, q, qd)
+
+    return general
 
 
 def test_mixed_terms_split_between_batched_and_general_paths():
@@ -113,25 +124,19 @@ def test_mixed_terms_split_between_batched_and_general_paths():
         h = sp.lambdify(x_s, sp.hessian(terms[k], x_s), modules="numpy")
         want = np.stack([np.asarray(h(*row), float) for row in np.c_[q, qd]])
         _assert_close(hess[:, k], want, f"hessian of term {k} vs sympy")
-    # the Gram matrix accumulated in chunks from the (dof, column, sample) layout
-    op = EulerLagrangeOperator(names, terms, forces=[[-w1, -w2]], chunk_size=7)
-    X = torch.cat([q, qd, qdd], dim=1)
-    y = torch.tensor(np.random.default_rng(3).normal(size=(25, 2)))
-    a = torch.cat([op.columns(X), y.unsqueeze(2)], dim=2).numpy()
-    want = np.einsum("sip,siq->ipq", a, a)
-    g = op.gram(X, y).numpy()
-    np.testing.assert_allclose(g, want, rtol=1e-12, atol=1e-12 * np.abs(want).max())
     # the samples-last layouts, general terms included
-    assert torch.equal(op.columns_t(X), op.columns(X).permute(1, 2, 0))
+    general = _general_components()
     assert torch.equal(
-        op.mass_matrices_t(q, qd), op.mass_matrices(q, qd).permute(1, 2, 3, 0)
+        kernels.mass_matrices_t(q, qd, general),
+        kernels.mass_matrices(q, qd, general).permute(1, 2, 3, 0),
     )
     assert torch.equal(
         kernels.hessians_t(q, qd, lagrangian_hessians),
         kernels.hessians(q, qd, lagrangian_hessians).permute(1, 2, 3, 0),
     )
     assert torch.equal(
-        op._force_jacobians_t(q, qd), op.force_jacobians(q, qd).permute(1, 2, 3, 0)
+        kernels.gradients_t(q, qd, lagrangian_gradients),
+        kernels.gradients(q, qd, lagrangian_gradients).permute(1, 2, 0),
     )
 
 
@@ -183,34 +188,6 @@ def test_fit_on_cuda_matches_cpu():
     )
     np.testing.assert_array_equal(gpu.support_, cpu.support_)
     np.testing.assert_allclose(gpu.coef_, cpu.coef_, rtol=1e-8, atol=1e-10)
-
-
-def test_force_values_and_jacobians_without_vmap_match_torch_func():
-    """Force terms are evaluated for all samples at once (the compiled function is
-    elementwise) and differentiated by one forward pass per state component."""
-    x, t = sp.symbols("x theta", real=True)
-    xd, td = sp.symbols("x_dot theta_dot", real=True)
-    forces = [
-        [-sp.tanh(40 * xd), 0],
-        [0, -td * sp.Abs(td)],
-        [sp.Integer(1), 0],  # a constant offset
-        [-(x**2) * td, sp.sin(t) * xd],
-    ]
-    op = EulerLagrangeOperator(["x", "theta"], [xd**2, sp.cos(t)], forces=forces)
-    q, qd, _ = random_states(2, 30, 5)
-    f = op._force_fn
-    per_sample = torch.func.vmap(f)(q, qd).reshape(30, 4, 2).transpose(1, 2)
-    np.testing.assert_array_equal(op.force_values(q, qd).numpy(), per_sample.numpy())
-
-    def one(q1, qd1):
-        return f(q1, qd1).reshape(4, 2)
-
-    fq, fqd = torch.func.vmap(torch.func.jacfwd(one, argnums=(0, 1)))(q, qd)
-    want = torch.cat([fq, fqd], dim=3)
-    # measured: identical (both are the same forward-mode derivative)
-    np.testing.assert_allclose(
-        op.force_jacobians(q, qd).numpy(), want.numpy(), rtol=1e-14, atol=1e-14
-    )
 
 
 def test_a_kernel_without_entries_writes_zeros():

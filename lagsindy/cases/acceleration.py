@@ -14,7 +14,6 @@ import numpy as np
 import torch
 
 from .._torch import to_numpy
-from ..formulation.operator import lagrangian_components
 from ..solvers import AccelerationDatafit
 from . import Problem, Solution
 
@@ -37,12 +36,10 @@ def fit_acceleration(problem: Problem) -> Solution:
     sub = p.feature_operator(free)
     d = p.n_dof
     q, qd, qdd = Xs[:, :d], Xs[:, d : 2 * d], Xs[:, 2 * d : 3 * d]
-    mass, n_mat, o = lagrangian_components(sub._fn, q, qd)
-    bias = torch.einsum("skij,sj->ski", n_mat, qd) - o
+    mass, bias = sub.parts(q, qd)  # bias: N qd - O, then -Q of the forces
     n_forces = int((free >= n_terms).sum())
-    if n_forces:  # force features: no inertia, left-hand side -Q
+    if n_forces:  # force features: no inertia
         mass = torch.cat([mass, mass.new_zeros((mass.shape[0], n_forces, d, d))], dim=1)
-        bias = torch.cat([bias, -sub.force_values(q, qd).transpose(1, 2)], dim=1)
     g, scale = balanced.block(free)
     datafit = AccelerationDatafit(mass, bias, qdd, scale)
     weights = torch.as_tensor(p.penalty[free], dtype=Xt.dtype, device=Xt.device)
