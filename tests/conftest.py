@@ -84,6 +84,21 @@ def single_passive():
 
 
 @pytest.fixture(scope="session")
+def noisy_pendulum():
+    """A forced single pendulum, 8 trajectories of 2 s, position noise 0.01 with
+    P-spline derivatives (the "sensor" protocol)."""
+    return make_dataset(
+        single_pendulum(),
+        n_trajectories=8,
+        duration=2.0,
+        excitation="paper",
+        noise=0.01,
+        protocol="sensor",
+        random_state=0,
+    )
+
+
+@pytest.fixture(scope="session")
 def case_iii_problem():
     """The case III Problem of a noisy passive cart-pendulum search."""
     system = cart_pendulum()
