@@ -84,6 +84,14 @@ def single_passive():
 
 
 @pytest.fixture(scope="session")
+def pendulum():
+    """A forced single pendulum (the paper's input), 10 noise-free trajectories."""
+    return make_dataset(
+        single_pendulum(), n_trajectories=10, excitation="paper", random_state=1
+    )
+
+
+@pytest.fixture(scope="session")
 def noisy_pendulum():
     """A forced single pendulum, 8 trajectories of 2 s, position noise 0.01 with
     P-spline derivatives (the "sensor" protocol)."""
