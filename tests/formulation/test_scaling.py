@@ -1,11 +1,18 @@
 """lagsindy.formulation.scaling: balancing, the fixed-term residual bounds, and the
 problems cut from one balanced block."""
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
 
-from lagsindy.formulation.scaling import BalancedGram, balance_rows, fixed_term_bounds
+from lagsindy.formulation.scaling import (
+    NULL_RCOND,
+    BalancedGram,
+    balance_rows,
+    fixed_term_bounds,
+)
 
 
 def _torch_balance(mean_sq, max_iter=2000):
@@ -130,3 +137,43 @@ def test_problems_cut_from_one_block_equal_problem_bit_for_bit():
         assert torch.equal(alone.gram, g) and torch.equal(alone.rhs, datafit.rhs)
     with pytest.raises(ValueError, match="identically zero"):
         balanced.problems([([0, 1], 4, 1.0)])
+
+
+class _Block:
+    """A stand-in for BalancedGram: ``block(free)`` gives a fixed scaled block."""
+
+    def __init__(self, eigenvalues):
+        rotation = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64))[0]
+        values = torch.tensor(eigenvalues, dtype=torch.float64)
+        self.gram = rotation @ torch.diag(values) @ rotation.T
+
+    def block(self, free):
+        return self.gram, None
+
+
+@pytest.mark.parametrize(
+    "small, allowed, warns",
+    [
+        (NULL_RCOND * 0.99, 0, True),  # a null combination in case I
+        (NULL_RCOND * 1.01, 0, False),
+        (NULL_RCOND * 0.99, 1, False),  # case III expects one (the Lagrangian)
+    ],
+)
+def test_null_combinations_are_eigenvalues_below_the_relative_floor(
+    small, allowed, warns
+):
+    """An eigenvalue of the scaled block at most NULL_RCOND times the largest is a
+    null combination; more of them than ``allowed`` warn."""
+    from lagsindy.formulation.scaling import (
+        IdentifiabilityWarning,
+        warn_if_not_identifiable,
+    )
+
+    block = _Block([small, 0.5, 1.0])
+    names = ["a", "b", "c"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        warn_if_not_identifiable(block, np.arange(3), names, allowed=allowed)
+    assert [w.category for w in caught] == ([IdentifiabilityWarning] if warns else [])
+    if warns:
+        assert "1 combination(s) of candidate terms" in str(caught[0].message)
