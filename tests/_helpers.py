@@ -4,7 +4,10 @@ Import them by name (``from _helpers import recorded_fit``): ``tests/`` is on th
 path of every test module, as for ``_sympy_reference``.
 """
 
+import re
 import warnings
+
+import pytest
 
 from lagsindy import CandidateLibrary, LagrangianSINDy
 
@@ -49,3 +52,18 @@ def degrees(X, columns):
     for j in columns:
         X[:, [j, j + n, j + 2 * n]] *= 180 / np.pi
     return X
+
+
+# Three single-pendulum terms: the true two and a spurious one.
+THREE_PENDULUM_TERMS = ["theta_dot**2", "cos(theta)", "theta**2"]
+
+
+def three_term_estimator(**params):
+    """An unfitted estimator over :data:`THREE_PENDULUM_TERMS`."""
+    library = CandidateLibrary.from_terms(["theta"], THREE_PENDULUM_TERMS)
+    return LagrangianSINDy(library, **params)
+
+
+def value_error(match):
+    """``pytest.raises(ValueError)`` with a literal (not regex) message fragment."""
+    return pytest.raises(ValueError, match=re.escape(match))

@@ -84,6 +84,27 @@ def single_passive():
 
 
 @pytest.fixture(scope="session")
+def pend():
+    """A short forced single pendulum (the paper's input): 4 noise-free
+    trajectories of 2 s, 800 rows (the bad-input tests' messages name that count)."""
+    return make_dataset(
+        single_pendulum(), n_trajectories=4, duration=2.0, random_state=0
+    )
+
+
+@pytest.fixture(scope="session")
+def cart():
+    """A short forced cart-pendulum: 2 noise-free trajectories of 1 s."""
+    return make_dataset(
+        cart_pendulum(),
+        n_trajectories=2,
+        duration=1.0,
+        excitation="sincos",
+        random_state=0,
+    )
+
+
+@pytest.fixture(scope="session")
 def pendulum():
     """A forced single pendulum (the paper's input), 10 noise-free trajectories."""
     return make_dataset(
