@@ -600,7 +600,16 @@ def diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
         return None
     if verbose:
         print(f"[lagsindy] {estimate}")
-    size = abs(estimate.delay)
-    if size < 0.1 * dt or (np.isfinite(estimate.std) and size <= 2 * estimate.std):
+    if not worth_trying(estimate, dt):
         return None
     return estimate, shifted
+
+
+def worth_trying(estimate, dt) -> bool:
+    """Whether :func:`diagnose_delay` keeps a :class:`DelayEstimate` for diagnose to
+    try: at least a tenth of the sampling interval ``dt`` and more than twice its
+    standard error."""
+    size = abs(estimate.delay)
+    if size < 0.1 * dt or (np.isfinite(estimate.std) and size <= 2 * estimate.std):
+        return False
+    return True

@@ -175,6 +175,22 @@ class _Rollouts:
         return out.transpose(1, 0, 2).reshape(P, B, self.horizon + 1, d)
 
 
+def large_changes(changes: dict) -> dict:
+    """The coefficients of ``changes`` (relative, by name) that moved by more than
+    ``LARGE_CHANGE``: what :func:`refine` warns about."""
+    return {k: v for k, v in changes.items() if abs(v) > LARGE_CHANGE}
+
+
+def integration_too_coarse(integrator_error, rmse_after, spread) -> bool:
+    """Whether :func:`refine` warns that its fixed-step integration is too coarse:
+    its error is not ``INTEGRATOR_MARGIN`` times below the rollout error, and not
+    negligible (``NEGLIGIBLE_ERROR`` of the positions' ``spread``)."""
+    return bool(
+        integrator_error * INTEGRATOR_MARGIN > rmse_after
+        and integrator_error > NEGLIGIBLE_ERROR * spread
+    )
+
+
 def _scale(weights, q):
     """Divisor of each coordinate's position error."""
     d = q.shape[1]
@@ -563,7 +579,7 @@ def refine(
             ConvergenceWarning,
             stacklevel=2,
         )
-    large = {k: v for k, v in changes.items() if abs(v) > LARGE_CHANGE}
+    large = large_changes(changes)
     if large:
         listed = ", ".join(f"{k} {100 * v:+.0f} %" for k, v in large.items())
         warnings.warn(
@@ -575,10 +591,7 @@ def refine(
             UserWarning,
             stacklevel=2,
         )
-    if (
-        integrator_error * INTEGRATOR_MARGIN > rmse_after
-        and integrator_error > NEGLIGIBLE_ERROR * spread
-    ):
+    if integration_too_coarse(integrator_error, rmse_after, spread):
         warnings.warn(
             f"the fixed-step integration error ({integrator_error:.3g}) is not small "
             f"against the rollout error ({rmse_after:.3g}): raise substeps",

@@ -84,6 +84,50 @@ def single_passive():
 
 
 @pytest.fixture(scope="session")
+def pend():
+    """A short forced single pendulum (the paper's input): 4 noise-free
+    trajectories of 2 s, 800 rows (the bad-input tests' messages name that count)."""
+    return make_dataset(
+        single_pendulum(), n_trajectories=4, duration=2.0, random_state=0
+    )
+
+
+@pytest.fixture(scope="session")
+def cart():
+    """A short forced cart-pendulum: 2 noise-free trajectories of 1 s."""
+    return make_dataset(
+        cart_pendulum(),
+        n_trajectories=2,
+        duration=1.0,
+        excitation="sincos",
+        random_state=0,
+    )
+
+
+@pytest.fixture(scope="session")
+def pendulum():
+    """A forced single pendulum (the paper's input), 10 noise-free trajectories."""
+    return make_dataset(
+        single_pendulum(), n_trajectories=10, excitation="paper", random_state=1
+    )
+
+
+@pytest.fixture(scope="session")
+def noisy_pendulum():
+    """A forced single pendulum, 8 trajectories of 2 s, position noise 0.01 with
+    P-spline derivatives (the "sensor" protocol)."""
+    return make_dataset(
+        single_pendulum(),
+        n_trajectories=8,
+        duration=2.0,
+        excitation="paper",
+        noise=0.01,
+        protocol="sensor",
+        random_state=0,
+    )
+
+
+@pytest.fixture(scope="session")
 def case_iii_problem():
     """The case III Problem of a noisy passive cart-pendulum search."""
     system = cart_pendulum()

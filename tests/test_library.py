@@ -147,3 +147,18 @@ def test_separated_construction_counts():
     # trig: 4 + 10, velocities: 2 + 3, cross 14 * 5
     assert len(lib) == 14 + 5 + 70
     assert np.all([isinstance(t, sp.Expr) for t in lib.terms_])
+
+
+def test_feature_names_cache_follows_set_params_and_clone():
+    lib = CandidateLibrary.polynomial(["x", "theta"], angles=["theta"], degree=2)
+    names = lib.get_feature_names_out()
+    assert names.tolist() == [str(t) for t in lib.terms_]
+    names[0] = "changed"  # each call returns a new array
+    assert lib.get_feature_names_out()[0] == str(lib.terms_[0])
+    lib.set_params(degree=3)  # rebuilt: the names of the new terms
+    assert lib.get_feature_names_out().tolist() == [str(t) for t in lib.terms_]
+    assert len(lib.get_feature_names_out()) == len(lib) > len(names)
+    copy = clone(lib).set_params(angles=None, raw_angles=True)
+    assert copy.get_feature_names_out().tolist() == [str(t) for t in copy.terms_]
+    assert "cos(theta)" in lib.get_feature_names_out().tolist()
+    assert "cos(theta)" not in copy.get_feature_names_out().tolist()

@@ -10,6 +10,13 @@ import sympy as sp
 from sklearn.exceptions import ConvergenceWarning
 
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy, refine
+from lagsindy.refine import (
+    INTEGRATOR_MARGIN,
+    LARGE_CHANGE,
+    NEGLIGIBLE_ERROR,
+    integration_too_coarse,
+    large_changes,
+)
 from lagsindy.systems import cart_pendulum, make_dataset, planar_chain, single_pendulum
 
 
@@ -234,3 +241,50 @@ def test_fitted_initial_states_keep_noisy_starts_out_of_the_coefficients():
     assert fitted.refinement_.converged  # in 4 integrations
     assert error(fitted) < 0.7 * error(est)  # measured 0.63 % from 1.22 %
     assert error(held) > 5 * error(est)  # measured 14.4 %
+
+
+# ------------------------------------------------------- thresholds at their boundary
+@pytest.mark.parametrize(
+    "change, large",
+    [
+        (LARGE_CHANGE, False),
+        (LARGE_CHANGE * (1 + 1e-9), True),
+        (-LARGE_CHANGE * (1 + 1e-9), True),
+        (0.3, True),  # between the threshold and twice it
+        (-0.3, True),
+    ],
+)
+def test_changes_count_as_large_just_above_the_threshold(change, large):
+    got = large_changes({"a": change, "b": 0.0, "c": -0.5 * LARGE_CHANGE})
+    assert got == ({"a": change} if large else {})
+
+
+def test_a_coefficient_moved_by_a_quarter_is_reported(double_chain):
+    """A real refinement: one coefficient started 30 % high returns to the exact
+    model (a change of 1/1.3 - 1 = -23 %, between the threshold and twice it)."""
+    _, d, _, est = double_chain
+    kept = np.flatnonzero(est.coef_)
+    moved = next(k for k in kept if est.term_names_[k] != est.fixed_term_)
+    factors = np.ones(est.coef_.size)
+    factors[moved] = 1.3
+    with pytest.warns(UserWarning, match="more than 20%") as caught:
+        out = refine(_with_coef(est, factors), d.X_clean, groups=d.groups, t=d.t)
+    name = str(est.term_names_[moved])
+    assert out.refinement_.changes[name] == pytest.approx(1 / 1.3 - 1, abs=1e-3)
+    large = [str(w.message) for w in caught if "more than 20%" in str(w.message)]
+    assert len(large) == 1 and f"{name} -23 %" in large[0]
+
+
+@pytest.mark.parametrize(
+    "error, rmse, spread, coarse",
+    [
+        (1.0, INTEGRATOR_MARGIN, 1.0, False),  # exactly the margin below
+        (1.0, INTEGRATOR_MARGIN * (1 - 1e-9), 1.0, True),
+        (1.0, 0.5 * INTEGRATOR_MARGIN, 1.0, True),
+        # an error at the negligible level of the spread is never reported
+        (NEGLIGIBLE_ERROR, 1e-9, 1.0, False),
+        (NEGLIGIBLE_ERROR * (1 + 1e-9), 1e-9, 1.0, True),
+    ],
+)
+def test_integration_is_too_coarse_just_beyond_its_margins(error, rmse, spread, coarse):
+    assert integration_too_coarse(error, rmse, spread) is coarse

@@ -145,17 +145,26 @@ def fit_fixed(problem: Problem) -> Solution:
                 f"residual {result.cost:.3g}, acceleration R2 {score:.4f}"
             )
         scored.append((score if np.isfinite(score) else -np.inf, kind, r, coef, result))
-    # Models whose unexplained acceleration variance is within 10 % of the best are
-    # equally good (with noise, extra terms buy a little in-sample R^2): take the
-    # sparsest of them, then the mass normalization, then the earlier library term,
-    # so that rounding (e.g. the order of the rows) cannot pick between them.
+    score, kind, r, coef, result = pick_scored(scored)
+    return Solution(coef, result, r, kind, score=score)
+
+
+def pick_scored(scored):
+    """The model case III's search keeps among its scored shortlist.
+
+    ``scored`` holds ``(r2, kind, r, coef, result)`` per model. Models whose
+    unexplained acceleration variance ``1 - r2`` is within ``SELECTION_TIE`` of the
+    best's are equally good (with noise, extra terms buy a little in-sample R^2):
+    the sparsest of them is kept, then the mass normalization, then the earlier
+    library term, so that rounding (e.g. the order of the rows) cannot pick
+    between them.
+    """
     top = max(s_[0] for s_ in scored)
     near = [s_ for s_ in scored if 1 - s_[0] <= SELECTION_TIE * (1 - top) + 1e-9]
-    score, kind, r, coef, result = min(
+    return min(
         near,
         key=lambda s_: (int((s_[3] != 0).sum()), -1 if s_[1] == "mass" else s_[2]),
     )
-    return Solution(coef, result, r, kind, score=score)
 
 
 def _rank(p: Problem, candidates, traces, mass=None):

@@ -194,6 +194,19 @@ def probe_term(case, coef, fixed):
     return int(unit[0]) if unit.size else int(np.argmax(np.abs(coef)))
 
 
+def enough_equations(independent, n_support: int, n_probes: int) -> bool:
+    """Whether ``independent`` equations leave ``ROWS_PER_PROBE`` per probe beyond
+    the ``n_support`` kept terms (else the probes are not fitted)."""
+    return independent - n_support >= ROWS_PER_PROBE * n_probes
+
+
+def named_enough(current: float, probed: float, gain: float) -> bool:
+    """Whether the probes named so far (the residual ``current`` with them) explain
+    all but ``NAMED_SHARE`` of what every probe explains (``gain``; the residual
+    ``probed`` with every probe)."""
+    return current - probed <= NAMED_SHARE * gain
+
+
 def probe_forces(
     stats, coef, normalize: bool = True, fixed=None, row_scale=None
 ) -> ProbeResult | None:
@@ -236,7 +249,7 @@ def probe_forces(
     independent = stats.n_rows * stats.gram.shape[0]
     if stats.formulation == "weak" and stats.window:
         independent *= window_stride(stats.window) / stats.window
-    if independent - support.size < ROWS_PER_PROBE * len(probes):
+    if not enough_equations(independent, support.size, len(probes)):
         return None  # too few equations to tell a force from noise
     every = np.concatenate([support, probes])
     fits = balanced.problems([(support, target, sign), (every, target, sign)])[0]
@@ -248,7 +261,7 @@ def probe_forces(
     # forward selection: add the probe that explains most until the named ones
     # explain all but NAMED_SHARE of what every probe explains
     named, current = [], base
-    while len(named) < len(probes) and current - probed > NAMED_SHARE * unnamed.gain:
+    while len(named) < len(probes) and not named_enough(current, probed, unnamed.gain):
         rest = [k for k in probes if k not in named]
         jobs = [(np.concatenate([support, named, [k]]), target, sign) for k in rest]
         found = dense_residuals([datafit for datafit, _ in balanced.problems(jobs)[0]])

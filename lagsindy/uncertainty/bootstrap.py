@@ -88,6 +88,8 @@ _BATCH_RTOL = 1e-6
 _MAX_BLOCKS = 20
 # Fewer trajectories than this: resample time blocks within them instead.
 _MIN_TRAJECTORIES = 10
+# Fewer trajectories or blocks than this to resample: the report warns.
+FEW_GROUPS = 5
 
 
 class BootstrapReport:
@@ -205,6 +207,32 @@ def _intervals(samples, theta, level, method, jack):
                 qs.append(norm.cdf(t))
             low[k], high[k] = np.quantile(s, qs)
     return low, high
+
+
+def warn_few_groups(n_groups: int, resampling: str) -> bool:
+    """Warn when fewer than ``FEW_GROUPS`` trajectories or blocks are resampled
+    (the intervals are then too narrow). Returns whether it warned."""
+    if n_groups >= FEW_GROUPS:
+        return False
+    warnings.warn(
+        f"only {n_groups} {resampling} to resample: bootstrap intervals from so few "
+        "independent units are too narrow; record more trajectories",
+        UserWarning,
+        stacklevel=3,
+    )
+    return True
+
+
+def reproduces(got, want, rtol: float, scale: float) -> bool:
+    """Whether coefficients ``got`` (``None``: a failed solve) have the support of
+    ``want`` and differ from them by at most ``rtol * scale``: the test a fast path
+    (``_SEAM_RTOL``) and the batched solve (``_BATCH_RTOL``) must pass before they
+    are trusted."""
+    return bool(
+        got is not None
+        and np.array_equal(got != 0, want != 0)
+        and np.abs(got - want).max() <= rtol * scale
+    )
 
 
 # --------------------------------------------------------------------------- bootstrap
@@ -337,13 +365,7 @@ def bootstrap(
             next_label += k
     rows_of = group_rows(labels)
     n_groups = len(rows_of)
-    if n_groups < 5:
-        warnings.warn(
-            f"only {n_groups} {resampling} to resample: bootstrap intervals from so few "
-            "independent units are too narrow; record more trajectories",
-            UserWarning,
-            stacklevel=2,
-        )
+    warn_few_groups(n_groups, resampling)
 
     # Normalization of passive models: the full fit's fixed (or largest) term.
     all_coef = full.fitted_.all_coef()
@@ -381,11 +403,7 @@ def bootstrap(
         rtol = _SEAM_RTOL
         if weak and full.noise_cov_ is not None and n > NOISE_ROWS:
             rtol = _SEAM_RTOL_SUBSAMPLED
-        fast = (
-            seam is not None
-            and np.array_equal(seam != 0, check != 0)
-            and np.abs(seam - check).max() <= rtol * scale
-        )
+        fast = reproduces(seam, check, rtol, scale)
         if not fast:
             warnings.warn(
                 "the bootstrap's fast path (resamples solved from per-trajectory Gram "
@@ -413,8 +431,7 @@ def bootstrap(
             [np.ones((1, n_groups), dtype=all_mults.dtype), all_mults]
         )
         solved = batched_resamples(setup, stats, both, start)
-        same = solved[0] is not None and np.array_equal(solved[0] != 0, seam != 0)
-        if same and np.abs(solved[0] - seam).max() <= _BATCH_RTOL * scale:
+        if reproduces(solved[0], seam, _BATCH_RTOL, scale):
             batched = solved[1:]
     if batched is not None:
         missing = [i for i, c in enumerate(batched) if c is None]

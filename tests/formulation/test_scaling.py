@@ -1,12 +1,53 @@
-"""Case III search: the ranking solves only the candidates that can be shortlisted."""
+"""lagsindy.formulation.scaling: balancing, the fixed-term residual bounds, and the
+problems cut from one balanced block."""
 
 import warnings
 
 import numpy as np
 import pytest
+import torch
 
-from lagsindy.cases import fixed
-from lagsindy.formulation.scaling import fixed_term_bounds
+from lagsindy.formulation.scaling import (
+    NULL_RCOND,
+    BalancedGram,
+    balance_rows,
+    fixed_term_bounds,
+)
+
+
+def _torch_balance(mean_sq, max_iter=2000):
+    """The previous implementation: the balancing iterations on tensors."""
+    rows = torch.ones(mean_sq.shape[0], dtype=mean_sq.dtype)
+    for _ in range(max_iter):
+        cols = torch.sqrt((mean_sq / rows[:, None] ** 2).mean(dim=0))
+        active = cols > 0
+        if not bool(active.any()):
+            break
+        ratio = mean_sq[:, active] / cols[active] ** 2
+        new_rows = torch.sqrt(ratio.mean(dim=1))
+        new_rows = torch.where(new_rows > 0, new_rows, torch.ones_like(new_rows))
+        new_rows = new_rows / torch.exp(torch.log(new_rows).mean())
+        if torch.allclose(new_rows, rows, rtol=1e-10, atol=0):
+            return new_rows
+        rows = new_rows
+    return rows
+
+
+def test_row_balance_on_numpy_equals_the_torch_iterations():
+    rng = np.random.default_rng(0)
+    for n_dof, p in ((2, 39), (3, 10), (1, 5)):
+        mean_sq = rng.lognormal(sigma=3.0, size=(n_dof, p))
+        mean_sq[0, 0] = 0.0  # a column zero in one coordinate
+        if n_dof > 1:
+            mean_sq[:, 1] = 0.0  # a column zero everywhere
+        want = _torch_balance(torch.tensor(mean_sq)).numpy()
+        # measured: 2.2e-16 relative at most
+        np.testing.assert_allclose(balance_rows(mean_sq), want, rtol=1e-13)
+    gram = torch.tensor(rng.normal(size=(2, 6, 6)))
+    gram = gram @ gram.transpose(1, 2)
+    for dtype in (torch.float64, torch.float32):
+        balanced = BalancedGram(gram.to(dtype), 10, 5)
+        assert balanced.row_scale.dtype == dtype
 
 
 def _brute_bounds(a):
@@ -40,91 +81,6 @@ def test_bounds_of_a_null_combination_stay_at_rounding_level():
     assert np.all(got[[0, 1, 3]] < 1e-10)
     np.testing.assert_allclose(got[[2, 4, 5]], want[[2, 4, 5]], rtol=1e-11)
     assert np.all(got <= want + 1e-10)  # never above the true residual
-
-
-def _solve_all(p, candidates, traces):
-    free_all = np.flatnonzero(p.identifiable)
-    jobs = [
-        (free_all[free_all != r], r, -1.0, bool(traces[r] > 0), None)
-        for r in candidates
-    ]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return p.solver.solve_many(p.balanced, jobs, p.penalty, 1.0, starts=1)
-
-
-@pytest.fixture(scope="module")
-def clean_search_problems():
-    """Case III Problems of noise-free passive cart-pendulum searches, by the
-    number of trajectories."""
-    from conftest import first_problem
-
-    from lagsindy import LagrangianSINDy
-    from lagsindy.systems import cart_pendulum, make_dataset
-
-    system = cart_pendulum()
-    out = {}
-    for n in (6, 20):
-        data = make_dataset(system, n_trajectories=n, excitation=None, random_state=0)
-        est = LagrangianSINDy(system.paper_library())
-        out[n] = first_problem(est, data.X, groups=data.groups)
-    return out
-
-
-@pytest.mark.parametrize(
-    "which, first",
-    [(20, fixed.RANK_FIRST), (6, 1.0), ("noisy", fixed.RANK_FIRST)],
-)
-def test_ranking_keeps_the_shortlist_of_every_candidate(
-    which, first, clean_search_problems, case_iii_problem, monkeypatch
-):
-    p = case_iii_problem if which == "noisy" else clean_search_problems[which]
-    candidates = [k for k in np.flatnonzero(p.identifiable) if k < len(p.terms)]
-    traces = np.zeros(p.n_features)
-    monkeypatch.setattr(fixed, "RANK_FIRST", first)
-    batches = []
-    solve_many = p.solver.solve_many
-
-    def spy(balanced, jobs, *args, **kwargs):
-        batches.append(len(jobs))
-        return solve_many(balanced, jobs, *args, **kwargs)
-
-    monkeypatch.setattr(p.solver, "solve_many", spy)
-    ranked, mass_first = fixed._rank(p, candidates, traces)
-    assert mass_first is None  # no mass problem was given
-    monkeypatch.undo()
-    every = _solve_all(p, candidates, traces)
-    costs = np.array([res.cost for _, res in every])
-    order = np.argsort(costs, kind="stable")[: fixed.SELECTION_TOP]
-    by_r = {r: (coef, res) for _, r, coef, res in ranked}
-    got = sorted(by_r, key=lambda r: by_r[r][1].cost)[: fixed.SELECTION_TOP]
-    assert got == [candidates[i] for i in order]
-    for i in order:
-        coef, res = by_r[candidates[i]]
-        want = every[i][0].copy()
-        want[candidates[i]] = 1.0
-        # measured: equal bit for bit (the same refit of the same support); other
-        # BLAS kernels may round the batches' padded products differently
-        np.testing.assert_array_equal(coef != 0, want != 0)
-        np.testing.assert_allclose(coef, want, rtol=1e-12, atol=0)
-        # the batch's residual sums run over other coordinates: measured 5e-15
-        np.testing.assert_allclose(res.cost, costs[i], rtol=1e-12)
-    # Every candidate left out has a bound above the shortlist's last residual.
-    g, _ = p.balanced.block(np.flatnonzero(p.identifiable))
-    bound = dict(zip(np.flatnonzero(p.identifiable), fixed_term_bounds(g)))
-    last = costs[order[-1]]
-    for r in candidates:
-        if r not in by_r:
-            assert bound[r] > last
-    assert sum(batches) == len(by_r)
-    n = len(candidates)
-    if which == 20:  # tight bounds: measured 13 of 39 solved, in one batch
-        assert len(batches) == 1 and batches[0] <= 16
-    elif which == 6:  # looser bounds, the first batch the 12 smallest: [12, 18]
-        assert len(batches) == 2 and batches[0] == fixed.SELECTION_TOP
-        assert sum(batches) < n
-    else:  # a noise correction: most bounds 0, every candidate in one batch
-        assert batches == [n]
 
 
 def test_batched_dense_residuals_equal_one_at_a_time():
@@ -181,3 +137,43 @@ def test_problems_cut_from_one_block_equal_problem_bit_for_bit():
         assert torch.equal(alone.gram, g) and torch.equal(alone.rhs, datafit.rhs)
     with pytest.raises(ValueError, match="identically zero"):
         balanced.problems([([0, 1], 4, 1.0)])
+
+
+class _Block:
+    """A stand-in for BalancedGram: ``block(free)`` gives a fixed scaled block."""
+
+    def __init__(self, eigenvalues):
+        rotation = torch.linalg.qr(torch.randn(3, 3, dtype=torch.float64))[0]
+        values = torch.tensor(eigenvalues, dtype=torch.float64)
+        self.gram = rotation @ torch.diag(values) @ rotation.T
+
+    def block(self, free):
+        return self.gram, None
+
+
+@pytest.mark.parametrize(
+    "small, allowed, warns",
+    [
+        (NULL_RCOND * 0.99, 0, True),  # a null combination in case I
+        (NULL_RCOND * 1.01, 0, False),
+        (NULL_RCOND * 0.99, 1, False),  # case III expects one (the Lagrangian)
+    ],
+)
+def test_null_combinations_are_eigenvalues_below_the_relative_floor(
+    small, allowed, warns
+):
+    """An eigenvalue of the scaled block at most NULL_RCOND times the largest is a
+    null combination; more of them than ``allowed`` warn."""
+    from lagsindy.formulation.scaling import (
+        IdentifiabilityWarning,
+        warn_if_not_identifiable,
+    )
+
+    block = _Block([small, 0.5, 1.0])
+    names = ["a", "b", "c"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        warn_if_not_identifiable(block, np.arange(3), names, allowed=allowed)
+    assert [w.category for w in caught] == ([IdentifiabilityWarning] if warns else [])
+    if warns:
+        assert "1 combination(s) of candidate terms" in str(caught[0].message)

@@ -1,6 +1,7 @@
 """A passive fit that predicts its own accelerations poorly says so, and fits that
 fail on angles beyond two turns ask whether they are in degrees."""
 
+import dataclasses
 import warnings
 
 import numpy as np
@@ -10,7 +11,12 @@ import torch
 
 from lagsindy import LagrangianSINDy
 from lagsindy.formulation.weak import WindowWarning
-from lagsindy.model import POOR_ACCELERATIONS, degrees_hint
+from lagsindy.model import (
+    ANGLE_POLYNOMIAL_SHARE,
+    POOR_ACCELERATIONS,
+    UNEXPLAINED_FORCES,
+    degrees_hint,
+)
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
 
@@ -295,3 +301,117 @@ def test_case_ii_fit_that_predicts_nothing_warns():
         ).fit(X)
     assert est.case_ == "acceleration"
     assert est.score(X) == pytest.approx(0.0, abs=0.01)
+
+
+# ------------------------------------------------------- thresholds at their boundary
+@pytest.fixture(scope="module")
+def forced():
+    """A noise-free forced single pendulum and its (exact) fit."""
+    system = single_pendulum()
+    data = make_dataset(
+        system, n_trajectories=4, duration=3.0, excitation="sincos", random_state=0
+    )
+    est = LagrangianSINDy(system.paper_library()).fit(
+        data.X, data.tau, groups=data.groups
+    )
+    return data, est
+
+
+def _messages(call):
+    """``call()``'s result and the messages of the warnings it raised."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = call()
+    return out, [str(w.message) for w in caught]
+
+
+@pytest.mark.parametrize(
+    "r2, warns",
+    [
+        (POOR_ACCELERATIONS - 1e-3, True),
+        (POOR_ACCELERATIONS, False),
+        (POOR_ACCELERATIONS + 1e-3, False),
+        (0.3, True),  # between half the threshold and the threshold
+    ],
+)
+def test_forced_acceleration_check_warns_just_below_its_threshold(
+    forced, monkeypatch, r2, warns
+):
+    data, est = forced
+    fitted = est.fitted_
+    monkeypatch.setattr(
+        type(fitted), "coordinate_acceleration_r2", lambda self, Xt, tau: {"theta": r2}
+    )
+    Xt = torch.as_tensor(np.asarray(data.X))
+    scores, messages = _messages(
+        lambda: fitted.warn_poor_accelerations(Xt, tau=data.tau)
+    )
+    assert scores == {"theta": r2}
+    assert len(messages) == int(warns)
+    if warns:
+        assert f"theta with R^2 = {r2:.2f}" in messages[0]
+
+
+def test_a_forced_model_between_half_and_the_whole_threshold_warns(forced):
+    """A real model, not a constructed score: the pendulum's potential 75 % too
+    strong predicts theta's accelerations from the forces with R^2 0.415 (between
+    a quarter and a half, where a check at half its threshold passes silently)."""
+    data, est = forced
+    names = [str(t) for t in est.fitted_.library.terms_]
+    coef = est.coef_.copy()
+    coef[names.index("cos(theta)")] *= 1.75
+    wrong = dataclasses.replace(est.fitted_, coef=coef)
+    Xt = torch.as_tensor(np.asarray(data.X))
+    scores, messages = _messages(
+        lambda: wrong.warn_poor_accelerations(Xt, tau=data.tau)
+    )
+    assert scores["theta"] == pytest.approx(0.4154, abs=1e-3)  # measured 0.41541
+    assert len(messages) == 1 and "theta with R^2 = 0.42" in messages[0]
+    # the right model: R^2 1 to rounding, no warning
+    scores, messages = _messages(
+        lambda: est.fitted_.warn_poor_accelerations(Xt, tau=data.tau)
+    )
+    assert scores["theta"] > 1 - 3e-8 and not messages  # measured 1 - 5.2e-9
+
+
+@pytest.mark.parametrize(
+    "residual, warns",
+    [
+        (UNEXPLAINED_FORCES - 1e-3, False),
+        (UNEXPLAINED_FORCES, False),
+        (UNEXPLAINED_FORCES + 1e-3, True),
+    ],
+)
+def test_unexplained_forces_warn_just_above_their_threshold(forced, residual, warns):
+    _, est = forced
+    fitted = dataclasses.replace(est.fitted_, residual=residual)
+    _, messages = _messages(lambda: fitted.warn_unexplained())
+    assert len(messages) == int(warns)
+    if warns:
+        assert f"leaves {residual:.0%} of the measured forces" in messages[0]
+
+
+@pytest.mark.parametrize(
+    "share, flagged",
+    [
+        (ANGLE_POLYNOMIAL_SHARE * (1 - 1e-6), []),
+        (ANGLE_POLYNOMIAL_SHARE, ["theta"]),
+        (2 * ANGLE_POLYNOMIAL_SHARE, ["theta"]),
+    ],
+)
+def test_angle_polynomials_count_from_their_share_of_the_largest_term(
+    forced, share, flagged
+):
+    """A term counts when its part |c_k| norms_k is at least ANGLE_POLYNOMIAL_SHARE
+    of the largest term's."""
+    data, est = forced
+    fitted = dataclasses.replace(est.fitted_)
+    names = [str(t) for t in fitted.library.terms_]
+    fitted.coef = np.zeros(len(names))
+    fitted.coef[names.index("theta_dot**2")] = 1.0
+    fitted.coef[names.index("theta**2")] = -share
+    norms = np.ones(len(names))
+    X = torch.as_tensor(np.asarray(data.X, dtype=float))
+    X[:, 0] = 13.0  # beyond two turns
+    got, messages = _messages(lambda: fitted.warn_angle_polynomials(X, norms))
+    assert got == flagged and len(messages) == len(flagged)
