@@ -9,6 +9,7 @@ from numbers import Real
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from .clock import CleanedClock, clean_clock
 from .methods import _check_savgol_params, _cubic_spline, _finite_difference, _savgol
 from .pspline import _pspline
 from .records import (
@@ -43,6 +44,8 @@ def derivatives(
     angles=None,
     gap_factor: float | None = _GAP_FACTOR,
     return_groups: bool = False,
+    clean=True,
+    return_clock: bool = False,
 ):
     """Estimate ``[q, q_dot, q_ddot]`` from sampled positions, trajectory by trajectory.
 
@@ -171,18 +174,79 @@ def derivatives(
     if gap_factor is not None and not (isinstance(gap_factor, Real) and gap_factor > 1):
         raise ValueError(f"gap_factor must be a number > 1 or None, got {gap_factor!r}")
     segments = _segments(groups, n)
-    times = _check_times(t, n, segments)
-    segments, gaps, glitches, skips = _split_at_gaps(times, segments, gap_factor)
-    if gaps:
-        _warn_gaps(gaps, times, gap_factor)
-    if glitches:
-        _warn_glitches(glitches, times)
-    if skips:
-        _warn_skips(skips, times)
+    need = _MIN_SAMPLES[method]
+    clock = None
+    if clean is False:
+        times = _check_times(t, n, segments)
+        segments, gaps, glitches, skips = _split_at_gaps(times, segments, gap_factor)
+        if gaps:
+            _warn_gaps(gaps, times, gap_factor)
+        if glitches:
+            _warn_glitches(glitches, times)
+        if skips:
+            _warn_skips(skips, times)
+        rows = None
+    else:
+        if isinstance(clean, CleanedClock):
+            clock = clean
+            if clock.keep.shape != (n,):
+                raise ValueError(
+                    f"clean is a CleanedClock of {clock.keep.shape[0]} rows, but q "
+                    f"has {n}; clean the same rows: clean_clock(t, q, groups, ...)"
+                )
+        elif clean is True:
+            _check_lengths(segments, need, method)
+            clock = clean_clock(
+                t, q, groups, gap_factor=gap_factor, angles=mask, min_samples=need
+            )
+            clock.warn(stacklevel=2)
+        else:
+            raise ValueError(
+                f"clean must be True, False or a CleanedClock, got {clean!r}"
+            )
+        rows = np.flatnonzero(clock.keep)
+        q = q[rows]
+        times = clock.t[rows]
+        labels = clock.groups[rows]
+        bounds = np.r_[0, np.flatnonzero(np.diff(labels)) + 1, rows.size]
+        segments = [
+            (int(labels[a]), slice(int(a), int(b)))
+            for a, b in zip(bounds[:-1], bounds[1:])
+        ]
     wrapped = _wrapped_columns(q, segments, mask)
     if wrapped:
         _warn_wrapped(wrapped, times)
-    need = _MIN_SAMPLES[method]
+    _check_lengths(segments, need, method)
+    out = _estimate(
+        q, times, segments, mask, method, window, polyorder, smoothing, need
+    )
+    if clock is not None:
+        full = np.full((n, 3 * n_dof), np.nan)
+        full[rows] = out
+        carried = clock.valid & ~clock.keep
+        full[carried] = full[clock.source[carried]]
+        out = full
+    result = (out,)
+    if return_groups:
+        if clock is not None:
+            result += (clock.groups.copy(),)
+        else:
+            labels = np.empty(n, dtype=int)
+            for k, (_, sl) in enumerate(segments):
+                labels[sl] = k
+            result += (labels,)
+    if return_clock:
+        if clock is None:
+            raise ValueError(
+                "return_clock=True needs the clock cleaning (clean=True or a "
+                "CleanedClock)"
+            )
+        result += (clock,)
+    return result[0] if len(result) == 1 else result
+
+
+def _check_lengths(segments, need, method):
+    """Refuse trajectories (or segments) shorter than the method needs."""
     for key, sl in segments:
         if sl.stop - sl.start < need:
             if isinstance(key, tuple):
@@ -198,6 +262,11 @@ def derivatives(
                 f"{where} {sl.stop - sl.start}; use a method that needs fewer "
                 "(finite_difference needs 3) or drop the short trajectory"
             )
+
+
+def _estimate(q, times, segments, mask, method, window, polyorder, smoothing, need):
+    """The method's ``[q, q_dot, q_ddot]`` on every segment (rows of ``q``)."""
+    n, n_dof = q.shape
     out = np.empty((n, 3 * n_dof))
     shortened = []
     cache = {}
@@ -229,13 +298,8 @@ def derivatives(
             f"shortest has {min(m for _, m in shortened)} samples); they used the "
             "longest odd window they hold, so their derivatives are less smoothed",
             UserWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
-    if return_groups:
-        labels = np.empty(n, dtype=int)
-        for k, (_, sl) in enumerate(segments):
-            labels[sl] = k
-        return out, labels
     return out
 
 
