@@ -48,6 +48,7 @@ import numpy as np
 
 from .cycle import (
     MOTION_ROWS,
+    cycle_from_motion,
     cycle_from_stamps,
     cycle_from_velocities,
     motion_scores,
@@ -71,7 +72,7 @@ from .records import (
 EDGE_SAMPLES = 3
 # The positions must be at least this much smoother (GCV score ratio) on a cycle
 # than on the stamps for the time base to be rebuilt.
-REBUILD_RATIO = 0.5
+REBUILD_RATIO = 0.9
 
 
 class ClockWarning(UserWarning):
@@ -151,11 +152,12 @@ def _stale_rows(q: np.ndarray) -> np.ndarray:
 
     A run of rows equal to row ``k0`` is stale when, in some coordinate, the step
     into ``k0`` (``b``), the jump out of the run (``a``) and the step after it
-    (``c``) have the same sign, ``b`` and ``c`` exceed a quarter of the coordinate's
-    median step (and 3 of its smallest steps, the encoder's resolution), and the jump
-    covers the missed motion, ``|a| >= (r + 1) / 2 min(|b|, |c|)`` for ``r``
-    repeats. An encoder sitting still at a turning point (a slow step before or
-    after, or a change of direction) is no stale row.
+    (``c``, the next step that is no repeat) have the same sign, ``b`` and ``c``
+    exceed 3 of the coordinate's smallest steps (the encoder's resolution), and the
+    jump catches up the missed motion, ``|a| >= 0.75 (r + 1) min(|b|, |c|)`` for
+    ``r`` repeats. An encoder sitting still at a turning point (a change of
+    direction, or a jump no larger than the steps around it: quantization) is no
+    stale row.
     """
     n = q.shape[0]
     stale = np.zeros(n, dtype=bool)
@@ -166,15 +168,11 @@ def _stale_rows(q: np.ndarray) -> np.ndarray:
         return stale
     step = np.abs(np.diff(q, axis=0))
     moving = step > 0
-    med = np.array(
-        [np.median(step[moving[:, j], j]) if moving[:, j].any() else 0.0
-         for j in range(q.shape[1])]
-    )  # fmt: skip
     least = np.array(
         [step[moving[:, j], j].min() if moving[:, j].any() else 0.0
          for j in range(q.shape[1])]
     )  # fmt: skip
-    threshold = np.maximum(0.25 * med, 3 * least)
+    threshold = 3 * least
     d = np.diff(q, axis=0)  # d[k] = q[k + 1] - q[k]
     starts = np.flatnonzero(same)
     i = 0
@@ -188,13 +186,16 @@ def _stale_rows(q: np.ndarray) -> np.ndarray:
             continue  # needs a step before and a jump after
         b = d[k0 - 1]
         a = q[k0 + r + 1] - q[k0]
-        c = d[k0 + r + 1] if k0 + r + 2 < n else b
+        j = k0 + r + 1  # the step after the jump, skipping further repeats
+        while j + 1 < n and same[j]:
+            j += 1
+        c = d[j] if j + 1 < n else b
         ok = (
             (np.sign(a) == np.sign(b))
             & (np.sign(c) == np.sign(b))
             & (np.abs(b) > threshold)
             & (np.abs(c) > threshold)
-            & (np.abs(a) >= 0.5 * (r + 1) * np.minimum(np.abs(b), np.abs(c)))
+            & (np.abs(a) >= 0.75 * (r + 1) * np.minimum(np.abs(b), np.abs(c)))
         )
         if ok.any():
             stale[k0 + 1 : k0 + r + 1] = True
@@ -390,19 +391,26 @@ class _State:
                 f"{_describe_rows(stale, stamps)}. Dropped: each carries the "
                 "estimate of the row it repeats (clock.keep marks the distinct rows)"
             )
-        for rows, p, jitter, ratio in self.retimed:
-            why = (
-                f"the positions are {1 / ratio:.3g}x smoother on it (GCV)"
-                if np.isfinite(ratio) and ratio > 0
-                else "the stamps go back in time"
-                if ratio == 0
-                else "rebuild=True"
-            )
+        if self.retimed:
+            rows = np.concatenate([r for r, *_ in self.retimed])
+            periods = [p for _, p, _, _ in self.retimed]
+            jitter = np.sqrt(np.mean([j**2 for _, _, j, _ in self.retimed]))
+            ratios = np.array([r for *_, r in self.retimed])
+            if np.all(np.isfinite(ratios) & (ratios > 0)):
+                why = (
+                    f"the positions are {1 / ratios.max():.3g}x to "
+                    f"{1 / ratios.min():.3g}x smoother on it (GCV)"
+                )
+            elif np.any(ratios == 0):
+                why = "some stamps go back in time"
+            else:
+                why = "rebuild=True"
             texts.append(
-                f"the time stamps of rows {rows[0]}-{rows[-1]} disagree with the "
-                f"motion: they scatter by {jitter:.3g} s rms around a regular cycle "
-                f"of {p:.6g} s and {why}; their time base was rebuilt on the "
-                "cycle (clock.t; pass rebuild=False to keep the stamps)"
+                f"the time stamps of {len(self.retimed)} trajectory(ies) ({rows.size} "
+                f"rows, from row {rows.min()}) disagree with the motion: they scatter "
+                f"by {jitter:.3g} s rms around a regular cycle of "
+                f"{np.median(periods):.6g} s and {why}; the time base was rebuilt on "
+                "the cycle (clock.t; rebuild=False keeps the stamps)"
             )
         dup = sorted(self.rows["duplicate"])
         if dup:
@@ -529,12 +537,14 @@ def _raise_backwards(key, row, previous, stamps):
 def _try_cycle(state, fresh, tf, q, v, mask, period, rebuild, factor):
     """Rebuild the time of the rows ``fresh`` on a regular cycle when the motion
     agrees better with it; returns (counts, period) or (None, None)."""
-    found = None
-    if v is not None:
-        qf = q[fresh]
-        found = cycle_from_velocities(tf, qf, v[fresh], period)
-    if found is None:
-        found = cycle_from_stamps(tf, period)
+    found = cycle_from_stamps(tf, period)
+    if found is None and v is not None:
+        found = cycle_from_velocities(tf, q[fresh], v[fresh], period)
+    if found is None and (rebuild is True or np.any(np.diff(tf) <= 0)):
+        qf = q[fresh].copy()
+        if mask.any():
+            qf[:, mask] = np.unwrap(qf[:, mask], axis=0)
+        found = cycle_from_motion(tf, qf, period)
     if found is None:
         return None, None
     counts, phase, p, _ = found
