@@ -151,4 +151,5 @@ from .records import (  # noqa: F401
     check_weak_form_segments,
     split_gaps,
 )
+from .resample import Resampled, resample  # noqa: F401
 from .transformer import Derivatives  # noqa: F401

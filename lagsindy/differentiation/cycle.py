@@ -279,8 +279,9 @@ def _most_likely_counts(x, step, sigma, jitter, reach=2):
     base = np.round(x).astype(np.int64)
     cand = base[:, None] + offsets[None, :]  # (n, states)
     own = ((x[:, None] - cand) / jitter) ** 2
-    weight = np.where(np.isfinite(sigma), 1.0 / np.where(np.isfinite(sigma), sigma, 1.0) ** 2, 0.0)
-    step = np.where(np.isfinite(sigma), step, 0.0)
+    known = np.isfinite(sigma)
+    weight = np.where(known, 1.0 / np.where(known, sigma, 1.0) ** 2, 0.0)
+    step = np.where(known, step, 0.0)
     cost = own[0].copy()
     back = np.empty((n, offsets.size), dtype=np.int64)
     for k in range(1, n):
