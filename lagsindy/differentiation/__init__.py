@@ -99,6 +99,12 @@ from sklearn.utils.validation import check_is_fitted, validate_data  # noqa: F40
 from threadpoolctl import ThreadpoolController  # noqa: F401
 
 from .._expr import ACCELERATION_SUFFIX, VELOCITY_SUFFIX, state_names  # noqa: F401
+from ._timegrid import (  # noqa: F401
+    TimeWindows,
+    quadrature_weights,
+    time_test_functions,
+    trapezoid_weights,
+)
 from .clock import EDGE_SAMPLES, CleanedClock, ClockWarning, clean_clock  # noqa: F401
 from .core import (  # noqa: F401
     _CONTROLLER,
