@@ -27,8 +27,9 @@ What it does, per trajectory:
 4. **Gaps**: a step longer than ``gap_factor`` base periods splits the trajectory
    into segments. Single dropped frames (steps of 1.5 to ``gap_factor`` periods) are
    kept: derivatives and integrals use the actual times.
-5. **Short segments** (fewer samples than the differentiation method needs): no
-   estimate; ``valid`` is False there.
+5. **Short segments** (fewer samples than the differentiation method needs, between
+   two gaps): kept as their own segments, but :func:`derivatives` estimates them
+   with the neighbouring segments across the gaps; their rows are flagged ``edge``.
 6. **Edges**: the first and last ``edge_samples`` rows of every segment, where every
    derivative estimate is one-sided and its error several times the interior's,
    are flagged (``edge``), for fits and scores to leave out.
@@ -86,8 +87,8 @@ class CleanedClock:
     Attributes
     ----------
     keep : ndarray of bool of shape (n_samples,)
-        Rows that are distinct, usable samples (not stale repeats, not merged
-        near-duplicates, not in a segment too short to differentiate).
+        Rows that are distinct samples (not stale repeats, not merged
+        near-duplicates).
     source : ndarray of int of shape (n_samples,)
         For each row, the row whose sample it carries: itself when kept, the row it
         repeats or merges into otherwise.
@@ -98,15 +99,19 @@ class CleanedClock:
         Segment number of each row, 0, 1, ... in row order (trajectories cut at
         their gaps); dropped rows carry their source's.
     valid : ndarray of bool of shape (n_samples,)
-        Rows that get an estimate (False in segments too short to differentiate).
+        Rows that get an estimate (False only where :func:`derivatives` found a
+        segment too short to differentiate with no neighbour to lean on).
     edge : ndarray of bool of shape (n_samples,)
-        Valid rows within ``edge_samples`` kept rows of a segment's end.
+        Rows within ``edge_samples`` kept rows of a segment's end, and every row of
+        a segment shorter than ``min_samples``: their estimates are less accurate
+        (fits and scores should leave them out).
     report : tuple of str
         One line per defect found (and one counting the edge rows).
     defects : dict of str to ndarray
         Rows concerned, per defect: ``"stale"``, ``"duplicate"`` (rows dropped),
         ``"gap"`` (first row after each gap), ``"dropped"`` (first row after each
-        dropped frame), ``"short"`` (rows of too-short segments), ``"retimed"``
+        dropped frame), ``"short"`` (kept rows of segments shorter than
+        ``min_samples``), ``"retimed"``
         (rows of trajectories whose time base was rebuilt).
     period : float or None
         The cycle the time base was rebuilt on (None: the stamps were kept).
@@ -251,7 +256,8 @@ def clean_clock(
     angles : list of int, boolean mask or "all", default=None
         Angular coordinates, unwrapped for the motion check.
     min_samples : int, default=7
-        Segments with fewer samples get no estimate (``valid`` False).
+        Segments with fewer samples are reported (``defects["short"]``) and flagged
+        ``edge``.
     edge_samples : int, default=3
         Rows flagged at each end of every segment.
     warn : bool, default=False
@@ -343,12 +349,8 @@ class _State:
                 edge[kept[a : a + edge_samples]] = True
                 edge[kept[max(b - edge_samples, a) : b]] = True
         short = np.concatenate(short) if short else np.zeros(0, dtype=int)
-        if short.size:
-            valid[short] = False
-            valid[~keep] = valid[source[~keep]]
-            keep[short] = False
+        edge[short] = True
         edge[~keep] = edge[source[~keep]]
-        edge &= valid
         lines, texts = self._lines(stamps, factor, min_samples, short, groups)
         count = int(edge.sum())
         lines.append(
@@ -440,9 +442,9 @@ class _State:
             where = _describe_rows(short.tolist(), stamps, limit=3)
             texts.append(
                 f"{n_seg} segment(s) between gaps have fewer than {min_samples} "
-                f"samples ({short.size} row(s): {where}): too short to differentiate, "
-                "their rows get no estimate (NaN from derivatives; clock.valid is "
-                "False): drop them, e.g. X[clock.valid]"
+                f"samples ({short.size} row(s): {where}): too few to differentiate on "
+                "their own; derivatives estimates them across the neighbouring "
+                "gap(s) (less accurate: flagged in clock.edge)"
             )
         return list(texts), texts
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from numbers import Real
@@ -204,8 +205,10 @@ def derivatives(
             raise ValueError(
                 f"clean must be True, False or a CleanedClock, got {clean!r}"
             )
-        rows = np.flatnonzero(clock.keep)
-        q = q[rows]
+        short = np.zeros(n, dtype=bool)
+        short[clock.defects.get("short", [])] = True
+        rows = np.flatnonzero(clock.keep & ~short)
+        q_all, q = q, q[rows]
         times = clock.t[rows]
         labels = clock.groups[rows]
         bounds = np.r_[0, np.flatnonzero(np.diff(labels)) + 1, rows.size]
@@ -223,6 +226,9 @@ def derivatives(
     if clock is not None:
         full = np.full((n, 3 * n_dof), np.nan)
         full[rows] = out
+        if short.any():
+            args = (method, window, polyorder, smoothing, need)
+            clock = _bridge(full, q_all, clock, short, groups, mask, args)
         carried = clock.valid & ~clock.keep
         full[carried] = full[clock.source[carried]]
         out = full
@@ -243,6 +249,56 @@ def derivatives(
             )
         result += (clock,)
     return result[0] if len(result) == 1 else result
+
+
+def _bridge(full, q, clock, short, groups, mask, args):
+    """Estimates of segments too short to differentiate, across their gaps.
+
+    Each run of short segments is fitted together with the nearest full segment on
+    each side (same trajectory), and only its own rows are kept from that fit. A run
+    with no full neighbour keeps NaN and ``valid`` False (returned clock).
+    """
+    method, window, polyorder, smoothing, need = args
+    n = full.shape[0]
+    trajectory = np.empty(n, dtype=int)
+    for k, (_, sl) in enumerate(_segments(groups, n)):
+        trajectory[sl] = k
+    kept = np.flatnonzero(clock.keep)
+    label = clock.groups[kept]
+    starts = np.r_[0, np.flatnonzero(np.diff(label)) + 1]
+    stops = np.r_[starts[1:], kept.size]
+    pieces = [kept[a:b] for a, b in zip(starts, stops)]
+    is_short = [bool(short[p[0]]) for p in pieces]
+    valid = clock.valid.copy()
+    i = 0
+    while i < len(pieces):
+        if not is_short[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < len(pieces) and is_short[j + 1]:
+            j += 1
+        run = np.concatenate(pieces[i : j + 1])
+        union = [run]
+        own = trajectory[run[0]]
+        if i > 0 and trajectory[pieces[i - 1][0]] == own:
+            union.insert(0, pieces[i - 1])
+        if j + 1 < len(pieces) and trajectory[pieces[j + 1][0]] == own:
+            union.append(pieces[j + 1])
+        union = np.concatenate(union)
+        if union.size >= need and len(union) > len(run):
+            est = _estimate(
+                q[union], clock.t[union], [(None, slice(0, union.size))], mask,
+                method, window, polyorder, smoothing, need,
+            )  # fmt: skip
+            full[run] = est[np.searchsorted(union, run)]
+        else:
+            valid[run] = False
+        i = j + 1
+    if not valid.all():
+        valid[~clock.keep] = valid[clock.source[~clock.keep]]
+        clock = dataclasses.replace(clock, valid=valid)
+    return clock
 
 
 def _check_lengths(segments, need, method):
