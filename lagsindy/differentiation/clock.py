@@ -71,6 +71,12 @@ from .records import (
 # the 1st, 2nd and 3rd sample from a segment end is 8-10x, 5-7x and 2-3x the
 # interior's, from the 4th on below 2x.
 EDGE_SAMPLES = 3
+# A stale row needs the steps around it larger than this fraction of the
+# coordinate's median step: an encoder near a turning point of the shipped
+# MultiArm single pendulum (steps of 3e-5 to 6e-5 rad against a median of 4e-3
+# and a resolution of 1.6e-4) repeats a reading with the motion carrying on; a
+# logger's stale rows on a simulated double pendulum sat at 0.19 to 0.28 medians.
+STALE_MIN_STEP = 0.1
 # The positions must be at least this much smoother (GCV score ratio) on a cycle
 # than on the stamps for the time base to be rebuilt.
 REBUILD_RATIO = 0.9
@@ -158,8 +164,9 @@ def _stale_rows(q: np.ndarray) -> np.ndarray:
     A run of rows equal to row ``k0`` is stale when, in some coordinate, the step
     into ``k0`` (``b``), the jump out of the run (``a``) and the step after it
     (``c``, the next step that is no repeat) have the same sign, ``b`` and ``c``
-    exceed 3 of the coordinate's smallest steps (the encoder's resolution), and the
-    jump catches up the missed motion, ``|a| >= 0.75 (r + 1) min(|b|, |c|)`` for
+    exceed 3 of the coordinate's smallest steps (the encoder's resolution) and a
+    tenth of its median step (``STALE_MIN_STEP``), and the jump catches up the
+    missed motion, ``|a| >= 0.75 (r + 1) min(|b|, |c|)`` for
     ``r`` repeats. An encoder sitting still at a turning point (a change of
     direction, or a jump no larger than the steps around it: quantization) is no
     stale row.
@@ -177,7 +184,11 @@ def _stale_rows(q: np.ndarray) -> np.ndarray:
         [step[moving[:, j], j].min() if moving[:, j].any() else 0.0
          for j in range(q.shape[1])]
     )  # fmt: skip
-    threshold = 3 * least
+    typical = np.array(
+        [np.median(step[moving[:, j], j]) if moving[:, j].any() else 0.0
+         for j in range(q.shape[1])]
+    )  # fmt: skip
+    threshold = np.maximum(3 * least, STALE_MIN_STEP * typical)
     d = np.diff(q, axis=0)  # d[k] = q[k + 1] - q[k]
     starts = np.flatnonzero(same)
     i = 0
