@@ -292,4 +292,6 @@ def time_test_functions(
     shape = (n_win, n)
     a = sparse.csr_matrix((-h * dpsi, (rows, cols)), shape=shape)
     b = sparse.csr_matrix((-h * psi, (rows, cols)), shape=shape)
+    a.eliminate_zeros()
+    b.eliminate_zeros()
     return TimeWindows(a, b, starts, window, stride)

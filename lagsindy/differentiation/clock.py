@@ -310,8 +310,10 @@ def clean_clock(
     if not (isinstance(edge_samples, (int, np.integer)) and edge_samples >= 0):
         raise ValueError(f"edge_samples must be an integer >= 0, got {edge_samples!r}")
     if velocities is not None:
-        velocities = np.asarray(velocities, dtype=np.float64).reshape(n, -1)
-        if velocities.shape[1] != n_dof or not np.all(np.isfinite(velocities)):
+        velocities = np.asarray(velocities, dtype=np.float64)
+        if velocities.ndim == 1:
+            velocities = velocities[:, None]
+        if velocities.shape != (n, n_dof) or not np.all(np.isfinite(velocities)):
             raise ValueError(
                 f"velocities must be finite, of shape ({n}, {n_dof}) like q, got "
                 f"shape {velocities.shape}"
@@ -482,7 +484,7 @@ def _clean_trajectory(state, key, sl, stamps, q, v, mask, period, rebuild, facto
         position, unit = tf, float(np.median(moves)) if moves.size else 1.0
         # on an irregular clock close stamps are legitimate samples: only equal or
         # backward stamps are defects there
-        regular = np.mean(np.abs(steps - unit) <= 0.1 * unit) >= 0.9
+        regular = _regular(steps, unit)
         close = _GLITCH_FRACTION if regular else 0.0
     # near-duplicates (equal or slightly backward stamps included): merged into the
     # previous kept row
@@ -508,7 +510,7 @@ def _clean_trajectory(state, key, sl, stamps, q, v, mask, period, rebuild, facto
     if counts is None:
         unit = float(np.median(steps)) if steps.size else 1.0
         base = unit
-        regular = bool(np.mean(np.abs(steps - unit) <= 0.1 * unit) >= 0.9)
+        regular = _regular(steps, unit)
     else:
         unit = 1.0
         regular = True
@@ -528,6 +530,15 @@ def _clean_trajectory(state, key, sl, stamps, q, v, mask, period, rebuild, facto
         state.rows["dropped"].extend(kept[np.flatnonzero(skipped) + 1].tolist())
     moved = rows[state.source[rows] != rows]
     state.t[moved] = state.t[state.source[moved]]
+
+
+def _regular(steps, unit) -> bool:
+    """A regular clock: 90 % of the steps within 10 % of a whole number (>= 1) of
+    ``unit`` (dropped frames are steps of 2, 3, ... units)."""
+    if steps.size == 0 or not unit > 0:
+        return False
+    whole = np.maximum(np.round(steps / unit), 1.0)
+    return bool(np.mean(np.abs(steps - whole * unit) <= 0.1 * unit) >= 0.9)
 
 
 def _raise_backwards(key, row, previous, stamps):
