@@ -403,3 +403,15 @@ def test_invalid_clock_arguments():
         derivatives(q, t, clean=False, return_clock=True)
     with pytest.raises(ValueError, match="window must be a positive"):
         time_test_functions(t, 0.0, 0.1)
+
+
+@pytest.mark.parametrize("name", ["clock", "_timegrid", "resample", "core"])
+def test_the_examples_in_the_docstrings_run(name):
+    import doctest
+    import importlib
+
+    module = importlib.import_module(f"lagsindy.differentiation.{name}")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ClockWarning)
+        result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
+    assert result.failed == 0 and result.attempted > 0

@@ -92,15 +92,29 @@ def derivatives(
         unwrapped (continuous) angles, not reduced to (-pi, pi].
     gap_factor : float or None, default=5.0
         A time step longer than ``gap_factor`` times the median step of its
-        trajectory is a gap: the trajectory is cut there and each segment is
-        differentiated on its own (nothing is interpolated across a gap), with one
-        ``UserWarning`` saying where. Fit with the segments as trajectories
-        (``return_groups=True`` or :func:`split_gaps`). ``None``: no gap detection.
-        Rows less than a quarter of the median step after the previous one
-        (duplicated or mistimed frames) are reported by a ``UserWarning`` naming
-        them.
+        trajectory (or the rebuilt cycle) is a gap: the trajectory is cut there and
+        each segment is differentiated on its own (nothing is interpolated across a
+        gap), with one ``UserWarning`` saying where. Fit with the segments as
+        trajectories (``return_groups=True`` or :func:`split_gaps`). ``None``: no
+        gap detection.
     return_groups : bool, default=False
         Also return the segment labels (see :func:`split_gaps`).
+    clean : bool or CleanedClock, default=True
+        Clean the clock first (:func:`clean_clock`, one :class:`ClockWarning` per
+        defect found): rows repeating the previous row's positions while the system
+        moves (a logger re-reading a stale sample) and near-duplicate stamps are
+        dropped from the fits (each such row gets the estimate of the row it
+        repeats), stamps that jitter around a regular cycle which the positions
+        follow better are rebuilt on it, trajectories are cut at gaps, single
+        dropped frames are kept, segments too short to differentiate are estimated
+        across their gaps, and the rows near every segment's end are flagged
+        (``edge``). An even clock is left exactly as it is. A
+        :class:`CleanedClock`: use it (e.g. ``clean_clock(t, q,
+        velocities=recorded)``). ``False``: the stamps as given (rows closer than a
+        quarter step and dropped samples are only reported).
+    return_clock : bool, default=False
+        Also return the :class:`CleanedClock` (rows kept, their times, segments,
+        ``edge`` rows, the report); needs ``clean``.
 
     Returns
     -------
@@ -111,14 +125,21 @@ def derivatives(
     groups : ndarray of int of shape (n_samples,)
         Only with ``return_groups=True``: the segment number of each row (the
         trajectories cut at their gaps), to pass as ``groups`` to ``fit``.
+    clock : CleanedClock
+        Only with ``return_clock=True``. ``clock.rows``, ``clock.t[clock.rows]`` and
+        ``clock.groups[clock.rows]`` are the distinct samples on the cleaned clock
+        (apply ``clock.rows`` to the other columns, e.g. forces, too);
+        ``clock.edge`` marks the rows within 3 samples of a segment's end, whose
+        estimates are several times less accurate.
 
     Raises
     ------
     ValueError
-        If q or t contain NaN or infinite values, t is not strictly increasing
-        within a trajectory, a trajectory's rows are not contiguous, a trajectory
-        is shorter than the method needs (7 samples for ``"pspline"``, 5 for
-        ``"spline"``, 3 otherwise), or a parameter is invalid.
+        If q or t contain NaN or infinite values, t goes back within a trajectory
+        (by more than a quarter step, with no regular cycle to explain it; with
+        ``clean=False``: t is not strictly increasing), a trajectory's rows are not
+        contiguous, a trajectory is shorter than the method needs (7 samples for
+        ``"pspline"``, 5 for ``"spline"``, 3 otherwise), or a parameter is invalid.
 
     See Also
     --------
@@ -126,6 +147,8 @@ def derivatives(
 
     Notes
     -----
+    One row comes out per row in: rows the clock cleaning drops repeat the estimate
+    of their source row, so the output still lines up with the caller's forces.
     Non-uniform time stamps are used directly by every method, with no resampling:
     finite differences use the exact non-uniform stencil weights (the interior
     second derivative is then first order where consecutive steps differ); the
