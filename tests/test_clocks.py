@@ -415,3 +415,22 @@ def test_the_examples_in_the_docstrings_run(name):
         warnings.simplefilter("error", ClockWarning)
         result = doctest.testmod(module, optionflags=doctest.ELLIPSIS)
     assert result.failed == 0 and result.attempted > 0
+
+
+def test_the_python_blocks_of_docs_clocks_run_in_a_fresh_interpreter():
+    import os
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "docs" / "clocks.md").read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
+    assert len(blocks) == 4
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    for code in blocks:
+        done = subprocess.run(
+            [sys.executable, "-c", code], capture_output=True, text=True, env=env
+        )
+        assert done.returncode == 0, done.stderr[-2000:]
