@@ -430,7 +430,9 @@ def test_the_python_blocks_of_docs_clocks_run_on_their_own():
     text = (root / "docs" / "clocks.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", text, re.S)
     assert len(blocks) == 4
-    runner = "import sys\nfor code in sys.argv[1:]:\n    exec(code, {'__name__': '__main__'})"
+    runner = (
+        "import sys\nfor code in sys.argv[1:]:\n    exec(code, {'__name__': 'doc'})"
+    )
     env = {**os.environ, "PYTHONPATH": str(root)}
     done = subprocess.run(
         [sys.executable, "-c", runner, *blocks], capture_output=True, text=True, env=env
