@@ -438,3 +438,15 @@ def test_the_python_blocks_of_docs_clocks_run_on_their_own():
         [sys.executable, "-c", runner, *blocks], capture_output=True, text=True, env=env
     )
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+def test_the_most_likely_counts_increase_and_follow_the_motion():
+    from lagsindy.differentiation.cycle import _most_likely_counts
+
+    x = np.array([0.0, 1.6, 1.4, 3.0])  # stamps alone would count 0, 2, 1, 3
+    none = np.full(3, np.inf)
+    assert _most_likely_counts(x, np.zeros(3), none, 0.3).tolist() == [0, 1, 2, 3]
+    # a precise motion says the second step covers two cycles
+    steps, sigma = np.array([1.0, 2.0, 1.0]), np.full(3, 0.05)
+    x = np.array([0.0, 1.2, 2.6, 4.1])
+    assert _most_likely_counts(x, steps, sigma, 0.3).tolist() == [0, 1, 3, 4]
