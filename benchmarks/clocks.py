@@ -365,10 +365,19 @@ def logger_study(sizes):
         except ValueError:
             given = None  # stamps going back: refused as given
         t0 = time.perf_counter()
-        clock, caught = _quiet(lambda: clean_clock(
-            rec["t"], rec["q"], rec["groups"], angles="all",
-            velocities=rec["v"] if use_v else None,
-        ))  # fmt: skip
+        try:
+            clock, caught = _quiet(lambda: clean_clock(
+                rec["t"], rec["q"], rec["groups"], angles="all",
+                velocities=rec["v"] if use_v else None,
+            ))  # fmt: skip
+        except ValueError as exc:  # no cycle found and stamps going back
+            lines.append(
+                f"| {jitter} | {noise:g} | {'yes' if use_v else 'no'} | "
+                f"{int(rec['stale'].sum())} / - | refused (stamps go back) | "
+                f"refused: {str(exc)[:60]}... | - | - | - |"
+            )
+            print(lines[-1], flush=True)
+            continue
         cleaned = derivatives(
             rec["q"], rec["t"], groups=rec["groups"], angles="all", clean=clock
         )

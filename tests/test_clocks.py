@@ -94,6 +94,16 @@ def test_stale_rows_are_dropped_and_carry_their_source():
     assert rel_rms(kept_in[inner, 4:], exact[inner]) > 0.05
 
 
+def test_interleaved_stale_rows_are_all_found():
+    # a fresh row between two runs of repeats: the steps around each run are
+    # themselves catch-up jumps (measured before the per-cycle rule: 2 of 4 missed,
+    # each leaving a q_ddot spike of ~100 rad/s^2 at noise 1e-5)
+    t = np.arange(400) * 0.001
+    stale = [100, 102, 103, 105]
+    q, _ = logged(t, stale)
+    assert clean_clock(t, q).defects["stale"].tolist() == stale
+
+
 def test_a_turning_point_or_a_slow_step_is_no_stale_row():
     # an encoder sitting on one reading while the motion turns (sign change), and
     # steps below a tenth of the median step around a repeat: kept

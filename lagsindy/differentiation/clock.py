@@ -163,7 +163,8 @@ def _stale_rows(q: np.ndarray) -> np.ndarray:
 
     A run of rows equal to row ``k0`` is stale when, in some coordinate, the step
     into ``k0`` (``b``), the jump out of the run (``a``) and the step after it
-    (``c``, the next step that is no repeat) have the same sign, ``b`` and ``c``
+    (``c``, the next step that is no repeat; ``b`` and ``c`` per cycle when they
+    come out of other runs of repeats) have the same sign, ``b`` and ``c``
     exceed 3 of the coordinate's smallest steps (the encoder's resolution) and a
     tenth of its median step (``STALE_MIN_STEP``), and the jump catches up the
     missed motion, ``|a| >= 0.75 (r + 1) min(|b|, |c|)`` for
@@ -191,21 +192,26 @@ def _stale_rows(q: np.ndarray) -> np.ndarray:
     threshold = np.maximum(3 * least, STALE_MIN_STEP * typical)
     d = np.diff(q, axis=0)  # d[k] = q[k + 1] - q[k]
     starts = np.flatnonzero(same)
+    runs = []  # (k0, r): rows k0 + 1 .. k0 + r repeat row k0
     i = 0
     while i < starts.size:
-        k0 = int(starts[i])  # rows k0 + 1 .. k0 + r repeat row k0
         r = 1
-        while i + r < starts.size and starts[i + r] == k0 + r:
+        while i + r < starts.size and starts[i + r] == starts[i] + r:
             r += 1
+        runs.append((int(starts[i]), r))
         i += r
+    ending = {k0 + r: r for k0, r in runs}  # last row of a run -> its length
+    for k0, r in runs:
         if k0 < 1 or k0 + r + 1 >= n:
             continue  # needs a step before and a jump after
-        b = d[k0 - 1]
+        # the step into k0 and the one after the jump, per cycle: a step out of
+        # an earlier run of repeats covers that run's cycles too
+        b = d[k0 - 1] / (ending.get(k0 - 1, 0) + 1)
         a = q[k0 + r + 1] - q[k0]
         j = k0 + r + 1  # the step after the jump, skipping further repeats
         while j + 1 < n and same[j]:
             j += 1
-        c = d[j] if j + 1 < n else b
+        c = d[j] / (j - k0 - r) if j + 1 < n else b
         ok = (
             (np.sign(a) == np.sign(b))
             & (np.sign(c) == np.sign(b))
