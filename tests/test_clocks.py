@@ -104,14 +104,22 @@ def test_interleaved_stale_rows_are_all_found():
     assert clean_clock(t, q).defects["stale"].tolist() == stale
 
 
+def test_a_repeat_ending_a_trajectory_is_stale_only_in_motion():
+    for last, stale in ((0.49e-3, False), (0.51e-3, True)):  # half the median step
+        step = np.r_[1e-7, np.full(30, 1e-3), [last, 0.0]]
+        assert (
+            clock_module._stale_rows(np.cumsum(np.r_[0.0, step])[:, None])[-1] == stale
+        )
+
+
 def test_a_turning_point_or_a_slow_step_is_no_stale_row():
     # an encoder sitting on one reading while the motion turns (sign change), and
-    # steps below a tenth of the median step around a repeat: kept
+    # steps below 0.03 median steps around a repeat: kept
     # (one tiny step sets the encoder's resolution far below the steps tested)
     step = np.r_[1e-7, np.full(20, 1e-3), [2e-4, 0.0, -3e-4], np.full(20, -1e-3)]
     q = np.cumsum(np.r_[0.0, step])
     assert not clock_module._stale_rows(q[:, None]).any()
-    for around, stale in ((0.09e-3, False), (0.11e-3, True)):  # STALE_MIN_STEP = 0.1
+    for around, stale in ((0.029e-3, False), (0.031e-3, True)):  # STALE_MIN_STEP
         step = np.r_[
             1e-7,
             np.full(20, 1e-3),

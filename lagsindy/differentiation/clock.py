@@ -73,10 +73,11 @@ from .records import (
 EDGE_SAMPLES = 3
 # A stale row needs the steps around it larger than this fraction of the
 # coordinate's median step: an encoder near a turning point of the shipped
-# MultiArm single pendulum (steps of 3e-5 to 6e-5 rad against a median of 4e-3
-# and a resolution of 1.6e-4) repeats a reading with the motion carrying on; a
-# logger's stale rows on a simulated double pendulum sat at 0.19 to 0.28 medians.
-STALE_MIN_STEP = 0.1
+# MultiArm single pendulum (steps of 3e-5 to 6e-5 rad against a median of 4e-3,
+# 0.007 to 0.015 medians, and a resolution of 1.6e-4) repeats a reading with the
+# motion carrying on; a logger's stale rows on a simulated double pendulum (noise
+# 1e-5 rad) sat down to 0.1 medians as it started from rest.
+STALE_MIN_STEP = 0.03
 # The positions must be at least this much smoother (GCV score ratio) on a cycle
 # than on the stamps for the time base to be rebuilt.
 REBUILD_RATIO = 0.9
@@ -165,10 +166,11 @@ def _stale_rows(q: np.ndarray) -> np.ndarray:
     into ``k0`` (``b``), the jump out of the run (``a``) and the step after it
     (``c``, the next step that is no repeat; ``b`` and ``c`` per cycle when they
     come out of other runs of repeats) have the same sign, ``b`` and ``c``
-    exceed 3 of the coordinate's smallest steps (the encoder's resolution) and a
-    tenth of its median step (``STALE_MIN_STEP``), and the jump catches up the
-    missed motion, ``|a| >= 0.75 (r + 1) min(|b|, |c|)`` for
-    ``r`` repeats. An encoder sitting still at a turning point (a change of
+    exceed 3 of the coordinate's smallest steps (the encoder's resolution) and
+    ``STALE_MIN_STEP`` (0.03) of its median step, and the jump catches up the
+    missed motion, ``|a| >= 0.75 (r + 1) m`` for ``r`` repeats, ``m`` the smaller
+    of ``|b|``, ``|c|`` and the median of the nonzero steps around (``b`` or ``c``
+    may span skipped cycles). An encoder sitting still at a turning point (a change of
     direction, or a jump no larger than the steps around it: quantization) is no
     stale row.
     """
@@ -202,8 +204,13 @@ def _stale_rows(q: np.ndarray) -> np.ndarray:
         i += r
     ending = {k0 + r: r for k0, r in runs}  # last row of a run -> its length
     for k0, r in runs:
-        if k0 < 1 or k0 + r + 1 >= n:
-            continue  # needs a step before and a jump after
+        if k0 < 1:
+            continue  # needs a step before
+        if k0 + r + 1 >= n:  # the trajectory ends on the repeats: the step before
+            b = d[k0 - 1] / (ending.get(k0 - 1, 0) + 1)  # alone tells it moves
+            if np.any(np.abs(b) > np.maximum(threshold, 0.5 * typical)):
+                stale[k0 + 1 : k0 + r + 1] = True
+            continue
         # the step into k0 and the one after the jump, per cycle: a step out of
         # an earlier run of repeats covers that run's cycles too
         b = d[k0 - 1] / (ending.get(k0 - 1, 0) + 1)
@@ -212,12 +219,18 @@ def _stale_rows(q: np.ndarray) -> np.ndarray:
         while j + 1 < n and same[j]:
             j += 1
         c = d[j] / (j - k0 - r) if j + 1 < n else b
+        # the motion per cycle: the smaller of b, c and the median step around
+        # (b or c may span skipped cycles)
+        near = np.abs(d[max(k0 - 5, 0) : min(k0 + r + 6, n - 1)])
+        near = np.where(near > 0, near, np.nan)
+        local = np.nanmedian(near, axis=0) if np.isfinite(near).any() else np.inf
+        per_cycle = np.fmin(np.minimum(np.abs(b), np.abs(c)), local)
         ok = (
             (np.sign(a) == np.sign(b))
             & (np.sign(c) == np.sign(b))
             & (np.abs(b) > threshold)
             & (np.abs(c) > threshold)
-            & (np.abs(a) >= 0.75 * (r + 1) * np.minimum(np.abs(b), np.abs(c)))
+            & (np.abs(a) >= 0.75 * (r + 1) * per_cycle)
         )
         if ok.any():
             stale[k0 + 1 : k0 + r + 1] = True
@@ -328,6 +341,7 @@ def clean_clock(
     user = _segments(groups, n)
     stamps = _check_times(t, n, user, ordered=False)
     state = _State(n)
+    state.velocities = velocities is not None
     for key, sl in user:
         _clean_trajectory(
             state, key, sl, stamps, q, velocities, mask, period, rebuild, gap_factor
@@ -414,9 +428,10 @@ class _State:
             )
         if self.retimed:
             rows = np.concatenate([r for r, *_ in self.retimed])
-            periods = [p for _, p, _, _ in self.retimed]
-            jitter = np.sqrt(np.mean([j**2 for _, _, j, _ in self.retimed]))
-            ratios = np.array([r for *_, r in self.retimed])
+            periods = [e[1] for e in self.retimed]
+            jitter = np.sqrt(np.mean([e[2] ** 2 for e in self.retimed]))
+            ratios = np.array([e[3] for e in self.retimed])
+            trusted = min(e[4] for e in self.retimed)
             if np.all(np.isfinite(ratios) & (ratios > 0)):
                 why = (
                     f"the positions are {1 / ratios.max():.3g}x to "
@@ -432,6 +447,18 @@ class _State:
                 f"by {jitter:.3g} s rms around a regular cycle of "
                 f"{np.median(periods):.6g} s and {why}; the time base was rebuilt on "
                 "the cycle (clock.t; rebuild=False keeps the stamps)"
+                + (
+                    f". Only {trusted:.0%} of the steps could be counted with "
+                    "confidence (the rest from jittery stamps)"
+                    + (
+                        ""
+                        if self.velocities
+                        else ": pass the recorded velocities (clean_clock(..., "
+                        "velocities=)) if there are any"
+                    )
+                    if trusted < 0.9
+                    else ""
+                )
             )
         dup = sorted(self.rows["duplicate"])
         if dup:
@@ -559,8 +586,11 @@ def _raise_backwards(key, row, previous, stamps):
         f"{row}{where} has t = {float(stamps[row])!r} after "
         f"t = {float(stamps[previous])!r} at row {previous}. Rows of one trajectory "
         f"must be contiguous and in time order.{hint} (Equal or nearly equal stamps "
-        "are merged; a stamp that goes back further is refused, unless a regular "
-        "cycle explains it: pass period= or velocities= to clean_clock/derivatives.)"
+        "are merged; a stamp that goes back further is refused unless a regular "
+        "cycle under the stamps explains it, and none could be counted from the "
+        "stamps and the positions: if the recorder logged velocities, pass them, "
+        "clock = clean_clock(t, q, groups, velocities=v), then derivatives(q, t, "
+        "groups=groups, clean=clock).)"
     )
 
 
@@ -577,7 +607,7 @@ def _try_cycle(state, fresh, tf, q, v, mask, period, rebuild, factor):
         found = cycle_from_motion(tf, qf, period)
     if found is None:
         return None, None
-    counts, phase, p, _ = found
+    counts, phase, p, trusted = found
     cycle = phase + counts * p
     jitter = float(np.sqrt(np.mean((tf - cycle) ** 2)))
     if jitter <= 1e-6 * p:  # the stamps are on the cycle already
@@ -590,7 +620,7 @@ def _try_cycle(state, fresh, tf, q, v, mask, period, rebuild, factor):
             state.stamped.append((fresh, ratio))
             return None, None
     state.t[fresh] = cycle
-    state.retimed.append((fresh, p, jitter, ratio))
+    state.retimed.append((fresh, p, jitter, ratio, trusted))
     return counts, p
 
 

@@ -129,8 +129,9 @@ def cycle_from_stamps(t, period=None):
 
     Returns
     -------
-    (counts, phase, period, concentration) or None
-        ``counts`` (int, non-decreasing) with ``t ~ phase + counts * period``.
+    (counts, phase, period, trusted) or None
+        ``counts`` (int, non-decreasing) with ``t ~ phase + counts * period``;
+        ``trusted``: the fraction of the stamps within 0.4 periods of their count.
     """
     n = len(t)
     steps = np.diff(t)
@@ -155,7 +156,7 @@ def cycle_from_stamps(t, period=None):
         return None
     if np.any(np.diff(c) < 0):
         return None
-    return c - c[0], phase + c[0] * p, p, concentration
+    return c - c[0], phase + c[0] * p, p, 1.0 - ambiguous
 
 
 def cycle_from_velocities(t, q, v, period=None):
@@ -177,7 +178,8 @@ def cycle_from_velocities(t, q, v, period=None):
     p = period
     if p is None:
         p = _stamps_period(t)
-    if p is None:  # no cycle in the stamps: the motion's single steps
+    from_motion = p is None
+    if from_motion:  # no cycle in the stamps: the motion's single steps
         dq = np.diff(q, axis=0)
         speed2 = np.sum(vbar * vbar, axis=1)
         ok = speed2 > 0
@@ -188,7 +190,7 @@ def cycle_from_velocities(t, q, v, period=None):
         p = float(np.median(base[base < 1.5 * np.median(base)]))
     if not p > 0:
         return None
-    return _counts(t, q, vbar * p, p, fit_period=period is None)
+    return _counts(t, q, vbar * p, p, period is None, require_trust=from_motion)
 
 
 def _local_rate(dq, steps, half=3):
@@ -203,8 +205,12 @@ def _local_rate(dq, steps, half=3):
     return np.median(others, axis=2)[:m]
 
 
-def _counts(t, q, rate, p, fit_period=True):
+def _counts(t, q, rate, p, fit_period=True, require_trust=True):
     """Counts from per-step expected increments per cycle ``rate`` and the stamps.
+
+    ``require_trust``: give up (None) when fewer than half the steps are counted
+    from the motion with confidence (where the period itself came from the motion);
+    otherwise the stamps fill in where the motion cannot tell.
 
     Returns (counts, phase, period, trusted) or None.
     """
@@ -220,7 +226,7 @@ def _counts(t, q, rate, p, fit_period=True):
     nearest = np.round(measured)
     moving = some & (move >= _MIN_SPEED * np.median(move[some]))
     trusted = moving & (np.abs(measured - nearest) <= _COUNT_TOL) & (nearest >= 1)
-    if trusted.mean() < 0.5:
+    if require_trust and trusted.mean() < 0.5:
         return None
     fitted = _refine(t, p, fit_period)
     if fitted is None:
