@@ -169,7 +169,10 @@ def test_dropped_samples_are_reported_and_split_gaps_cuts_there():
         regular = np.arange(400) * 0.01
         derivatives(np.sin(2 * regular), regular)  # a regular clock: nothing to say
         jitter = np.random.default_rng(0).uniform(-0.3, 0.3, 400) * 0.01
-        derivatives(np.sin(2 * regular), regular + jitter)  # no regular clock
+        uneven = regular + jitter  # truthful uneven stamps (positions taken then)
+        derivatives(np.sin(2 * uneven), uneven)  # no regular clock
+    # (positions on the even clock stamped with that jitter: the stamps disagree
+    # with the motion and the clock is rebuilt, tests/test_clocks.py)
 
 
 # ----------------------------------------------------------------- shipped data

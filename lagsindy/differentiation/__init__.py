@@ -27,11 +27,15 @@ Methods (``method=``):
   deviation sigma becomes ``sqrt(6) sigma / dt**2`` in q_ddot).
 
 Time stamps may be non-uniform: every method uses them directly (no resampling).
-Angles can be unwrapped per trajectory before differentiating (``angles=``). A step
-longer than ``gap_factor`` (5) median steps is a gap: the trajectory is cut there
-and each segment differentiated on its own, with one warning saying where
-(:func:`split_gaps` gives the segment labels to fit with); rows far closer than the
-median step (duplicated or mistimed frames) are reported by row.
+Angles can be unwrapped per trajectory before differentiating (``angles=``). Real
+clocks are cleaned first (:func:`clean_clock`, on by default; module
+:mod:`~lagsindy.differentiation.clock`): stale repeated rows and near-duplicate
+stamps dropped, a jittery clock over a regular cycle rebuilt on it when the motion
+says so, trajectories cut at gaps of ``gap_factor`` (5) base periods, single dropped
+frames kept, the rows near every segment's end flagged, each defect reported once
+in one line. :func:`resample` puts an uneven record on an even clock through the
+P-spline; :func:`time_test_functions` gives the weak form's test functions on a
+segment's actual sample times.
 
 Cost of the P-spline: uniformly sampled trajectories of up to ~1190 samples share
 one eigendecomposition per sampling pattern; longer or irregularly sampled ones use
@@ -99,6 +103,13 @@ from sklearn.utils.validation import check_is_fitted, validate_data  # noqa: F40
 from threadpoolctl import ThreadpoolController  # noqa: F401
 
 from .._expr import ACCELERATION_SUFFIX, VELOCITY_SUFFIX, state_names  # noqa: F401
+from ._timegrid import (  # noqa: F401
+    TimeWindows,
+    quadrature_weights,
+    time_test_functions,
+    trapezoid_weights,
+)
+from .clock import EDGE_SAMPLES, CleanedClock, ClockWarning, clean_clock  # noqa: F401
 from .core import (  # noqa: F401
     _CONTROLLER,
     _MIN_SAMPLES,
@@ -150,4 +161,5 @@ from .records import (  # noqa: F401
     check_weak_form_segments,
     split_gaps,
 )
+from .resample import Resampled, resample  # noqa: F401
 from .transformer import Derivatives  # noqa: F401

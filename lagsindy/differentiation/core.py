@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 from numbers import Real
@@ -9,6 +10,7 @@ from numbers import Real
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from .clock import CleanedClock, clean_clock
 from .methods import _check_savgol_params, _cubic_spline, _finite_difference, _savgol
 from .pspline import _pspline
 from .records import (
@@ -43,6 +45,8 @@ def derivatives(
     angles=None,
     gap_factor: float | None = _GAP_FACTOR,
     return_groups: bool = False,
+    clean=True,
+    return_clock: bool = False,
 ):
     """Estimate ``[q, q_dot, q_ddot]`` from sampled positions, trajectory by trajectory.
 
@@ -88,15 +92,29 @@ def derivatives(
         unwrapped (continuous) angles, not reduced to (-pi, pi].
     gap_factor : float or None, default=5.0
         A time step longer than ``gap_factor`` times the median step of its
-        trajectory is a gap: the trajectory is cut there and each segment is
-        differentiated on its own (nothing is interpolated across a gap), with one
-        ``UserWarning`` saying where. Fit with the segments as trajectories
-        (``return_groups=True`` or :func:`split_gaps`). ``None``: no gap detection.
-        Rows less than a quarter of the median step after the previous one
-        (duplicated or mistimed frames) are reported by a ``UserWarning`` naming
-        them.
+        trajectory (or the rebuilt cycle) is a gap: the trajectory is cut there and
+        each segment is differentiated on its own (nothing is interpolated across a
+        gap), with one ``UserWarning`` saying where. Fit with the segments as
+        trajectories (``return_groups=True`` or :func:`split_gaps`). ``None``: no
+        gap detection.
     return_groups : bool, default=False
         Also return the segment labels (see :func:`split_gaps`).
+    clean : bool or CleanedClock, default=True
+        Clean the clock first (:func:`clean_clock`, one :class:`ClockWarning` per
+        defect found): rows repeating the previous row's positions while the system
+        moves (a logger re-reading a stale sample) and near-duplicate stamps are
+        dropped from the fits (each such row gets the estimate of the row it
+        repeats), stamps that jitter around a regular cycle which the positions
+        follow better are rebuilt on it, trajectories are cut at gaps, single
+        dropped frames are kept, segments too short to differentiate are estimated
+        across their gaps, and the rows near every segment's end are flagged
+        (``edge``). An even clock is left exactly as it is. A
+        :class:`CleanedClock`: use it (e.g. ``clean_clock(t, q,
+        velocities=recorded)``). ``False``: the stamps as given (rows closer than a
+        quarter step and dropped samples are only reported).
+    return_clock : bool, default=False
+        Also return the :class:`CleanedClock` (rows kept, their times, segments,
+        ``edge`` rows, the report); needs ``clean``.
 
     Returns
     -------
@@ -107,14 +125,21 @@ def derivatives(
     groups : ndarray of int of shape (n_samples,)
         Only with ``return_groups=True``: the segment number of each row (the
         trajectories cut at their gaps), to pass as ``groups`` to ``fit``.
+    clock : CleanedClock
+        Only with ``return_clock=True``. ``clock.rows``, ``clock.t[clock.rows]`` and
+        ``clock.groups[clock.rows]`` are the distinct samples on the cleaned clock
+        (apply ``clock.rows`` to the other columns, e.g. forces, too);
+        ``clock.edge`` marks the rows within 3 samples of a segment's end, whose
+        estimates are several times less accurate.
 
     Raises
     ------
     ValueError
-        If q or t contain NaN or infinite values, t is not strictly increasing
-        within a trajectory, a trajectory's rows are not contiguous, a trajectory
-        is shorter than the method needs (7 samples for ``"pspline"``, 5 for
-        ``"spline"``, 3 otherwise), or a parameter is invalid.
+        If q or t contain NaN or infinite values, t goes back within a trajectory
+        (by more than a quarter step, with no regular cycle to explain it; with
+        ``clean=False``: t is not strictly increasing), a trajectory's rows are not
+        contiguous, a trajectory is shorter than the method needs (7 samples for
+        ``"pspline"``, 5 for ``"spline"``, 3 otherwise), or a parameter is invalid.
 
     See Also
     --------
@@ -122,6 +147,8 @@ def derivatives(
 
     Notes
     -----
+    One row comes out per row in: rows the clock cleaning drops repeat the estimate
+    of their source row, so the output still lines up with the caller's forces.
     Non-uniform time stamps are used directly by every method, with no resampling:
     finite differences use the exact non-uniform stencil weights (the interior
     second derivative is then first order where consecutive steps differ); the
@@ -171,18 +198,134 @@ def derivatives(
     if gap_factor is not None and not (isinstance(gap_factor, Real) and gap_factor > 1):
         raise ValueError(f"gap_factor must be a number > 1 or None, got {gap_factor!r}")
     segments = _segments(groups, n)
-    times = _check_times(t, n, segments)
-    segments, gaps, glitches, skips = _split_at_gaps(times, segments, gap_factor)
-    if gaps:
-        _warn_gaps(gaps, times, gap_factor)
-    if glitches:
-        _warn_glitches(glitches, times)
-    if skips:
-        _warn_skips(skips, times)
+    need = _MIN_SAMPLES[method]
+    clock = None
+    if clean is False:
+        times = _check_times(t, n, segments)
+        segments, gaps, glitches, skips = _split_at_gaps(times, segments, gap_factor)
+        if gaps:
+            _warn_gaps(gaps, times, gap_factor)
+        if glitches:
+            _warn_glitches(glitches, times)
+        if skips:
+            _warn_skips(skips, times)
+        rows = None
+    else:
+        if isinstance(clean, CleanedClock):
+            clock = clean
+            if clock.keep.shape != (n,):
+                raise ValueError(
+                    f"clean is a CleanedClock of {clock.keep.shape[0]} rows, but q "
+                    f"has {n}; clean the same rows: clean_clock(t, q, groups, ...)"
+                )
+        elif clean is True:
+            _check_lengths(segments, need, method)
+            clock = clean_clock(
+                t, q, groups, gap_factor=gap_factor, angles=mask, min_samples=need
+            )
+            clock.warn(stacklevel=2)
+        else:
+            raise ValueError(
+                f"clean must be True, False or a CleanedClock, got {clean!r}"
+            )
+        short = np.zeros(n, dtype=bool)
+        short[clock.defects.get("short", [])] = True
+        rows = np.flatnonzero(clock.keep & ~short)
+        q_all, q = q, q[rows]
+        times = clock.t[rows]
+        labels = clock.groups[rows]
+        bounds = np.r_[0, np.flatnonzero(np.diff(labels)) + 1, rows.size]
+        segments = [
+            (int(labels[a]), slice(int(a), int(b)))
+            for a, b in zip(bounds[:-1], bounds[1:])
+        ]
     wrapped = _wrapped_columns(q, segments, mask)
     if wrapped:
         _warn_wrapped(wrapped, times)
-    need = _MIN_SAMPLES[method]
+    _check_lengths(segments, need, method)
+    out = _estimate(
+        q, times, segments, mask, method, window, polyorder, smoothing, need
+    )
+    if clock is not None:
+        full = np.full((n, 3 * n_dof), np.nan)
+        full[rows] = out
+        if short.any():
+            args = (method, window, polyorder, smoothing, need)
+            clock = _bridge(full, q_all, clock, short, groups, mask, args)
+        carried = clock.valid & ~clock.keep
+        full[carried] = full[clock.source[carried]]
+        out = full
+    result = (out,)
+    if return_groups:
+        if clock is not None:
+            result += (clock.groups.copy(),)
+        else:
+            labels = np.empty(n, dtype=int)
+            for k, (_, sl) in enumerate(segments):
+                labels[sl] = k
+            result += (labels,)
+    if return_clock:
+        if clock is None:
+            raise ValueError(
+                "return_clock=True needs the clock cleaning (clean=True or a "
+                "CleanedClock)"
+            )
+        result += (clock,)
+    return result[0] if len(result) == 1 else result
+
+
+def _bridge(full, q, clock, short, groups, mask, args):
+    """Estimates of segments too short to differentiate, across their gaps.
+
+    Each run of short segments is fitted together with the nearest full segment on
+    each side (same trajectory), and only its own rows are kept from that fit. A run
+    with no full neighbour keeps NaN and ``valid`` False (returned clock).
+    """
+    method, window, polyorder, smoothing, need = args
+    n = full.shape[0]
+    trajectory = np.empty(n, dtype=int)
+    for k, (_, sl) in enumerate(_segments(groups, n)):
+        trajectory[sl] = k
+    kept = np.flatnonzero(clock.keep)
+    label = clock.groups[kept]
+    starts = np.r_[0, np.flatnonzero(np.diff(label)) + 1]
+    stops = np.r_[starts[1:], kept.size]
+    pieces = [kept[a:b] for a, b in zip(starts, stops)]
+    is_short = [bool(short[p[0]]) for p in pieces]
+    valid = clock.valid.copy()
+    i = 0
+    while i < len(pieces):
+        if not is_short[i]:
+            i += 1
+            continue
+        j = i
+        while j + 1 < len(pieces) and is_short[j + 1]:
+            j += 1
+        run = np.concatenate(pieces[i : j + 1])
+        union = [run]
+        own = trajectory[run[0]]
+        if i > 0 and trajectory[pieces[i - 1][0]] == own:
+            union.insert(0, pieces[i - 1])
+        if j + 1 < len(pieces) and trajectory[pieces[j + 1][0]] == own:
+            union.append(pieces[j + 1])
+        union = np.concatenate(union)
+        if union.size >= need and len(union) > len(run):
+            est = _estimate(
+                q[union], clock.t[union], [(None, slice(0, union.size))], mask,
+                method, window, polyorder, smoothing, need,
+            )  # fmt: skip
+            full[run] = est[np.searchsorted(union, run)]
+        else:
+            valid[run] = False
+        i = j + 1
+    if not valid.all():
+        valid[~clock.keep] = valid[clock.source[~clock.keep]]
+        clock = dataclasses.replace(clock, valid=valid)
+    return clock
+
+
+def _check_lengths(segments, need, method):
+    """Refuse trajectories (or segments) shorter than the method needs."""
     for key, sl in segments:
         if sl.stop - sl.start < need:
             if isinstance(key, tuple):
@@ -198,6 +341,11 @@ def derivatives(
                 f"{where} {sl.stop - sl.start}; use a method that needs fewer "
                 "(finite_difference needs 3) or drop the short trajectory"
             )
+
+
+def _estimate(q, times, segments, mask, method, window, polyorder, smoothing, need):
+    """The method's ``[q, q_dot, q_ddot]`` on every segment (rows of ``q``)."""
+    n, n_dof = q.shape
     out = np.empty((n, 3 * n_dof))
     shortened = []
     cache = {}
@@ -229,13 +377,8 @@ def derivatives(
             f"shortest has {min(m for _, m in shortened)} samples); they used the "
             "longest odd window they hold, so their derivatives are less smoothed",
             UserWarning,
-            stacklevel=2,
+            stacklevel=3,
         )
-    if return_groups:
-        labels = np.empty(n, dtype=int)
-        for k, (_, sl) in enumerate(segments):
-            labels[sl] = k
-        return out, labels
     return out
 
 

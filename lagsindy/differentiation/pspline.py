@@ -432,6 +432,24 @@ def _upper_banded(A: np.ndarray, bandwidth: int) -> np.ndarray:
     return ab
 
 
+def _pspline_curve(q, t, smoothing=None) -> BSpline:
+    """The P-spline of :func:`_pspline` on the banded path, as a callable curve.
+
+    Same basis, penalty orders and GCV choice per column as the non-uniform branch
+    of :func:`_pspline`; returns the :class:`~scipy.interpolate.BSpline` (one curve
+    per column) to evaluate at any time within ``[t[0], t[-1]]``.
+    """
+    orders = _PSPLINE_ORDERS if smoothing is None else _PSPLINE_ORDERS[-1:]
+    basis = _BandedBasis(t)
+    factors = {m: _BandedPSpline(t, m, basis) for m in orders}
+    fits = [factors[m].coefficients(q, smoothing) for m in orders]
+    coef = fits[0][0]
+    if len(fits) > 1:
+        best = np.argmin(np.stack([f[2] for f in fits]), axis=0)
+        coef = np.stack([f[0] for f in fits])[best, :, np.arange(q.shape[1])].T
+    return BSpline(basis.knots, coef, _PSPLINE_DEGREE)
+
+
 def _pspline(q, t, smoothing=None, cache=None):
     """Quintic P-spline fit with the penalty order chosen per column by GCV.
 

@@ -87,7 +87,13 @@ def _angle_mask(angles, n_dof: int, names=None) -> np.ndarray:
     return mask
 
 
-def _check_times(t, n: int, segments) -> np.ndarray:
+def _check_times(t, n: int, segments, ordered: bool = True) -> np.ndarray:
+    """Time stamps as floats, one per row (a float: a uniform step per trajectory).
+
+    ``ordered=False`` leaves the order unchecked (the clock cleaning of
+    :func:`~lagsindy.differentiation.clean_clock` sorts out equal and slightly
+    backward stamps, and raises on the rest).
+    """
     if np.ndim(t) == 0:
         dt = float(t)
         if not (math.isfinite(dt) and dt > 0):
@@ -113,9 +119,23 @@ def _check_times(t, n: int, segments) -> np.ndarray:
             f"t contains {bad.size} NaN or infinite time stamp(s), the first at row "
             f"{bad[0]}; drop or repair those rows"
         )
+    if ordered:
+        _check_order(times, segments)
+    return times
+
+
+def _check_order(times, segments, allowed=None) -> None:
+    """Raise unless ``times`` increase within each trajectory.
+
+    ``allowed``: boolean mask over the rows whose step from the previous row may be
+    <= 0 (rows the clock cleaning merges away).
+    """
     for key, sl in segments:
         steps = np.diff(times[sl])
-        wrong = np.flatnonzero(steps <= 0)
+        bad = steps <= 0
+        if allowed is not None:
+            bad &= ~allowed[sl.start + 1 : sl.stop]
+        wrong = np.flatnonzero(bad)
         if wrong.size:
             r = sl.start + wrong[0]
             where = "" if key is None else f" (trajectory {key!r})"
@@ -130,7 +150,6 @@ def _check_times(t, n: int, segments) -> np.ndarray:
                 f"t = {float(times[r])!r} at row {r}. Rows of one trajectory must be "
                 f"contiguous and in time order.{hint}"
             )
-    return times
 
 
 def _is_uniform(t: np.ndarray) -> bool:
@@ -196,18 +215,20 @@ def _describe_rows(rows, times, limit=5):
 
 
 def _warn_gaps(gaps, times, factor, stacklevel=3):
+    warnings.warn(_gap_text(gaps, times, factor), UserWarning, stacklevel=stacklevel)
+
+
+def _gap_text(gaps, times, factor) -> str:
     rows = [g[1] for g in gaps]
     worst = max(gaps, key=lambda g: g[2] / g[3])
-    warnings.warn(
+    return (
         f"{len(gaps)} gap(s) in the time stamps (a step longer than {factor:g} times "
         f"the trajectory's median step) before row(s) {_describe_rows(rows, times)}; "
         f"the longest is {worst[2]:.4g} s against a median step of {worst[3]:.4g} s. "
         f"Derivatives were estimated on the {len(gaps)} extra segment(s) separately. "
         "Fit with the segments as trajectories, so that the weak form and "
         "cross-validation never span a gap: groups = split_gaps(t, groups) "
-        "(lagsindy.differentiation), or derivatives(..., return_groups=True)",
-        UserWarning,
-        stacklevel=stacklevel,
+        "(lagsindy.differentiation), or derivatives(..., return_groups=True)"
     )
 
 
