@@ -324,7 +324,7 @@ def test_edge_rows_are_flagged_where_the_error_is_largest():
     "n, window, stride, dt", [(500, 81, 20, 0.01), (333, 41, 10, 1e-3)]
 )
 def test_time_test_functions_equal_the_bump_on_an_even_clock(n, window, stride, dt):
-    from lagsindy.formulation.weak import _correlate, bump_function
+    from lagsindy.formulation.testfunctions import _correlate, bump_function
 
     rng = np.random.default_rng(8)
     t = 3.7 + np.arange(n) * dt
