@@ -147,3 +147,28 @@ def test_separated_construction_counts():
     # trig: 4 + 10, velocities: 2 + 3, cross 14 * 5
     assert len(lib) == 14 + 5 + 70
     assert np.all([isinstance(t, sp.Expr) for t in lib.terms_])
+
+
+def test_dependent_terms_name_their_combination():
+    """The removal message gives the combination of earlier kept columns (one
+    triangular solve of the Gram-Schmidt basis, the same text as a least-squares fit
+    of the kept columns gave)."""
+    lib = CandidateLibrary.from_terms(
+        ["x", "theta"],
+        ["x_dot**2", "cos(theta)", "theta_dot**2", "0.5*x_dot**2 - 3*cos(theta)"],
+    )
+    assert lib.removed_ == [
+        (
+            "0.5*x_dot**2 - 3*cos(theta)",
+            "dependent: its Euler-Lagrange column equals +0.5*[x_dot**2] "
+            "-3*[cos(theta)]",
+        )
+    ]
+    angles = ["theta1", "theta2"]
+    lib = CandidateLibrary.polynomial(angles, angles=angles, degree=4)
+    assert len(lib) == 128 and len(lib.candidates_) == 209
+    assert lib.removed_[-1] == (
+        "cos(theta2)**4",
+        "dependent: its Euler-Lagrange column equals -2*[sin(theta2)**2] "
+        "+1*[sin(theta2)**4]",
+    )
