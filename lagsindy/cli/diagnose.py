@@ -102,10 +102,20 @@ def _saved_model_and_data(args):
     est = _load(args.model)
     df = _read_csv(args.data)
     coords = list(est.coordinates_)
-    angles = est.library._angle_names(coords) if est.library is not None else []
+    angles = _model_angles(est, coords)
     inputs = _input_columns(df, coords, args)
     tau = None if inputs is None else _numeric(df, inputs, args.data)
     _checks.check_model_data(est.case_, inputs)
     X, groups = _state_and_groups(df, coords, args, args.data, angles)
     tau = _apply_delay(args, df, X, tau, groups, None)
     return est, X, tau, groups
+
+
+def _model_angles(est, coords):
+    """The coordinates a model's library treats as angles (unwrapped with them)."""
+    angles = getattr(est.library, "angles", None)
+    if angles == "all":
+        return list(coords)
+    if isinstance(angles, str):
+        return [angles]
+    return [a for a in (angles or []) if a in coords]

@@ -216,7 +216,7 @@ def _add_fit_options(p, *, required):
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``lagsindy`` command."""
-    from .. import __version__
+    from .._version import __version__
 
     systems = ", ".join(SYSTEM_NAMES)
     parser = _Parser(
