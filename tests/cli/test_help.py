@@ -115,3 +115,23 @@ def test_cli_wording_replaces_every_python_hint():
     for python, cli in _CLI_WORDING:
         assert _cli_wording(f"a {python} b") == f"a {cli} b"
     assert _cli_wording("try window=81 here") == "try window=81 here"
+
+
+def test_refine_stays_the_function_when_its_module_is_imported():
+    """``lagsindy.refine`` is a function and a submodule; importing the submodule
+    (as the command line and the API pages do) bound the package's name to the
+    module, so ``from lagsindy import refine`` gave a module."""
+    code = (
+        "import lagsindy.refine\n"
+        "import lagsindy\n"
+        "from lagsindy import refine\n"
+        "from lagsindy.refine import Refinement\n"
+        "assert callable(refine) and refine is lagsindy.refine, refine\n"
+        "assert refine.__module__ == 'lagsindy.refine'\n"
+        "print('OK')\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], env=ENV, capture_output=True, text=True,
+        timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0 and "OK" in proc.stdout, proc.stderr
