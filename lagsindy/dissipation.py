@@ -12,15 +12,15 @@ Each candidate here carries its generalized force vector (``-dD/dqdot`` for a Ra
 term), so it enters the regression linearly beside the Lagrangian's terms: a learned
 coefficient ``d_j`` contributes ``d_j * force_j`` to the right-hand side.
 
-=================  ==========================  ==================================
-kind               Rayleigh term / force       coefficient (units)
-=================  ==========================  ==================================
-``viscous``        ``qd_i**2 / 2``             b, force per velocity
-``relative``       ``(qd_i - qd_j)**2 / 2``    b between coordinates i and j
-``drag``           ``|qd_i|**3 / 3``           c, force per velocity squared
-``coulomb``        force ``-tanh(qd_i / eps)`` mu, force (smoothed sign)
-``bias``           force ``+1`` on q_i         constant offset force
-=================  ==========================  ==================================
+=================  ============================  ==================================
+kind               Rayleigh term / force         coefficient (units)
+=================  ============================  ==================================
+``viscous``        ``qd_i**2 / 2``               b, force per velocity
+``relative``       ``(qd_i - qd_j)**2 / 2``      b between coordinates i and j
+``drag``           ``|qd_i|**3 / 3``             c, force per velocity squared
+``coulomb``        force ``-tanh(qd_i / eps)``   mu, force (smoothed sign)
+``bias``           force ``+1`` on q_i           constant offset force
+=================  ============================  ==================================
 
 Coulomb friction ``-mu * sign(qdot)`` is smoothed as ``-mu * tanh(qdot / eps)``;
 ``eps`` (default 0.01, in the coordinate's velocity units) is the velocity below which
