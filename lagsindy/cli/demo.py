@@ -26,8 +26,8 @@ def _demo(args) -> int:
     active = not args.passive
     _say(
         args,
-        f"simulating {name}: {args.trajectories} trajectories x {args.duration:g} s "
-        "at 100 Hz, and loading the fitting code (torch, sympy, scikit-learn) ...",
+        "loading the fitting code (torch, sympy, scikit-learn) and simulating "
+        f"{name}: {args.trajectories} trajectories x {args.duration:g} s at 100 Hz ...",
     )
     from ..dynamics import rollout_error
     from ..estimator import LagrangianSINDy
