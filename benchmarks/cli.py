@@ -11,11 +11,13 @@ angles), 6 trajectories x 10 s at 100 Hz = 6,000 rows of positions and inputs on
 (209 candidate terms, 128 after reduction) with its held-out score (a second fit).
 
 The machine's load average is written with the results: on a shared machine the
-times grow with it. ``--baseline PATH`` runs the same commands with another
+times grow with it. ``--one-thread`` also times the fit with one thread for torch
+and BLAS (``OMP_NUM_THREADS=1``): two threads on a busy machine spin against the other
+processes. ``--baseline LABEL=PATH`` (repeatable) runs the same commands with another
 checkout's lagsindy (for before/after figures).
 
-    python -m benchmarks.cli
-    python -m benchmarks.cli --baseline /path/to/older/checkout
+    python -m benchmarks.cli --one-thread
+    python -m benchmarks.cli --baseline before=/path/to/older/checkout
 """
 
 from __future__ import annotations
@@ -54,14 +56,18 @@ FIT = [
 ]
 
 
-def run(args, code_root, cwd):
+def run(args, code_root, cwd, threads=None):
     """Seconds to the first line and to the exit, CPU seconds, exit status, output."""
     env = {
         **os.environ,
         "PYTHONPATH": str(code_root),
         "PYTHONUNBUFFERED": "1",
+        "PYTHONDONTWRITEBYTECODE": "1",  # other checkouts stay as they are
         "MPLBACKEND": "Agg",
     }
+    if threads is not None:
+        for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            env[name] = str(threads)
     start = time.perf_counter()
     proc = subprocess.Popen(
         [sys.executable, "-m", "lagsindy", *args],
@@ -121,7 +127,16 @@ def _stats(values):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="one repeat of each")
-    parser.add_argument("--baseline", default=None, help="another checkout to time")
+    parser.add_argument(
+        "--baseline",
+        action="append",
+        default=[],
+        metavar="LABEL=PATH",
+        help="another checkout to time (repeatable)",
+    )
+    parser.add_argument(
+        "--one-thread", action="store_true", help="also time the fit with one thread"
+    )
     parser.add_argument(
         "--repeats", type=int, default=None, help="repeats (default 5; fits 3)"
     )
@@ -132,8 +147,9 @@ def main(argv=None):
     repeats = args.repeats or (1 if (args.quick or tiny) else 5)
     fit_repeats = args.repeats or (1 if (args.quick or tiny) else 3)
     codes = [("this", ROOT)]
-    if args.baseline:
-        codes.append(("baseline", Path(args.baseline).resolve()))
+    for spec in args.baseline:
+        label, _, path = spec.rpartition("=")
+        codes.append((label or "baseline", Path(path).resolve()))
     load_before = os.getloadavg()
     rows, fits = [], []
     with tempfile.TemporaryDirectory() as folder:
@@ -146,9 +162,11 @@ def main(argv=None):
                 rows.append((name, label, runs))
                 print(label, name, _stats([r["total"] for r in runs]), flush=True)
             cmd = [a.format(csv=csv, library=library) for a in FIT]
-            runs = [run(cmd, root, folder) for _ in range(fit_repeats)]
-            fits.append((label, runs))
-            print(label, "fit", _stats([r["total"] for r in runs]), flush=True)
+            for threads in (None, 1) if args.one_thread else (None,):
+                runs = [run(cmd, root, folder, threads) for _ in range(fit_repeats)]
+                name = label if threads is None else f"{label}, 1 thread"
+                fits.append((name, runs))
+                print(name, "fit", _stats([r["total"] for r in runs]), flush=True)
     load_after = os.getloadavg()
 
     text = _common.header("The command line: time to an error, and to a fit")
@@ -161,7 +179,7 @@ def main(argv=None):
         "which a busy machine inflates less than the wall time); min / median over "
         f"{repeats} runs ({fit_repeats} for the fit). Load average (1 min) at the "
         f"start {load_before[0]:.2f}, at the end {load_after[0]:.2f}"
-        + (f"; 'baseline' is `{args.baseline}`" if args.baseline else "")
+        + "".join(f"; '{label}' is `{root}`" for label, root in codes[1:])
         + ".\n\n## Errors\n\n"
         "| command | code | exit status | wall to the error (min / median) | CPU | "
         "message |\n|---|---|---|---|---|---|\n"
@@ -193,6 +211,8 @@ def main(argv=None):
         ]
         text += f"| {label} | " + " | ".join(cells) + " |\n"
     for label, runs in fits:
+        if label.endswith("1 thread"):
+            continue
         text += f"\nOutput ({label}, first run):\n\n```text\n"
         text += "\n".join(runs[0]["output"]) + "\n```\n"
     name = "cli_quick.md" if args.quick else "cli.md"
