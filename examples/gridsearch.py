@@ -1,16 +1,20 @@
-"""Choose lam (L1 weight) and alpha (step size) by cross-validation over trajectories.
+"""
+Choosing lam and alpha by cross-validation
+==========================================
 
-Rows of X are self-contained samples, so any scikit-learn splitter works; GroupKFold
-with the trajectory index as `groups` keeps each trajectory within one fold, so the
-score measures prediction on trajectories the fit has not seen. With forces the score
-is R^2 of the predicted forces; for passive data (fit(X) without tau) `score` is R^2 of
-the accelerations, so GridSearchCV(...).fit(X, groups=...) ranks those models too.
+Choose ``lam`` (the L1 weight) and ``alpha`` (the step size) by cross-validation over
+trajectories. Rows of ``X`` are self-contained samples, so any scikit-learn splitter
+works; ``GroupKFold`` with the trajectory index as ``groups`` keeps each trajectory
+within one fold, so the score measures prediction on trajectories the fit has not
+seen. With forces the score is R^2 of the predicted forces; for passive data
+(``fit(X)`` without ``tau``) ``score`` is R^2 of the accelerations, so
+``GridSearchCV(...).fit(X, groups=...)`` ranks those models too.
 
-What to expect: too large a lam removes true terms and the cross-validated score
-drops; alpha is the step of the proximal gradient and changes the speed, not the
-answer, once FISTA converges (None: 1/L from the Lipschitz constant).
+What to expect: too large a ``lam`` removes true terms and the cross-validated score
+drops; ``alpha`` is the step of the proximal gradient and changes the speed, not the
+answer, once FISTA converges (``None``: 1/L from the Lipschitz constant).
 
-Run: python examples/gridsearch.py   (about 40 s)
+Run: ``python examples/gridsearch.py`` (about 40 s).
 """
 
 import os

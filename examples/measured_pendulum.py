@@ -1,26 +1,29 @@
-"""A Lagrangian from real recordings: the MultiArm-Pendulum single pendulum.
+"""
+Real recordings: the MultiArm single pendulum
+=============================================
 
-Data: encoder recordings of a physical pendulum swinging freely (1 kHz), from
-Kaheman et al., "The Experimental Multi-Arm Pendulum on a Cart", arXiv:2205.06231
-(MIT license), shipped with lagsindy (lagsindy/data/multiarm_pendulum/). There is
-no input, so this is case III: the fit fixes the Lagrangian's scale (here by the mean
-trace of the mass matrix, reported with phi_dot**2's coefficient set to 1) and the
-answer is the ratio of the potential to the kinetic term, which for a rigid pendulum
-is 2 m g a / (I + m a^2) (a simple pendulum of length l: 2 g / l). The free swing
-decays, so the conservative model leaves a residual; `diagnose` finds what explains it.
+A Lagrangian from real recordings. Data: encoder recordings of a physical pendulum
+swinging freely (1 kHz), from Kaheman et al., "The Experimental Multi-Arm Pendulum on a
+Cart", arXiv:2205.06231 (MIT license), shipped with lagsindy
+(``lagsindy/data/multiarm_pendulum/``). There is no input, so this is case III: the fit
+fixes the Lagrangian's scale (here by the mean trace of the mass matrix, reported with
+``phi_dot**2``'s coefficient set to 1) and the answer is the ratio of the potential to
+the kinetic term, which for a rigid pendulum is 2 m g a / (I + m a^2) (a simple
+pendulum of length l: 2 g / l). The free swing decays, so the conservative model
+leaves a residual; ``diagnose`` finds what explains it.
 
 Angles: the recording's zero is the upright position, so pi means hanging straight
-down. We fit in phi = theta - pi, so the potential is +c cos(phi) with c > 0 and the
-library's low-order polynomial terms in phi are small near the rest position.
-In the original angle cos(phi) = -cos(theta): the ratio cos(theta)/theta_dot**2 is
-minus the one printed for phi.
+down. We fit in ``phi = theta - pi``, so the potential is ``+c cos(phi)`` with c > 0 and
+the library's low-order polynomial terms in ``phi`` are small near the rest position.
+In the original angle ``cos(phi) = -cos(theta)``: the ratio
+``cos(theta)/theta_dot**2`` is minus the one printed for ``phi``.
 
 Differentiation: the encoder steps make accelerations from the raw 1 kHz record very
 noisy. We thin the record to 100 Hz first and let the P-spline (smoothing chosen by
 generalized cross-validation) estimate velocities and accelerations per segment.
 
-Run: python examples/measured_pendulum.py   (about 15 s)
-The full study of both recordings: python -m benchmarks.measured
+Run: ``python examples/measured_pendulum.py`` (about 15 s). The full study of both
+recordings: ``python -m benchmarks.measured``.
 """
 
 import os

@@ -1,16 +1,20 @@
-"""Fit your own recordings: a CSV of positions (and inputs), derivatives estimated.
+"""
+Your own recordings: a CSV of positions
+=======================================
 
-A real data set has sampled positions q(t) (encoders, motion capture) and, when the
-system is driven, the generalized forces. This example first writes such a file
-(a simulated cart-pendulum with sensor noise on the positions only), then does what a
+Fit your own recordings: a CSV of positions (and inputs), derivatives estimated. A
+real data set has sampled positions q(t) (encoders, motion capture) and, when the
+system is driven, the generalized forces. This example first writes such a file (a
+simulated cart-pendulum with sensor noise on the positions only), then does what a
 user does with their own file: read it, estimate velocities and accelerations per
-trajectory, build X = [q, q_dot, q_ddot] with named columns, and fit.
+trajectory, build ``X = [q, q_dot, q_ddot]`` with named columns, and fit.
 
-The same from the command line:
-    lagsindy fit positions.csv --coordinates x,theta --angles theta --library poly3 \
-        --out model.json
+The same from the command line::
 
-Run: python examples/own_data_csv.py   (about 15 s)
+    lagsindy fit positions.csv --coordinates x,theta --angles theta \\
+        --library poly3 --out model.json
+
+Run: ``python examples/own_data_csv.py`` (about 15 s).
 """
 
 import os

@@ -1,13 +1,16 @@
-"""Passive double pendulum (case III): no input, one known term and one prior term.
+"""
+Passive double pendulum (case III)
+==================================
 
-Without an input the Euler-Lagrange equations are homogeneous, so the Lagrangian is
-only determined up to scale. Case III fixes the coefficient of a term known to be
-present (here theta1_dot**2, the first link's kinetic energy) to 1. The paper also
-uses what is known from a constituent system, the single pendulum: cos(theta1) is
-present, so it is left unpenalised (`unpenalized`) and never thresholded. The systems
-carry both facts as `system.fixed_term` and `system.prior_terms`.
+No input, one known term and one prior term. Without an input the Euler-Lagrange
+equations are homogeneous, so the Lagrangian is only determined up to scale. Case III
+fixes the coefficient of a term known to be present (here ``theta1_dot**2``, the first
+link's kinetic energy) to 1. The paper also uses what is known from a constituent
+system, the single pendulum: ``cos(theta1)`` is present, so it is left unpenalised
+(``unpenalized``) and never thresholded. The systems carry both facts as
+``system.fixed_term`` and ``system.prior_terms``.
 
-Run: python examples/passive_case3.py   (about 20 s)
+Run: ``python examples/passive_case3.py`` (about 20 s).
 """
 
 import os

@@ -8,6 +8,8 @@ scikit-learn until a name that needs them is used.
 from __future__ import annotations
 
 import importlib
+import sys
+import types
 from typing import TYPE_CHECKING
 
 from ._version import __version__
@@ -53,6 +55,23 @@ def __getattr__(name):
 
 def __dir__():
     return sorted(set(globals()) | set(_EXPORTS))
+
+
+class _Namespace(types.ModuleType):
+    """The package's module type: a public function keeps its name when its
+    submodule of the same name is imported (``lagsindy.refine``, the function, and
+    ``lagsindy/refine.py``). Python binds an imported submodule to the package's
+    attribute of that name, so after ``import lagsindy.refine`` (or any import of
+    that module inside the package), ``from lagsindy import refine`` gave the module.
+    """
+
+    def __setattr__(self, name, value):
+        if isinstance(value, types.ModuleType) and _EXPORTS.get(name) == name:
+            value = getattr(value, name)
+        super().__setattr__(name, value)
+
+
+sys.modules[__name__].__class__ = _Namespace
 
 
 if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs

@@ -162,3 +162,28 @@ def test_feature_names_cache_follows_set_params_and_clone():
     assert copy.get_feature_names_out().tolist() == [str(t) for t in copy.terms_]
     assert "cos(theta)" in lib.get_feature_names_out().tolist()
     assert "cos(theta)" not in copy.get_feature_names_out().tolist()
+
+
+def test_dependent_terms_name_their_combination():
+    """The removal message gives the combination of earlier kept columns (one
+    triangular solve of the Gram-Schmidt basis, the same text as a least-squares fit
+    of the kept columns gave)."""
+    lib = CandidateLibrary.from_terms(
+        ["x", "theta"],
+        ["x_dot**2", "cos(theta)", "theta_dot**2", "0.5*x_dot**2 - 3*cos(theta)"],
+    )
+    assert lib.removed_ == [
+        (
+            "0.5*x_dot**2 - 3*cos(theta)",
+            "dependent: its Euler-Lagrange column equals +0.5*[x_dot**2] "
+            "-3*[cos(theta)]",
+        )
+    ]
+    angles = ["theta1", "theta2"]
+    lib = CandidateLibrary.polynomial(angles, angles=angles, degree=4)
+    assert len(lib) == 128 and len(lib.candidates_) == 209
+    assert lib.removed_[-1] == (
+        "cos(theta2)**4",
+        "dependent: its Euler-Lagrange column equals -2*[sin(theta2)**2] "
+        "+1*[sin(theta2)**4]",
+    )

@@ -1,15 +1,21 @@
 """The ``lagsindy`` command (also ``python -m lagsindy``).
 
-Subcommands: ``demo``, ``simulate``, ``simulate-model``, ``fit``, ``diagnose`` and
-``predict``; each has ``--help``. Bad input (a missing file, an unknown column, a
-wrong shape, NaN, an invalid model file) ends with ONE line on stderr and exit status
+Subcommands: ``demo``, ``simulate``, ``simulate-model``, ``fit``, ``diagnose``,
+``predict`` and ``export`` (:mod:`lagsindy.export.command`); each has ``--help``.
+Bad input (a missing file, an unknown column, a wrong shape, NaN, an invalid model file) ends with ONE line on stderr and exit status
 2, never a traceback (``--debug`` shows it).
 
-The package imports only the standard library and numpy at import time: torch, sympy,
-scikit-learn and pandas are imported inside the commands that need them, so
-``lagsindy --help`` answers at once. Modules: :mod:`.parser` (options, help texts,
-defaults), :mod:`.commands` (one function per subcommand) and :mod:`._io` (CSV and
-model files in and out). The subcommands look their handler up here when they run
+Fast errors, talkative steps: the package imports only the standard library and
+numpy at import time, and each command checks its options, file names and the
+CSV's header (:mod:`._checks`) before it imports pandas, torch, sympy or
+scikit-learn, so such errors come in a fraction of a second. Each step that can take
+seconds (loading the fitting code, building the library, estimating derivatives,
+fitting, diagnosing) prints a line first, unless ``--quiet``.
+
+Modules: :mod:`.parser` (options, help texts, defaults), one module per command
+(:mod:`.demo`, :mod:`.simulate`, :mod:`.fit` with :mod:`.scoring`, :mod:`.diagnose`,
+:mod:`.predict`), :mod:`._checks` (the cheap checks) and :mod:`._io` (CSV and model
+files in and out). The subcommands look their handler up here when they run
 (``_fit``, ``_demo``, ...), so patching ``lagsindy.cli._fit`` takes effect.
 """
 
@@ -18,25 +24,20 @@ from __future__ import annotations
 import sys
 import warnings
 
-from ._io import CLIError
-from ._io import _check_out as _check_out
-from ._io import _input_columns as _input_columns
+from ._checks import CLIError
 from ._io import _load as _load
-from ._io import _numeric as _numeric
 from ._io import _read_csv as _read_csv
 from ._io import _state_and_groups as _state_and_groups
-from ._io import _state_frame as _state_frame
-from .commands import _apply_delay as _apply_delay
-from .commands import _demo as _demo
-from .commands import _diagnose as _diagnose
-from .commands import _fit as _fit
-from .commands import _fit_csv as _fit_csv
-from .commands import _library as _library
-from .commands import _predict as _predict
-from .commands import _simulate as _simulate
-from .commands import _simulate_model as _simulate_model
-from .commands import _warn_missing_coupling as _warn_missing_coupling
+from .demo import _demo as _demo
+from .diagnose import _diagnose as _diagnose
+from .fit import _fit as _fit
+from .fit import _fit_csv as _fit_csv
+from .fit import _library as _library
+from .fit import _warn_missing_coupling as _warn_missing_coupling
 from .parser import SYSTEM_NAMES, build_parser
+from .predict import _predict as _predict
+from .simulate import _simulate as _simulate
+from .simulate import _simulate_model as _simulate_model
 
 __all__ = ["CLIError", "SYSTEM_NAMES", "build_parser", "main"]
 

@@ -1,7 +1,8 @@
 """Data in and out for the ``lagsindy`` command: CSV reading, states, model files.
 
 Only the standard library and numpy are imported here at import time; pandas and the
-estimator's modules are imported inside the functions that need them.
+estimator's modules are imported inside the functions that need them. The checks
+that need no data (options, file names, the CSV's header) are in :mod:`._checks`.
 """
 
 from __future__ import annotations
@@ -12,9 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
+from ._checks import CLIError, check_csv_file, missing_column, state_names
+from ._checks import check_out as _check_out
+from ._checks import derivatives_estimated as _columns_say_estimated
+from ._checks import input_columns as _header_inputs
 
-class CLIError(Exception):
-    """A user error: printed as one line, exit status 2."""
+__all__ = ["CLIError"]
 
 
 def _say(args, *parts):
@@ -27,11 +31,7 @@ def _say(args, *parts):
 def _read_csv(path):
     import pandas as pd
 
-    p = Path(path)
-    if not p.exists():
-        raise CLIError(f"file not found: {path}")
-    if p.is_dir():
-        raise CLIError(f"{path} is a folder, not a CSV file")
+    p = check_csv_file(path)
     try:
         df = pd.read_csv(p)
     except pd.errors.EmptyDataError:
@@ -59,10 +59,6 @@ def _read_csv(path):
     return df
 
 
-def _split(text):
-    return [s.strip() for s in text.split(",") if s.strip()] if text else []
-
-
 def _line(i):
     """The file line of data row ``i`` (0-based; the header is line 1)."""
     return f"line {i + 2}"
@@ -72,11 +68,7 @@ def _numeric(df, columns, source):
     """The named columns as a float array; names the column and line of bad values."""
     missing = [c for c in columns if c not in df.columns]
     if missing:
-        raise CLIError(
-            f"{source} has no column {missing[0]!r} (its columns: "
-            f"{', '.join(map(str, df.columns[:20]))}"
-            f"{' ...' if len(df.columns) > 20 else ''})"
-        )
+        raise missing_column(source, missing[0], df.columns)
     out = np.empty((len(df), len(columns)))
     for j, c in enumerate(columns):
         values = df[c]
@@ -136,11 +128,7 @@ def _state_frame(df, coords, args, source):
 
 def _derivatives_estimated(df, coords, args):
     """Whether q_dot and q_ddot are estimated from q (not read from the CSV)."""
-    from .._expr import state_names
-
-    if getattr(args, "derivatives", None) is not None:
-        return True
-    return not all(n in df.columns for n in state_names(coords))
+    return _columns_say_estimated(df.columns, coords, args)
 
 
 def _state_and_groups(df, coords, args, source, angles=(), ordered=True):
@@ -153,8 +141,6 @@ def _state_and_groups(df, coords, args, source, angles=(), ordered=True):
     derivatives are given (fit and diagnose; ``predict`` takes rows one by one).
     """
     import pandas as pd
-
-    from .._expr import state_names
 
     names = state_names(coords)
     q = _numeric(df, coords, source)
@@ -238,31 +224,7 @@ def _group_rows(groups, n):
 
 def _input_columns(df, coords, args):
     """Names of the generalized-force columns, or None for passive data."""
-    if getattr(args, "passive", False):
-        return None
-    if args.input:
-        cols = _split(args.input)
-        if len(cols) != len(coords):
-            raise CLIError(
-                f"--input names {len(cols)} column(s) but there are {len(coords)} "
-                f"coordinate(s) {coords}: give one generalized-force column per "
-                "coordinate"
-            )
-        return cols
-    named = [f"tau_{c}" for c in coords]
-    if all(c in df.columns for c in named):
-        return named
-    return None
-
-
-def _check_out(out):
-    """Fail early (before a long fit) when the output cannot be written."""
-    out = Path(out)
-    if out.is_dir():
-        raise CLIError(f"--out {out} is a folder; give a file name")
-    if not out.parent.is_dir():
-        raise CLIError(f"cannot write {out}: the folder {out.parent} does not exist")
-    return out
+    return _header_inputs(df.columns, coords, args)
 
 
 def _write_csv(df, out):

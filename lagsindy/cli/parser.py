@@ -230,7 +230,7 @@ def _add_fit_options(p, *, required):
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``lagsindy`` command."""
-    from .. import __version__
+    from .._version import __version__
 
     systems = ", ".join(SYSTEM_NAMES)
     parser = _Parser(
@@ -514,4 +514,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_derivative_options(pred)
     pred.add_argument("--quiet", action="store_true", help="print nothing but errors")
     pred.set_defaults(func=_command("_predict"))
+
+    from ..export.command import add_export_command
+
+    add_export_command(sub)
     return parser

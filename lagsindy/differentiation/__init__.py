@@ -49,24 +49,24 @@ random_state=0)`` (20 x 5 s at 100 Hz; RMS of the exact signals: x_dot 0.72 m/s,
 theta_dot 2.9 rad/s, x_ddot 4.1 m/s^2, theta_ddot 8.0 rad/s^2), Gaussian noise of
 standard deviation sigma added to the exact x and theta; RMS error against the exact
 derivatives over all samples, mean of 3 noise draws. The last column excludes the 10
-first and last samples of each trajectory, where every method is one-sided.
+first and last samples of each trajectory, where every method is one-sided::
 
-| sigma | method | x_dot | theta_dot | x_ddot | theta_ddot | theta_ddot inner |
-|---|---|---|---|---|---|---|
-| 0 | pspline | 3.9e-07 | 5.3e-07 | 1.3e-04 | 1.7e-04 | 1.3e-04 |
-| 0 | spline (cubic) | 4.0e-03 | 9.7e-03 | 0.26 | 0.64 | 2.8e-02 |
-| 0 | savgol 11, 4 | 2.2e-04 | 3.0e-04 | 1.0e-02 | 1.4e-02 | 5.6e-03 |
-| 0 | finite_difference | 6.6e-04 | 8.2e-04 | 5.8e-03 | 7.6e-03 | 6.7e-03 |
-| 1e-3 | pspline | 6.4e-03 | 6.9e-03 | 0.20 | 0.22 | 0.19 |
-| 1e-3 | spline (cubic) | 1.1e-02 | 1.7e-02 | 0.54 | 0.97 | 0.69 |
-| 1e-3 | savgol 11, 4 | 2.7e-02 | 2.6e-02 | 2.7 | 2.7 | 2.6 |
-| 1e-3 | savgol 21, 4 | 1.1e-02 | 1.1e-02 | 0.53 | 0.54 | 0.47 |
-| 1e-3 | finite_difference | 7.2e-02 | 7.2e-02 | 25 | 25 | 24 |
-| 1e-2 | pspline | 3.6e-02 | 4.1e-02 | 0.75 | 0.92 | 0.75 |
-| 1e-2 | spline (cubic) | 4.3e-02 | 5.8e-02 | 1.1 | 1.6 | 1.3 |
-| 1e-2 | savgol 11, 4 | 0.27 | 0.26 | 27 | 27 | 26 |
-| 1e-2 | savgol 41, 4 | 4.7e-02 | 5.1e-02 | 1.2 | 1.3 | 0.98 |
-| 1e-2 | finite_difference | 0.72 | 0.72 | 2.5e+02 | 2.5e+02 | 2.4e+02 |
+    | sigma | method | x_dot | theta_dot | x_ddot | theta_ddot | theta_ddot inner |
+    |---|---|---|---|---|---|---|
+    | 0 | pspline | 3.9e-07 | 5.3e-07 | 1.3e-04 | 1.7e-04 | 1.3e-04 |
+    | 0 | spline (cubic) | 4.0e-03 | 9.7e-03 | 0.26 | 0.64 | 2.8e-02 |
+    | 0 | savgol 11, 4 | 2.2e-04 | 3.0e-04 | 1.0e-02 | 1.4e-02 | 5.6e-03 |
+    | 0 | finite_difference | 6.6e-04 | 8.2e-04 | 5.8e-03 | 7.6e-03 | 6.7e-03 |
+    | 1e-3 | pspline | 6.4e-03 | 6.9e-03 | 0.20 | 0.22 | 0.19 |
+    | 1e-3 | spline (cubic) | 1.1e-02 | 1.7e-02 | 0.54 | 0.97 | 0.69 |
+    | 1e-3 | savgol 11, 4 | 2.7e-02 | 2.6e-02 | 2.7 | 2.7 | 2.6 |
+    | 1e-3 | savgol 21, 4 | 1.1e-02 | 1.1e-02 | 0.53 | 0.54 | 0.47 |
+    | 1e-3 | finite_difference | 7.2e-02 | 7.2e-02 | 25 | 25 | 24 |
+    | 1e-2 | pspline | 3.6e-02 | 4.1e-02 | 0.75 | 0.92 | 0.75 |
+    | 1e-2 | spline (cubic) | 4.3e-02 | 5.8e-02 | 1.1 | 1.6 | 1.3 |
+    | 1e-2 | savgol 11, 4 | 0.27 | 0.26 | 27 | 27 | 26 |
+    | 1e-2 | savgol 41, 4 | 4.7e-02 | 5.1e-02 | 1.2 | 1.3 | 0.98 |
+    | 1e-2 | finite_difference | 0.72 | 0.72 | 2.5e+02 | 2.5e+02 | 2.4e+02 |
 
 Time for the 20 trajectories: pspline 0.1-0.2 s, savgol and finite differences
 < 0.1 s, spline (cubic) 13-16 s. The P-spline was also the most accurate on the

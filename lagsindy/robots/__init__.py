@@ -14,6 +14,7 @@ from .base_parameters import (
     base_parameters_from_columns,
 )
 from .energy import RobotTerms, euler_lagrange_columns
+from .examples import example_urdf
 from .export import ConsistentParameters, consistent_parameters, feasibility, to_urdf
 from .library import RobotLibrary
 from .urdf import RobotTree, build_tree
@@ -29,6 +30,7 @@ __all__ = [
     "build_tree",
     "consistent_parameters",
     "euler_lagrange_columns",
+    "example_urdf",
     "feasibility",
     "to_urdf",
 ]

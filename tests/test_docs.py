@@ -1,0 +1,173 @@
+"""The documentation (#44): its code runs, it builds without a warning, every public
+name has a page, and (slow) the example gallery runs.
+
+The build needs the ``docs`` extra (``pip install -e ".[docs]"``); without Sphinx and
+its extensions those tests are skipped. They build a copy of ``docs/`` in a temporary
+folder (``LAGSINDY_DOCS_ROOT`` points ``conf.py`` at this checkout), so the source
+tree gets no generated files.
+"""
+
+import importlib
+import os
+import pkgutil
+import shutil
+import subprocess
+import sys
+
+import pytest
+from _markdown_blocks import ROOT, python_blocks, run_block
+
+import lagsindy
+
+DOCS = ROOT / "docs"
+GENERATED = ("_build", "api/generated", "auto_examples", "benchmarks/results")
+# Submodules with an __all__ that the API pages do not list, and why.
+NOT_IN_THE_API = {"cli": "the command line, documented in cli.md"}
+
+
+def _pages():
+    for path in sorted(DOCS.rglob("*.md")):
+        rel = path.relative_to(DOCS).as_posix()
+        if not any(rel.startswith(g + "/") for g in GENERATED):
+            yield path
+
+
+BLOCKS = [
+    (path.relative_to(ROOT).as_posix(), *block)
+    for path in _pages()
+    for block in python_blocks(path)
+]
+
+
+def test_the_guide_has_runnable_examples():
+    assert len(BLOCKS) >= 8  # measured 9 when written
+
+
+@pytest.mark.parametrize(
+    "page, line, code, expected", BLOCKS, ids=[f"{b[0]}:{b[1]}" for b in BLOCKS]
+)
+def test_docs_block_runs_alone(page, line, code, expected, tmp_path):
+    run_block(code, expected, tmp_path, f"{page} block at line {line}")
+
+
+def _need_sphinx():
+    for name in (
+        "sphinx",
+        "numpydoc",
+        "sphinx_gallery",
+        "pydata_sphinx_theme",
+        "myst_parser",
+    ):
+        pytest.importorskip(name, reason=f'{name} is not installed (".[docs]" extra)')
+
+
+def _build(tmp_path, *options, timeout=1800):
+    """Build a copy of docs/ with warnings as errors; returns the HTML folder."""
+    source = tmp_path / "docs"
+    shutil.copytree(
+        DOCS,
+        source,
+        ignore=lambda folder, names: [
+            n
+            for n in names
+            if (os.path.relpath(os.path.join(folder, n), DOCS).replace(os.sep, "/"))
+            in GENERATED
+        ],
+    )
+    html = tmp_path / "html"
+    env = {
+        **os.environ,
+        "LAGSINDY_DOCS_ROOT": str(ROOT),
+        "PYTHONPATH": str(ROOT),
+        "MPLBACKEND": "Agg",
+        "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1"),
+    }
+    proc = subprocess.run(
+        [sys.executable, "-m", "sphinx", "-W", "--keep-going", "-b", "html"]
+        + list(options)
+        + [str(source), str(html)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
+    warnings = [
+        line
+        for line in (proc.stdout + proc.stderr).splitlines()
+        if "WARNING" in line or "ERROR" in line
+    ]
+    assert proc.returncode == 0, "\n".join(warnings[:40]) or proc.stderr[-3000:]
+    return html
+
+
+def _public_modules():
+    """``{name: module}`` of the package's public submodules that have ``__all__``."""
+    out = {}
+    for info in pkgutil.iter_modules(lagsindy.__path__):
+        if info.name.startswith("_") or info.name in NOT_IN_THE_API:
+            continue
+        module = importlib.import_module(f"lagsindy.{info.name}")
+        if hasattr(module, "__all__"):
+            out[info.name] = module
+    return out
+
+
+def missing_pages(generated):
+    """Public names without an API page, given the generated pages' names."""
+    pages = {p.removesuffix(".html") for p in generated}
+    missing = [
+        f"lagsindy.{name}"
+        for name in lagsindy.__all__
+        if name != "__version__" and f"lagsindy.{name}" not in pages
+    ]
+    for mod_name, module in _public_modules().items():
+        full = f"lagsindy.{mod_name}"
+        if full not in pages:
+            missing.append(f"{full} (module page)")
+            continue
+        for name in module.__all__:
+            if f"{full}.{name}" in pages:
+                continue
+            shared = name in lagsindy.__all__ and getattr(lagsindy, name) is getattr(
+                module, name
+            )
+            if not (shared and f"lagsindy.{name}" in pages):
+                missing.append(f"{full}.{name}")
+    return missing
+
+
+def test_missing_pages_can_fail():
+    assert missing_pages([]) and "lagsindy.LagrangianSINDy" in missing_pages([])
+    everything = {f"lagsindy.{n}.html" for n in lagsindy.__all__}
+    for mod_name, module in _public_modules().items():
+        everything.add(f"lagsindy.{mod_name}.html")
+        everything |= {f"lagsindy.{mod_name}.{n}.html" for n in module.__all__}
+    assert missing_pages(everything) == []
+    assert missing_pages(everything - {"lagsindy.systems.make_dataset.html"}) == [
+        "lagsindy.systems.make_dataset"
+    ]
+
+
+def test_docs_build_without_warnings_and_every_public_name_has_a_page(tmp_path):
+    _need_sphinx()
+    html = _build(tmp_path, "-D", "plot_gallery=0")
+    assert (html / "index.html").exists()
+    generated = [p.name for p in (html / "api" / "generated").glob("*.html")]
+    assert missing_pages(generated) == [], (
+        "add these names to docs/api/index.md (or to a public module's __all__, "
+        "whose page lists it)"
+    )
+    # every benchmark results file has its page, every example its gallery page
+    for path in (ROOT / "benchmarks" / "results").glob("*.md"):
+        if not path.stem.endswith("_quick"):
+            assert (html / "benchmarks" / "results" / f"{path.stem}.html").exists()
+    for path in (ROOT / "examples").glob("*.py"):
+        assert (html / "auto_examples" / f"{path.stem}.html").exists()
+
+
+@pytest.mark.slow  # runs every example inside the build
+def test_docs_gallery_runs(tmp_path):
+    _need_sphinx()
+    html = _build(tmp_path, timeout=3600)
+    measured = (html / "auto_examples" / "measured_pendulum.html").read_text()
+    assert "ratio cos(phi)/phi_dot**2" in measured  # its printed output is shown
