@@ -465,6 +465,30 @@ def sizes(quick: bool) -> dict:
     )
 
 
+def code_commit() -> str:
+    """Which lagsindy code ran: the checkout's HEAD, the last commit that changed
+    ``lagsindy/`` and whether ``lagsindy/`` has uncommitted changes."""
+    import subprocess
+    from pathlib import Path
+
+    root = str(Path(__file__).resolve().parent.parent)
+
+    def git(*args):
+        out = subprocess.run(
+            ["git", "-C", root, *args], capture_output=True, text=True, timeout=30
+        )
+        return out.stdout.strip() if out.returncode == 0 else ""
+
+    head = git("rev-parse", "--short", "HEAD")
+    if not head:
+        return "unknown (not a git checkout)"
+    package = git("log", "-1", "--format=%h", "--", "lagsindy")
+    dirty = git("status", "--porcelain", "--", "lagsindy")
+    return f"checkout HEAD {head}; `lagsindy/` last changed in {package}" + (
+        " (with uncommitted changes)" if dirty else ""
+    )
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.undriven", description=__doc__.splitlines()[0]
@@ -564,6 +588,7 @@ def main(argv=None) -> int:
     text = header(
         "Undriven and light links (issue #41)", _common.command("undriven", argv)
     )
+    text += f"Code: {code_commit()}.\n\n"
     text += (
         f"Load average (1, 5, 15 min) at the start: "
         f"{', '.join(f'{v:.1f}' for v in load_start)}; at the end: "
