@@ -112,6 +112,14 @@ class BalancedGram:
             )
         self.row_scale = rows
         weights = 1.0 / rows**2
+        # Each column's squared norm per equation (weighted rows), and the share of
+        # its norm each equation holds: what the staged threshold judges terms by.
+        per_eq = torch.clamp(torch.diagonal(gram, dim1=1, dim2=2), min=0)
+        per_eq = per_eq * weights[:, None]
+        total = per_eq.sum(dim=0)
+        self.equation_shares = torch.sqrt(
+            torch.where(total > 0, per_eq / torch.where(total > 0, total, 1.0), 0.0)
+        )
         self.gram = (gram * weights[:, None, None]).sum(dim=0) / (n_samples * n_dof)
         if project_psd:
             # A corrected Gram (noise contribution subtracted) can have slightly
@@ -235,7 +243,8 @@ class BalancedGram:
                 y_scale = y_scales[target]
                 column = self.gram[torch.as_tensor(frees[j], device=device), target]
                 rhs = sign * column / (s_all * y_scale)
-                pairs[j] = (GramQuadratic(g_all, rhs, 1.0), _unscaler(s_all, y_scale))
+                datafit = GramQuadratic(g_all, rhs, 1.0, *self._shares(frees[j], target))
+                pairs[j] = (datafit, _unscaler(s_all, y_scale))
                 continue
             pos = torch.as_tensor(
                 np.stack([np.searchsorted(union, frees[j]) for j in group]),
@@ -255,8 +264,18 @@ class BalancedGram:
             rhs = signs * self.gram[cols, targets[:, None]] / (s_safe * y_scale)
             for i, j in enumerate(group):
                 to_coef = _unscaler(s_safe[i], y_scales[jobs[j][1]])
-                pairs[j] = (GramQuadratic(grams[i], rhs[i], 1.0), to_coef)
+                shares = self._shares(frees[j], jobs[j][1])
+                pairs[j] = (GramQuadratic(grams[i], rhs[i], 1.0, *shares), to_coef)
         return pairs, union, g_all
+
+    def _shares(self, free, target):
+        """``(equation_shares, target_shares)`` of a problem (see
+        :class:`~lagsindy.solvers.GramQuadratic`); ``(None, None)`` for one
+        equation (or unscaled columns), where the threshold compares coefficients."""
+        if self.equation_shares.shape[0] < 2 or not self.normalize:
+            return None, None
+        idx = torch.as_tensor(free, dtype=torch.long, device=self.gram.device)
+        return self.equation_shares[:, idx], self.equation_shares[:, target]
 
 
 def _unscaler(s_safe, y_scale):

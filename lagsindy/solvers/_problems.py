@@ -45,6 +45,20 @@ class StageRuns:
     step_reductions: np.ndarray
 
 
+def _equation_shares(datafits, index, m):
+    """Every problem's equation shares in the batch's coordinates, ``(n, n_eq, m)``
+    and ``(n, n_eq)`` (see :class:`~lagsindy.solvers.GramQuadratic`), or ``(None,
+    None)`` unless every problem has them for as many equations."""
+    shares = [getattr(d, "equation_shares", None) for d in datafits]
+    if any(s is None for s in shares) or len({s.shape[0] for s in shares}) != 1:
+        return None, None
+    out = np.zeros((len(datafits), shares[0].shape[0], m))
+    for r, (s, idx) in enumerate(zip(shares, index)):
+        out[r][:, idx] = s.detach().cpu().numpy()
+    targets = np.stack([d.target_shares.detach().cpu().numpy() for d in datafits])
+    return out, targets
+
+
 def _numpy(values, size):
     """``values`` (a tensor, an array, a number or ``None``) as a float array of
     ``size`` entries."""
@@ -94,6 +108,7 @@ class Problems:
                     self.nonneg = np.zeros((n, m), dtype=bool)
                 self.nonneg[r, idx] = _numpy(nonneg[r], idx.size) > 0
         self._like = [d.zeros() for d in datafits]
+        self.shares, self.target_shares = _equation_shares(datafits, index, m)
 
     def own(self, r, row):
         """Problem ``r``'s features of a row in the batch's coordinates (a copy)."""

@@ -20,12 +20,28 @@ class GramQuadratic:
         :math:`A^\top y / n`.
     const : float
         :math:`y^\top y / n`, so that :meth:`value` is the true objective.
+    equation_shares : Tensor of shape (n_eq, p), optional
+        Where the rows of :math:`A` are several equations stacked (one per
+        coordinate), the share of each column's norm that each equation holds
+        (:math:`\|A_{ik}\| / \|A_k\|`); the staged solve's threshold then judges
+        each term within the equations it acts in. ``None``: one equation.
+    target_shares : Tensor of shape (n_eq,), optional
+        The same shares of the target :math:`y` (with ``equation_shares``).
     """
 
-    def __init__(self, gram: torch.Tensor, rhs: torch.Tensor, const: float):
+    def __init__(
+        self,
+        gram: torch.Tensor,
+        rhs: torch.Tensor,
+        const: float,
+        equation_shares: torch.Tensor | None = None,
+        target_shares: torch.Tensor | None = None,
+    ):
         self.gram = gram
         self.rhs = rhs
         self.const = float(const)
+        self.equation_shares = equation_shares
+        self.target_shares = target_shares
         self._lipschitz = None
 
     @property
@@ -60,7 +76,14 @@ class GramQuadratic:
 
     def restrict(self, idx) -> GramQuadratic:
         idx = torch.as_tensor(idx, dtype=torch.long, device=self.rhs.device)
-        return GramQuadratic(self.gram[idx][:, idx], self.rhs[idx], self.const)
+        shares = self.equation_shares
+        return GramQuadratic(
+            self.gram[idx][:, idx],
+            self.rhs[idx],
+            self.const,
+            None if shares is None else shares[:, idx],
+            self.target_shares,
+        )
 
     def least_squares(self, w0=None, rtol: float = 1e-13) -> torch.Tensor:
         """Minimum-norm unpenalised minimiser (eigen-decomposition of the Gram).

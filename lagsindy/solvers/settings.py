@@ -6,7 +6,7 @@ from numbers import Integral, Real
 
 import numpy as np
 from sklearn.base import BaseEstimator
-from sklearn.utils._param_validation import Interval
+from sklearn.utils._param_validation import Interval, StrOptions
 
 # The defaults of every solver entry point (the estimator's, :class:`StagedFISTA`'s,
 # :func:`~lagsindy.solvers.fista`'s and the staged functions'), defined once.
@@ -62,6 +62,15 @@ class StagedFISTA(BaseEstimator):
         KKT tolerance of each FISTA stage (scaled problem).
     debias : bool, default=True
         Refit the final support without penalty (removes L1 shrinkage).
+    threshold_by : {"equation", "global"}, default="equation"
+        What ``threshold`` is relative to. ``"equation"``: each coordinate's
+        Euler-Lagrange equation on its own; a term is dropped only when, in every
+        equation it acts in, it contributes less than ``threshold`` times that
+        equation's dominant term, so the terms of a link 100 times lighter than
+        the driven one (an undriven pendulum on a heavy cart) are judged against
+        their own equation, not drowned by the heavy one's. ``"global"``: relative
+        to the largest scaled coefficient of all (the paper's rule; the two are the
+        same for one coordinate).
 
     See Also
     --------
@@ -87,6 +96,7 @@ class StagedFISTA(BaseEstimator):
         "tol": [Interval(Real, 0, None, closed="left")],
         "solver_tol": [Interval(Real, 0, None, closed="neither")],
         "debias": ["boolean"],
+        "threshold_by": [StrOptions({"equation", "global"})],
     }
 
     def __init__(
@@ -100,6 +110,7 @@ class StagedFISTA(BaseEstimator):
         tol=1e-3,
         solver_tol=SOLVER_TOL,
         debias=True,
+        threshold_by="equation",
     ):
         self.threshold = threshold
         self.dissipation_threshold = dissipation_threshold
@@ -110,6 +121,7 @@ class StagedFISTA(BaseEstimator):
         self.tol = tol
         self.solver_tol = solver_tol
         self.debias = debias
+        self.threshold_by = threshold_by
 
     def validate(self) -> StagedFISTA:
         """Check the settings (a clear ``InvalidParameterError`` names a bad one).
@@ -145,7 +157,7 @@ class StagedFISTA(BaseEstimator):
         -------
         dict
             ``lam_decay``, ``step_growth``, ``max_stages``, ``max_iter``, ``tol``,
-            ``solver_tol`` and ``debias``.
+            ``solver_tol``, ``debias`` and ``threshold_by``.
         """
         return {
             "lam_decay": self.lam_decay,
@@ -155,4 +167,5 @@ class StagedFISTA(BaseEstimator):
             "tol": self.tol,
             "solver_tol": self.solver_tol,
             "debias": self.debias,
+            "threshold_by": self.threshold_by,
         }
