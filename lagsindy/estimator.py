@@ -368,6 +368,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         )
         tau_1d = tau is not None and np.asarray(y).ndim == 1
         fitted = pipeline.fitted_state(setup, stats, solution, tau_1d=tau_1d)
+        solution, fitted = pipeline.judge_each_equation(
+            setup, stats, solution, fitted, Xt, tau, tau_1d=tau_1d
+        )
         pipeline.check_fit(fitted, setup, stats, solution, Xt, tau)
         return self._publish(fitted)
 

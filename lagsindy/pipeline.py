@@ -43,7 +43,7 @@ from .formulation.probes import (
 )
 from .formulation.scaling import BalancedGram, warn_if_not_identifiable
 from .formulation.weak import choose_window
-from .model import FittedLagrangian, feature_index
+from .model import POOR_ACCELERATIONS, FittedLagrangian, feature_index
 from .solvers import warn_not_converged
 
 __all__ = [
@@ -324,6 +324,69 @@ def fitted_state(setup: FitSetup, stats, solution, *, tau_1d=False):
         residual=result.cost,
         tau_1d=tau_1d,
     )
+
+
+def judge_each_equation(
+    setup: FitSetup, stats, solution, fitted, Xt, tau, *, tau_1d=False, stacklevel=4
+):
+    """Case I with several coordinates: the solution again with every term judged
+    within each coordinate's equation, when a coordinate's accelerations are
+    predicted poorly.
+
+    The default threshold keeps a term that is small next to the largest only when
+    it carries a large share (``equation_threshold``) of some coordinate's
+    equation. A strongly driven light link's gravity and coupling can be a few
+    percent of its own equation and far less of the heavy one's: they are dropped,
+    and the model predicts that link's accelerations poorly (R^2 below
+    ``POOR_ACCELERATIONS`` from the measured forces). Then the solve is repeated
+    with ``equation_threshold = threshold`` (each term judged in its own equation
+    with the threshold itself) and kept, with a warning that says so, when every
+    coordinate then scores at least ``POOR_ACCELERATIONS``.
+
+    Returns
+    -------
+    solution, fitted
+        The ones given, or those of the repeated solve.
+    """
+    settings = setup.solver.settings
+    per_equation = settings.threshold
+    if (
+        setup.case != "forces"
+        or tau is None
+        or len(setup.library.coordinates) < 2
+        or settings.equation_threshold is None
+        or settings.equation_threshold <= per_equation
+        or not np.any(solution.coef[: setup.n_terms])
+    ):
+        return solution, fitted
+    scores = fitted.coordinate_acceleration_r2(Xt, tau)
+    poor = {k: r2 for k, r2 in scores.items() if r2 < POOR_ACCELERATIONS}
+    if not poor:
+        return solution, fitted
+    solver = dataclasses.replace(
+        setup.solver,
+        settings=clone(settings).set_params(equation_threshold=per_equation),
+    )
+    use = dataclasses.replace(setup, solver=solver)
+    again = solve(stats, use, Xt, tau)
+    if not np.all(np.isfinite(again.coef)):
+        return solution, fitted
+    refitted = fitted_state(use, stats, again, tau_1d=tau_1d)
+    new_scores = refitted.coordinate_acceleration_r2(Xt, tau)
+    if not new_scores or min(new_scores.values()) < POOR_ACCELERATIONS:
+        return solution, fitted
+    which = ", ".join(f"{k} (R^2 {r2:.2f})" for k, r2 in poor.items())
+    now = ", ".join(f"{k} {new_scores[k]:.2f}" for k in poor)
+    warnings.warn(
+        f"the model at the default threshold predicted the accelerations of {which} "
+        f"poorly: terms that the equation of a light or strongly driven coordinate "
+        f"needs were small next to the other coordinates' terms. Refitted with "
+        f"every term judged within each coordinate's equation "
+        f"(equation_threshold={per_equation:g}); R^2 now {now}.",
+        UserWarning,
+        stacklevel=stacklevel,
+    )
+    return again, refitted
 
 
 def check_fit(fitted, setup: FitSetup, stats, solution, Xt, tau, *, stacklevel=4):

@@ -243,7 +243,9 @@ class BalancedGram:
                 y_scale = y_scales[target]
                 column = self.gram[torch.as_tensor(frees[j], device=device), target]
                 rhs = sign * column / (s_all * y_scale)
-                datafit = GramQuadratic(g_all, rhs, 1.0, *self._shares(frees[j], target))
+                datafit = GramQuadratic(
+                    g_all, rhs, 1.0, *self._shares(frees[j], target)
+                )
                 pairs[j] = (datafit, _unscaler(s_all, y_scale))
                 continue
             pos = torch.as_tensor(

@@ -49,6 +49,7 @@ __all__ = [
     "MAX_ITER",
     "SOLVER_TOL",
     "AccelerationDatafit",
+    "BatchResult",
     "GramQuadratic",
     "SolverResult",
     "Stage",

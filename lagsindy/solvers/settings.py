@@ -6,7 +6,7 @@ from numbers import Integral, Real
 
 import numpy as np
 from sklearn.base import BaseEstimator
-from sklearn.utils._param_validation import Interval, StrOptions
+from sklearn.utils._param_validation import Interval
 
 # The defaults of every solver entry point (the estimator's, :class:`StagedFISTA`'s,
 # :func:`~lagsindy.solvers.fista`'s and the staged functions'), defined once.
@@ -16,6 +16,9 @@ SOLVER_TOL = 1e-7
 # divergence guard may halve the step.
 CHECK_EVERY = 10
 MAX_STEP_REDUCTIONS = 40
+# A term carrying at least this share of some coordinate's equation's dominant term
+# is kept whatever the global threshold says (StagedFISTA.equation_threshold).
+EQUATION_THRESHOLD = 0.25
 
 
 class StagedFISTA(BaseEstimator):
@@ -62,15 +65,14 @@ class StagedFISTA(BaseEstimator):
         KKT tolerance of each FISTA stage (scaled problem).
     debias : bool, default=True
         Refit the final support without penalty (removes L1 shrinkage).
-    threshold_by : {"equation", "global"}, default="equation"
-        What ``threshold`` is relative to. ``"equation"``: each coordinate's
-        Euler-Lagrange equation on its own; a term is dropped only when, in every
-        equation it acts in, it contributes less than ``threshold`` times that
-        equation's dominant term, so the terms of a link 100 times lighter than
-        the driven one (an undriven pendulum on a heavy cart) are judged against
-        their own equation, not drowned by the heavy one's. ``"global"``: relative
-        to the largest scaled coefficient of all (the paper's rule; the two are the
-        same for one coordinate).
+    equation_threshold : float or None, default=0.25
+        Judges terms within the coordinates' Euler-Lagrange equations too: a term
+        that contributes at least ``equation_threshold`` times the dominant term
+        of some coordinate's equation is kept whatever ``threshold`` says. The
+        terms that make up a light or undriven link's equation (a pendulum 20 to
+        100 times lighter than the cart or link that carries it) are then not
+        judged against the heavy coordinate's, which removed them. ``None``: the
+        paper's rule, ``threshold`` alone. The two agree for one coordinate.
 
     See Also
     --------
@@ -96,7 +98,7 @@ class StagedFISTA(BaseEstimator):
         "tol": [Interval(Real, 0, None, closed="left")],
         "solver_tol": [Interval(Real, 0, None, closed="neither")],
         "debias": ["boolean"],
-        "threshold_by": [StrOptions({"equation", "global"})],
+        "equation_threshold": [Interval(Real, 0, 1, closed="both"), None],
     }
 
     def __init__(
@@ -110,7 +112,7 @@ class StagedFISTA(BaseEstimator):
         tol=1e-3,
         solver_tol=SOLVER_TOL,
         debias=True,
-        threshold_by="equation",
+        equation_threshold=EQUATION_THRESHOLD,
     ):
         self.threshold = threshold
         self.dissipation_threshold = dissipation_threshold
@@ -121,7 +123,7 @@ class StagedFISTA(BaseEstimator):
         self.tol = tol
         self.solver_tol = solver_tol
         self.debias = debias
-        self.threshold_by = threshold_by
+        self.equation_threshold = equation_threshold
 
     def validate(self) -> StagedFISTA:
         """Check the settings (a clear ``InvalidParameterError`` names a bad one).
@@ -157,7 +159,7 @@ class StagedFISTA(BaseEstimator):
         -------
         dict
             ``lam_decay``, ``step_growth``, ``max_stages``, ``max_iter``, ``tol``,
-            ``solver_tol``, ``debias`` and ``threshold_by``.
+            ``solver_tol``, ``debias`` and ``equation_threshold``.
         """
         return {
             "lam_decay": self.lam_decay,
@@ -167,5 +169,5 @@ class StagedFISTA(BaseEstimator):
             "tol": self.tol,
             "solver_tol": self.solver_tol,
             "debias": self.debias,
-            "threshold_by": self.threshold_by,
+            "equation_threshold": self.equation_threshold,
         }

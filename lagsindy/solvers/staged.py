@@ -19,7 +19,7 @@ from ._problems import Alone, Lockstep
 from .datafits import GramQuadratic
 from .fista import fista
 from .penalties import L1
-from .settings import MAX_ITER, SOLVER_TOL
+from .settings import EQUATION_THRESHOLD, MAX_ITER, SOLVER_TOL
 
 
 # --------------------------------------------------------------------------- stages
@@ -71,15 +71,15 @@ def staged_fista(
     verbose: int = 0,
     w0: torch.Tensor | None = None,
     nonneg: torch.Tensor | None = None,
-    threshold_by: str = "equation",
+    equation_threshold: float | None = EQUATION_THRESHOLD,
 ) -> StagedResult:
     r"""The xL-SINDy schedule: FISTA stages with hard thresholding between them.
 
     Each stage solves the L1-penalised problem on the current support, then removes
     the penalised coefficients whose magnitude is below
-    ``threshold * max(reference, max_k |w_k|)`` (with ``threshold_by="equation"``
-    and a datafit of several equations: below ``threshold`` of the largest
-    contribution in every equation the term acts in); the next stage divides ``lam`` by
+    ``threshold * max(reference, max_k |w_k|)`` (except, for a datafit of several
+    equations, a term that contributes at least ``equation_threshold`` of the
+    largest term of some equation); the next stage divides ``lam`` by
     ``lam_decay`` and, when ``alpha`` is given, multiplies the step by
     ``step_growth`` (with ``alpha=None`` the step is ``1/L`` of the current,
     smaller problem, which rises by itself as terms leave). The schedule stops when
@@ -121,10 +121,10 @@ def staged_fista(
     nonneg : Tensor of bool, shape (p,), optional
         Coefficients constrained to be non-negative (dissipation), enforced by
         projection in FISTA's proximal step and in the unpenalised refit.
-    threshold_by : {"equation", "global"}, default="equation"
-        What the hard threshold is relative to (see
-        :class:`~lagsindy.solvers.StagedFISTA`); ``"equation"`` needs a
-        :class:`GramQuadratic` with ``equation_shares`` (else it is ``"global"``).
+    equation_threshold : float or None, default=0.25
+        See :class:`~lagsindy.solvers.StagedFISTA`; it needs a
+        :class:`GramQuadratic` with ``equation_shares`` (else only ``threshold``
+        applies).
 
     Returns
     -------
@@ -147,7 +147,7 @@ def staged_fista(
         verbose=verbose,
         w0=[w0],
         nonneg=[nonneg],
-        threshold_by=threshold_by,
+        equation_threshold=equation_threshold,
     )[0]
 
 
@@ -170,7 +170,7 @@ def staged_fista_batch(
     nonneg=None,
     shared=None,
     w0=None,
-    threshold_by: str = "equation",
+    equation_threshold: float | None = EQUATION_THRESHOLD,
 ) -> list:
     """:func:`staged_fista` of several problems, batched where they allow it.
 
@@ -190,7 +190,7 @@ def staged_fista_batch(
     ----------
     datafits : list of GramQuadratic or AccelerationDatafit
     lam, reference, lam_decay, step_growth, alpha, max_stages, max_iter, tol, \
-solver_tol, debias, verbose, threshold_by
+solver_tol, debias, verbose, equation_threshold
         As in :func:`staged_fista` (shared by the problems).
     penalty_weights : list of (Tensor or None), optional
         Each problem's L1 weights (default ones).
@@ -231,7 +231,7 @@ solver_tol, debias, verbose, threshold_by
         solver_tol=solver_tol,
         debias=debias,
         verbose=verbose,
-        threshold_by=threshold_by,
+        equation_threshold=equation_threshold,
     )
     results = [None] * n
     for members, kind, share in _batches(datafits, shared):
@@ -288,7 +288,7 @@ def _schedule(
     solver_tol,
     debias,
     verbose,
-    threshold_by="equation",
+    equation_threshold=EQUATION_THRESHOLD,
 ):
     """The staged schedule of every problem of ``problems`` (see
     :func:`staged_fista`); a list of :class:`StagedResult`, in order."""
@@ -319,7 +319,7 @@ def _schedule(
         # an all-zero stage (lam too high) removes nothing; unpenalised features stay.
         mags = np.abs(coef)
         largest = mags.max(1, initial=0.0)
-        small = _small(problems, rows, mags, reference, threshold_by)
+        small = _small(problems, rows, mags, reference, equation_threshold)
         keep = on[rows] & ~(small & penalised[rows] & (largest > 0)[:, None])
         coef = np.where(keep, coef, 0.0)
         on[rows], w[rows] = keep, coef
@@ -357,7 +357,7 @@ def _schedule(
         sel = np.flatnonzero(on.any(1))
         if sel.size:
             w[sel], on[sel] = _refit(
-                problems, sel, on[sel], w[sel], reference, threshold_by
+                problems, sel, on[sel], w[sel], reference, equation_threshold
             )
             costs[sel] = problems.residuals(sel, w[sel])
     return [
@@ -375,23 +375,22 @@ def _schedule(
     ]
 
 
-def _small(problems, rows, mags, reference, threshold_by):
+def _small(problems, rows, mags, reference, equation_threshold):
     """Which coefficients ``mags`` (rows ``rows`` of the batch) fall below the hard
     threshold.
 
-    ``"global"``: below ``threshold * max(reference, max_k |w_k|)``. ``"equation"``
-    (problems whose rows are several equations, with their shares): term ``k``
-    contributes ``|w_k| s_ik`` to equation ``i`` (``s_ik``: the share of its
-    column's norm in that equation); it is small when in every equation it acts in
-    its contribution is below ``threshold`` times that equation's largest (or the
-    fixed term's, ``reference * s_i,target``). A coordinate whose equation is 100
-    times weaker than another's (a light link) keeps its terms; with one equation
-    the two rules are the same.
+    The paper's rule: below ``threshold * max(reference, max_k |w_k|)``. With an
+    ``equation_threshold`` and problems whose rows are several coordinates'
+    equations (with their shares), a term is kept anyway where, in some equation,
+    its contribution ``|w_k| s_ik`` (``s_ik``: the share of its column's norm in
+    equation ``i``) is at least ``equation_threshold`` times that equation's largest
+    (or the fixed term's, ``reference * s_i,target``): the terms that make up a
+    light or undriven link's equation are not judged against a heavier one's.
     """
-    thr = problems.thr[rows]
-    if threshold_by == "global" or problems.shares is None:
-        peak = np.maximum(mags.max(1, initial=0.0), reference)[:, None]
-        return mags < thr * peak
+    peak = np.maximum(mags.max(1, initial=0.0), reference)[:, None]
+    small = mags < problems.thr[rows] * peak
+    if equation_threshold is None or problems.shares is None:
+        return small
     contrib = problems.shares[rows] * mags[:, None, :]  # (rows, equations, m)
     largest = contrib.max(2, initial=0.0)
     if reference:
@@ -402,10 +401,10 @@ def _small(problems, rows, mags, reference, threshold_by):
         out=np.zeros_like(contrib),
         where=largest[:, :, None] > 0,
     )
-    return ratio.max(1, initial=0.0) < thr
+    return small & (ratio.max(1, initial=0.0) < equation_threshold)
 
 
-def _refit(problems, rows, on, start, reference, threshold_by):
+def _refit(problems, rows, on, start, reference, equation_threshold):
     """Unpenalised refit of the supports ``on`` of ``rows``, thresholding the refit
     until it is stable.
 
@@ -422,7 +421,7 @@ def _refit(problems, rows, on, start, reference, threshold_by):
         r = rows[live]
         fit = problems.least_squares(r, on[live], start[live])
         w[live] = fit
-        small = _small(problems, r, np.abs(fit), reference, threshold_by)
+        small = _small(problems, r, np.abs(fit), reference, equation_threshold)
         drop = on[live] & small & (problems.weights[r] > 0)
         n_drop, n_on = drop.sum(1), on[live].sum(1)
         again = (n_drop > 0) & (n_drop < n_on)
