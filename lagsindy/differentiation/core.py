@@ -12,6 +12,7 @@ from threadpoolctl import ThreadpoolController
 
 from .clock import CleanedClock, clean_clock
 from .methods import _check_savgol_params, _cubic_spline, _finite_difference, _savgol
+from ._units import unwrap_unit_check
 from .pspline import _pspline
 from .records import (
     _GAP_FACTOR,
@@ -239,6 +240,7 @@ def derivatives(
             (int(labels[a]), slice(int(a), int(b)))
             for a, b in zip(bounds[:-1], bounds[1:])
         ]
+    unwrap_unit_check(q, segments, mask)
     wrapped = _wrapped_columns(q, segments, mask)
     if wrapped:
         _warn_wrapped(wrapped, times)
