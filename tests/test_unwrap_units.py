@@ -6,8 +6,7 @@ import warnings
 import numpy as np
 import pytest
 
-from lagsindy.differentiation import derivatives
-from lagsindy.differentiation import _units
+from lagsindy.differentiation import _units, derivatives
 
 T = np.arange(400) / 100.0
 

@@ -10,9 +10,9 @@ from numbers import Real
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from ._units import unwrap_unit_check
 from .clock import CleanedClock, clean_clock
 from .methods import _check_savgol_params, _cubic_spline, _finite_difference, _savgol
-from ._units import unwrap_unit_check
 from .pspline import _pspline
 from .records import (
     _GAP_FACTOR,

@@ -10,8 +10,8 @@ import sympy as sp
 import torch
 
 from lagsindy import LagrangianSINDy
-from lagsindy.formulation.weak import WindowWarning
 from lagsindy import model as model_module
+from lagsindy.formulation.weak import WindowWarning
 from lagsindy.model import (
     ANGLE_POLYNOMIAL_SHARE,
     POOR_ACCELERATIONS,
