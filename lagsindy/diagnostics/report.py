@@ -134,6 +134,9 @@ class DiagnosisReport:
     passive : bool
         Passive data fix the model only up to scale: coefficients are relative to the
         fixed term (whose coefficient is 1).
+    settings : dict
+        The diagnosis' settings; ``settings["units"]`` holds ``diagnose(units=)``,
+        which labels the residuals in the text and the figure.
     bootstrap : BootstrapReport or None
         With ``diagnose(..., bootstrap=n)``: intervals and inclusion of every term of
         the final model (:func:`lagsindy.bootstrap` of the final configuration); the
@@ -189,7 +192,7 @@ class DiagnosisReport:
             return (
                 f"rose {d:.1%}"
                 if d > tol
-                else "stayed within 1%"
+                else f"stayed within {tol:.0%}"
                 if d >= -tol
                 else f"fell {-d:.1%}"
             )
@@ -217,7 +220,7 @@ class DiagnosisReport:
                     out.append(
                         f"the residual on {c} rose ({b:.3g} -> {a:.3g}"
                         + (f" {unit}" if unit else "")
-                        + ") while the held-out error fell: the final model fits the "
+                        + ") while the held-out errors fell: the final model fits the "
                         f"other coordinates better at {c}'s expense"
                     )
         return out
