@@ -1,4 +1,4 @@
-"""Figures: true vs learned trajectories, the sparsification path, residuals.
+"""Figures: measured vs model trajectories, the sparsification path, residuals.
 
 matplotlib is an optional dependency (``pip install "lagsindy[plot]"``); it is imported
 when a function here is called. The functions build :class:`matplotlib.figure.Figure`
@@ -34,9 +34,6 @@ def _finish(fig, path):
     return fig
 
 
-_FORCE_UNITS = {"m": "N", "rad": "N*m"}
-
-
 def _units(units, n):
     """Per-coordinate units (``None`` entries when unknown)."""
     if units is None:
@@ -68,7 +65,7 @@ def plot_trajectories(
     learned_states,
     coordinates: Sequence[str] | None = None,
     *,
-    labels: tuple[str, str] = ("true", "learned"),
+    labels: tuple[str, str] = ("measured", "model"),
     velocities: bool = False,
     units: Sequence[str] | None = None,
     title: str | None = None,
@@ -80,12 +77,15 @@ def plot_trajectories(
     ----------
     t : array-like of shape (n_times,)
     true_states, learned_states : array-like of shape (n_times, 2 * n_dof)
-        States ``[q..., q_dot...]``, e.g. from :meth:`MechanicalModel.simulate` of
-        the true system and of ``est.model_``. ``learned_states`` may be ``None``
-        (a learned model that could not be integrated) or shorter than ``t``.
+        States ``[q..., q_dot...]``: the measured ones (or a simulation of the
+        true system) and the model's, e.g. from ``est.simulate``.
+        ``learned_states`` may be ``None`` (a model that could not be integrated)
+        or shorter than ``t``.
     coordinates : sequence of str, default=None
         Coordinate names for the axis labels (``q0, q1, ...`` when ``None``).
-    labels : tuple of str, default=("true", "learned")
+    labels : tuple of str, default=("measured", "model")
+        Legend labels of the two trajectories (e.g. ``("true system", "model")``
+        for a simulated system).
     velocities : bool, default=False
         Add a column of velocity plots.
     units : sequence of str, default=None
@@ -234,6 +234,7 @@ def plot_residuals(
     t=None,
     dt=None,
     units: Sequence[str] | None = None,
+    force_units: Sequence[str] | None = None,
     bins: int = 50,
     path=None,
 ):
@@ -263,8 +264,13 @@ def plot_residuals(
         Sampling interval in seconds, when ``t`` is not given: the abscissa is then
         ``dt * sample``. With neither, ``est.dt`` when set, else the sample index.
     units : sequence of str, default=None
-        Unit of each coordinate (``"m"``, ``"rad"``, ...): the residual's axis gets
-        N or N*m (forces) or unit/s^2 (accelerations).
+        Unit of each coordinate (``"m"``, ``"rad"``, ``"px"``, ...): an
+        acceleration residual's axis gets unit/s^2.
+    force_units : sequence of str, default=None
+        Unit of each column of ``tau`` (``"N"``, ``"N*m"``, ``"V"``, ...): a force
+        residual's axis gets it. Without it the axis says "units of tau" (the
+        input of a coordinate in radians may be a torque or a voltage: no unit is
+        guessed).
     bins : int, default=50
     path : str or path-like, default=None
 
@@ -295,7 +301,7 @@ def plot_residuals(
     resid = measured - pred
     unit = _units(units, n)
     if kind == "forces":
-        runit = [_FORCE_UNITS.get(u) for u in unit]
+        runit = [u or "units of tau" for u in _units(force_units, n)]
     else:
         runit = [None if u is None else f"{u}/s^2" for u in unit]
     if t is None and dt is None:

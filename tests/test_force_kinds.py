@@ -395,8 +395,13 @@ def test_diagnose_finds_stribeck_when_asked_and_reports_its_units(stribeck_data)
         eps={"x": EPS},
         units={"x": ("m", "N")},
     )
-    (step,) = report.steps
+    (step,) = [s for s in report.steps if s.how != "start"]
     assert step.candidate.name == "stribeck(x)" and step.units == "N"
+    assert report.effects == ["stribeck(x)"]
+    # the table lists the starting model's effects too (#44)
+    assert [(s.candidate.name, s.how) for s in report.steps[1:]] == [
+        ("coulomb(x)", "start")
+    ]
     text = str(report)
     assert "Stribeck friction" in text and "stribeck(x)" in text
     # the candidate took v_s from the model's dissipation library

@@ -53,6 +53,9 @@ def test_trajectories_figure_and_png(fitted, tmp_path):
     assert isinstance(fig, Figure)
     assert len(fig.axes) == 2  # one coordinate x (position, velocity)
     lines = fig.axes[0].get_lines()
+    # issue 44: the legend says measured and model, not "true"
+    legend = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert legend == ["measured", "model"]
     np.testing.assert_array_equal(lines[0].get_ydata(), true[:, 0])
     np.testing.assert_array_equal(lines[1].get_ydata(), learned[:, 0])
     assert (tmp_path / "traj.png").read_bytes()[:8] == PNG
@@ -144,8 +147,17 @@ def test_axes_carry_units_and_time(fitted):
     assert [ax.get_xlabel() for ax in fig.axes] == ["t (s)", "t (s)"]
     with pytest.raises(ValueError, match="units"):
         plot_trajectories(t, states, states, ["theta"], units=["rad", "m"])
+    # issue 44: no force unit guessed from the coordinate's (a voltage input)
     fig = plot_residuals(est, data.X, data.tau, t=data.t, units=["rad"])
-    assert fig.axes[0].get_ylabel() == "theta\nforce residual (N*m)"
+    assert fig.axes[0].get_ylabel() == "theta\nforce residual (units of tau)"
+    assert fig.axes[1].get_xlabel() == "residual (units of tau)"
+    fig = plot_residuals(
+        est, data.X, data.tau, t=data.t, units=["rad"], force_units=["V"]
+    )
+    assert fig.axes[0].get_ylabel() == "theta\nforce residual (V)"
+    assert fig.axes[1].get_xlabel() == "residual (V)"
+    with pytest.raises(ValueError, match="units"):
+        plot_residuals(est, data.X, data.tau, force_units=["V", "N"])
     assert fig.axes[0].get_xlabel() == "t (s)"
     fig = plot_residuals(est, data.X, data.tau, kind="acceleration", units=["rad"])
     assert fig.axes[0].get_ylabel() == "theta\nacceleration residual (rad/s^2)"
@@ -180,7 +192,7 @@ def test_diagnosis_figure_with_nothing_found_shows_every_coordinate():
     assert report.steps == []  # noise-free, complete model: nothing to add
     fig = report.plot()
     assert [ax.get_ylabel() for ax in fig.axes] == [
-        "residual on x",
-        "residual on theta",
+        "force residual on x",
+        "force residual on theta",
     ]
     assert [ax.get_xlabel() for ax in fig.axes] == ["x_dot", "theta_dot"]

@@ -121,6 +121,7 @@ def _demo(args) -> int:
                 check["states_b"],
                 system.coordinates,
                 velocities=True,
+                labels=("true system", "model"),
                 units=[
                     "rad" if c in system.angles else "m" for c in system.coordinates
                 ],

@@ -15,6 +15,20 @@ import pandas as pd
 from ..force_kinds import get as get_kind
 from ..force_kinds import names as kind_names
 
+# Relative change within which the report counts two values of a criterion as equal
+# when it says whether the criteria agree (held-out trajectory vs pointwise error, and
+# each coordinate's residual).
+CRITERIA_TOLERANCE = 0.01
+
+# How each row of the step table came into the final model.
+_HOW_TEXT = {
+    "joint": "kept by the joint search with the Lagrangian (step 1)",
+    "added": "added alone (step 2)",
+    "swapped": "replaced another effect of its coordinates",
+    "refit": "kept by a refit of the model's own dissipation terms",
+    "start": "in the starting model already",
+}
+
 # The wording of the candidates that are not force kinds (a force kind's is its
 # record's, lagsindy.force_kinds).
 _KIND_TEXT = {
@@ -61,8 +75,10 @@ class Step:
     heldout_error : float
         Held-out criterion of the model right after this effect was accepted.
     how : str
-        ``"joint"`` (kept by the joint sparse search of step 1), ``"added"``, or
-        ``"swapped"`` (replaced another effect of the same coordinates, step 2b).
+        ``"joint"`` (kept by the joint sparse search of step 1), ``"added"``,
+        ``"swapped"`` (replaced another effect of the same coordinates, step 2b),
+        ``"refit"`` (a term of the model's own dissipation library that a refit
+        kept) or ``"start"`` (in the starting model already).
     """
 
     candidate: Candidate
@@ -104,7 +120,9 @@ class DiagnosisReport:
     criterion : str
         ``"trajectory (weak form)"`` or ``"pointwise"``: what effects were accepted on.
     steps : list of Step
-        The effects of the final model, in the order they were found.
+        Every effect of the final model: those found, in the order they were found,
+        then those of the starting model and of its own dissipation library
+        (``how`` ``"start"`` and ``"refit"``).
     rankings : list of DataFrame
         The candidates' scores in every round of the forward search.
     lagrangian_changes : dict
@@ -116,6 +134,9 @@ class DiagnosisReport:
     passive : bool
         Passive data fix the model only up to scale: coefficients are relative to the
         fixed term (whose coefficient is 1).
+    settings : dict
+        The diagnosis' settings; ``settings["units"]`` holds ``diagnose(units=)``,
+        which labels the residuals in the text and the figure.
     bootstrap : BootstrapReport or None
         With ``diagnose(..., bootstrap=n)``: intervals and inclusion of every term of
         the final model (:func:`lagsindy.bootstrap` of the final configuration); the
@@ -145,8 +166,64 @@ class DiagnosisReport:
 
     @property
     def effects(self) -> list:
-        """Names of the effects found, in order."""
-        return [s.candidate.name for s in self.steps]
+        """Names of the effects the diagnosis added, in order (not those of the
+        starting model)."""
+        return [s.candidate.name for s in self.steps if s.how != "start"]
+
+    def _force_unit(self, coordinate):
+        """The force unit of ``coordinate`` from ``diagnose(units=...)``, or None."""
+        units = self.settings.get("units") or {}
+        return units[coordinate][1] if coordinate in units else None
+
+    def disagreements(self) -> list:
+        """Sentences saying where the criteria disagree: the held-out trajectory
+        error fell while the pointwise one did not (or the reverse), or a
+        coordinate's residual rose while the criterion fell. Changes within
+        ``CRITERIA_TOLERANCE`` (relative) count as equal."""
+        tol, out = CRITERIA_TOLERANCE, []
+
+        def change(a, b):
+            return (b - a) / a if np.isfinite(a) and np.isfinite(b) and a > 0 else 0.0
+
+        dh = change(self.heldout_error_before, self.heldout_error_after)
+        dp = change(self.pointwise_before, self.pointwise_after)
+
+        def said(d):
+            return (
+                f"rose {d:.1%}"
+                if d > tol
+                else f"stayed within {tol:.0%}"
+                if d >= -tol
+                else f"fell {-d:.1%}"
+            )
+
+        if self.criterion.startswith("trajectory"):
+            if dh < -tol and dp >= -tol:
+                out.append(
+                    f"the criteria disagree: the held-out trajectory error fell "
+                    f"{-dh:.1%} while the pointwise error {said(dp)}: the change "
+                    "shows over seconds of trajectory rather than sample by sample "
+                    "(small damping does this, and so does fitting the held-out "
+                    "windows' noise); check the effects' intervals (bootstrap=)"
+                )
+            elif dp < -tol and dh >= -tol:
+                out.append(
+                    f"the criteria disagree: the pointwise error fell {-dp:.1%} while "
+                    f"the held-out trajectory error {said(dh)}"
+                )
+        if self.residual_rms_after is not None and (dh < -tol or dp < -tol):
+            for c, b, a in zip(
+                self.coordinates, self.residual_rms_before, self.residual_rms_after
+            ):
+                if a > (1 + tol) * b:
+                    unit = self._force_unit(c)
+                    out.append(
+                        f"the residual on {c} rose ({b:.3g} -> {a:.3g}"
+                        + (f" {unit}" if unit else "")
+                        + ") while the held-out errors fell: the final model fits the "
+                        f"other coordinates better at {c}'s expense"
+                    )
+        return out
 
     def to_frame(self) -> pd.DataFrame:
         """One row per effect: kind, final coefficient, units, share, criterion.
@@ -186,11 +263,7 @@ class DiagnosisReport:
             f"of {self.settings.get('fold_kind', 'trajectories')}; criterion: held-out "
             f"{self.criterion} residual{scale}"
         )
-        of = (
-            "the model's forces"
-            if self.passive
-            else "the force scale (measured force, or the model's forces if larger)"
-        )
+        lines.append("residual RMS per coordinate (share of its force scale*):")
         for label, rms in (
             ("before: ", self.residual_rms_before),
             ("after:  ", self.residual_rms_after),
@@ -198,12 +271,21 @@ class DiagnosisReport:
             if rms is None:
                 continue
             lines.append(
-                f"{label}residual RMS "
+                f"  {label}"
                 + ", ".join(
-                    f"{c}: {r:.3g} ({r / max(f, 1e-300):.1%} of {of})"
+                    f"{c} {r:.3g}"
+                    + (f" {self._force_unit(c)}" if self._force_unit(c) else "")
+                    + f" ({r / max(f, 1e-300):.1%})"
                     for c, r, f in zip(self.coordinates, rms, self.force_rms)
                 )
             )
+        lines.append(
+            "  * force scale: the RMS of the model's forces on the coordinate "
+            "(passive data fix no force unit)"
+            if self.passive
+            else "  * force scale: the RMS of the measured force on the coordinate, "
+            "or of the model's forces there if larger (an undriven coordinate)"
+        )
         if not self.settings.get("start_valid", True):
             lines.append(
                 "the starting model's mass matrix is singular or indefinite on the "
@@ -221,6 +303,7 @@ class DiagnosisReport:
             f"{self.pointwise_after:.4g}   "
             "(relative RMS, every coordinate weighted equally)"
         )
+        lines.extend(f"note: {text}" for text in self.disagreements())
         changes = self.lagrangian_changes or {}
         if changes.get("removed") or changes.get("added"):
             lines.append(
@@ -228,35 +311,11 @@ class DiagnosisReport:
                 f"removed {changes.get('removed') or 'nothing'}, "
                 f"added {changes.get('added') or 'nothing'}"
             )
-        if not self.steps:
+        if not [s for s in self.steps if s.how != "start"]:
             lines.append("no effect improves the held-out criterion")
-        else:
-            boot = self.bootstrap
-            level = f"{boot.level:.0%} interval" if boot is not None else ""
-            head = (
-                f"{'step':>4}  {'effect':<26} {'term':<24} {'final coef.':>12} "
-                + (f"{level:>27} " if boot is not None else "")
-                + f"{'units':<24} {'explained':>9}  {'held-out error':>14}"
-            )
-            lines.append(head)
-            lines.append("-" * len(head))
-            for k, s in enumerate(self.steps, 1):
-                interval = ""
-                if boot is not None:
-                    interval = (
-                        f"[{s.low:>12.5g}, {s.high:>12.5g}] "
-                        if np.isfinite(s.low) and np.isfinite(s.high)
-                        else f"{'-':>27} "
-                    )
-                lines.append(
-                    f"{k:>4}  {s.candidate.description:<26} {s.candidate.name:<24} "
-                    f"{s.coefficient:>12.5g} {interval}{s.units:<24} "
-                    f"{s.explained:>9.1%}  {s.heldout_error:>14.4g}"
-                )
-            lines.append(
-                "  explained: share of the final model's held-out residual (squared) "
-                "that removing the effect would add back"
-            )
+        if self.steps:
+            lines.append("effects of the final model:")
+            lines.extend(self._step_table())
         if self.degenerate_folds:
             lines.append(
                 "excluded degenerate folds (refit mass matrix singular or indefinite, "
@@ -291,8 +350,50 @@ class DiagnosisReport:
         lines.extend("  " + line for line in self.final.equation(4).splitlines())
         return "\n".join(lines)
 
+    def _step_table(self) -> list:
+        """The step table's lines: every effect of the final model, and a legend."""
+        boot = self.bootstrap
+        level = f"{boot.level:.0%} interval" if boot is not None else ""
+        head = (
+            f"{'step':>4}  {'effect':<26} {'term':<24} {'final coef.':>12} "
+            + (f"{level:>27} " if boot is not None else "")
+            + f"{'units':<24} {'explained':>9}  {'held-out error':>14}  found"
+        )
+        lines = [head, "-" * len(head)]
+        k = 0
+        for s in self.steps:
+            interval = ""
+            if boot is not None:
+                interval = (
+                    f"[{s.low:>12.5g}, {s.high:>12.5g}] "
+                    if np.isfinite(s.low) and np.isfinite(s.high)
+                    else f"{'-':>27} "
+                )
+            found = s.how != "start"
+            k += found
+            lines.append(
+                f"{k if found else '-':>4}  {s.candidate.description:<26} "
+                f"{s.candidate.name:<24} {s.coefficient:>12.5g} {interval}"
+                f"{s.units:<24} {s.explained:>9.1%}  "
+                + (f"{s.heldout_error:>14.4g}" if found else f"{'-':>14}")
+                + f"  {s.how}"
+            )
+        lines.append(
+            "  explained: share of the final model's held-out residual (squared) "
+            "that removing the effect would add back"
+        )
+        hows = dict.fromkeys(s.how for s in self.steps)
+        lines.append(
+            "  found: " + "; ".join(f"{h} = {_HOW_TEXT.get(h, h)}" for h in hows)
+        )
+        return lines
+
     def plot(self, path=None):
         """Residual against the identified variable of each effect, before and after.
+
+        The starting model's residual is drawn in grey dots, the final model's in
+        coloured crosses, each with its binned mean as a line (dashed before, solid
+        after). Axes carry the units given to :func:`diagnose` (``units=``).
 
         Parameters
         ----------
@@ -317,6 +418,14 @@ class DiagnosisReport:
         n = len(self.coordinates)
         before = self._data["residual_before"]
         after = self._data["residual_after"]
+        units = self.settings.get("units") or {}
+
+        def unit(c, k):  # k = 0: position unit, 1: force unit
+            return units[c][k] if c in units else None
+
+        def label(text, u):
+            return text if u is None else f"{text} ({u})"
+
         # Nothing found: one panel per coordinate, its residual against its velocity.
         panels = self.steps or [(None, i) for i in range(n)]
         fig, axes = plt.subplots(
@@ -324,34 +433,75 @@ class DiagnosisReport:
         )
         rng = np.random.default_rng(0)
         idx = rng.choice(X.shape[0], size=min(X.shape[0], 4000), replace=False)
+        changed = self.final is not self.initial
         for ax, step in zip(axes[0], panels):
             if isinstance(step, tuple):
                 step, i = step
-                var, label = X[:, n + i], f"{self.coordinates[i]}_dot"
+                c = self.coordinates[i]
+                var, xlabel = X[:, n + i], label(f"{c}_dot", _rate(unit(c, 0)))
             else:
                 cand = step.candidate
-                i = self.coordinates.index(cand.coordinates[0])
+                c = cand.coordinates[0]
+                i = self.coordinates.index(c)
                 if cand.kind == "relative":
                     j = self.coordinates.index(cand.coordinates[1])
                     var = X[:, n + i] - X[:, n + j]
-                    label = f"{cand.coordinates[0]}_dot - {cand.coordinates[1]}_dot"
+                    xlabel = label(
+                        f"{c}_dot - {cand.coordinates[1]}_dot", _rate(unit(c, 0))
+                    )
                 elif cand.kind == "conservative":
-                    var, label = X[:, i], cand.coordinates[0]
-                elif cand.kind == "gain":
-                    var, label = self._data["tau"][:, i], f"tau_{cand.coordinates[0]}"
+                    var, xlabel = X[:, i], label(c, unit(c, 0))
+                elif cand.kind in ("gain", "delay"):
+                    var, xlabel = self._data["tau"][:, i], label(f"tau_{c}", unit(c, 1))
                 else:
-                    var, label = X[:, n + i], f"{cand.coordinates[0]}_dot"
-            ax.scatter(var[idx], before[idx, i], s=2, alpha=0.4, label="before")
-            if step is not None:
-                ax.scatter(var[idx], after[idx, i], s=2, alpha=0.4, label="after")
-            ax.set_xlabel(label)
-            ax.set_ylabel(f"residual on {self.coordinates[i]}")
-            ax.set_title(step.candidate.name if step is not None else "residual")
-            ax.legend(markerscale=4)
+                    var, xlabel = X[:, n + i], label(f"{c}_dot", _rate(unit(c, 0)))
+            ax.scatter(
+                var[idx], before[idx, i], s=3, marker=".", color="0.6", alpha=0.5,
+                label="before (starting model)",
+            )  # fmt: skip
+            _binned_mean(ax, var, before[:, i], color="0.25", ls="--")
+            if changed:
+                ax.scatter(
+                    var[idx], after[idx, i], s=6, marker="x", linewidths=0.6,
+                    color="C3", alpha=0.5, label="after (final model)",
+                )  # fmt: skip
+                _binned_mean(ax, var, after[:, i], color="C3", ls="-")
+            ax.axhline(0.0, color="k", lw=0.6)
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel(
+                label(
+                    f"force residual on {c}",
+                    "relative to the model's scale" if self.passive else unit(c, 1),
+                )
+            )
+            ax.set_title(
+                step.candidate.name if step is not None else f"residual on {c}",
+                fontsize="small",
+            )
+            ax.legend(markerscale=3, fontsize="small")
         fig.tight_layout()
         if path is not None:
             fig.savefig(path, dpi=120)
         return fig
+
+
+def _rate(u):
+    return None if u is None else f"{u}/s"
+
+
+def _binned_mean(ax, x, y, **style):
+    """The mean of ``y`` in 20 bins of ``x`` (bins with at least 5 points)."""
+    finite = np.isfinite(x) & np.isfinite(y)
+    x, y = x[finite], y[finite]
+    if x.size < 10 or not np.ptp(x) > 0:
+        return
+    edges = np.linspace(x.min(), x.max(), 21)
+    which = np.clip(np.digitize(x, edges) - 1, 0, 19)
+    count = np.bincount(which, minlength=20)
+    total = np.bincount(which, weights=y, minlength=20)
+    keep = count >= 5
+    centre = 0.5 * (edges[:-1] + edges[1:])
+    ax.plot(centre[keep], total[keep] / count[keep], lw=1.8, **style)
 
 
 def _units(cand, units, passive):
@@ -368,4 +518,6 @@ def _units(cand, units, passive):
         return cand.term.units(units)
     if cand.kind in kind_names():
         return get_kind(cand.kind).unit_words(cand.coordinates)
-    return "energy units"
+    if cand.kind == "conservative":
+        return "energy units"
+    return "force per unit coefficient"  # a custom force term

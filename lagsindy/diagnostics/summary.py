@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 
 from .catalogue import _effect_coefficient
-from .report import DiagnosisReport, Step, _units
+from .report import Candidate, DiagnosisReport, Step, _units
 from .scoring import _adjusted_tau, _force_scale, _kept_terms, _residual
 
 __all__ = ["summarize"]
@@ -89,6 +89,7 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
                 how=how,
             )
         )
+    steps += _model_effects(search, final, support, value, units, residual_after)
     boot = None
     if bootstrap is not None:
         boot = _bootstrap_final(
@@ -135,6 +136,7 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
         stop_reason=search.stop_reason,
         bootstrap=boot,
         settings={
+            "units": dict(units) if units else None,
             "n_splits": search.n_splits,
             "fold_kind": search.fold_kind,
             "min_explained": search.min_explained,
@@ -151,6 +153,44 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
             "residual_after": residual_after,
         },
     )
+
+
+def _model_effects(search, final, support, value, units, residual_after) -> list:
+    """Steps for the final model's forces that no step of the search added: those
+    of the starting model (``how="start"``) and those its own dissipation library
+    kept in a refit (``how="refit"``), so the table lists every effect of the final
+    model."""
+    listed = {e.name for e in search.effects}
+    start = {
+        f.name
+        for f, c in zip(search.est.dissipation_terms_, search.est.dissipation_coef_)
+        if c
+    }
+    out = []
+    for f, c in zip(final.dissipation_terms_, final.dissipation_coef_):
+        if not c or f.name in listed:
+            continue
+        cand = search.by_name.get(f.name) or Candidate(
+            f.kind, f.name, tuple(f.coordinates), f
+        )
+        v_without = search.J(support - {search.index[f.name]})[0]
+        out.append(
+            Step(
+                candidate=cand,
+                coefficient=float(c),
+                units=_units(cand, units, search.passive),
+                explained=float(1 - value**2 / v_without**2)
+                if np.isfinite(v_without) and v_without > 0
+                else 1.0,
+                fold_explained=[],
+                residual_rms=np.sqrt(np.mean(residual_after**2, axis=0)),
+                heldout_error=value,
+                equation=final.equation(4),
+                ranking=pd.DataFrame(),
+                how="start" if f.name in start else "refit",
+            )
+        )
+    return out
 
 
 def _bootstrap_final(

@@ -10,6 +10,7 @@ from numbers import Real
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from ._units import unwrap_unit_check
 from .clock import CleanedClock, clean_clock
 from .methods import _check_savgol_params, _cubic_spline, _finite_difference, _savgol
 from .pspline import _pspline
@@ -239,6 +240,7 @@ def derivatives(
             (int(labels[a]), slice(int(a), int(b)))
             for a, b in zip(bounds[:-1], bounds[1:])
         ]
+    unwrap_unit_check(q, segments, mask)
     wrapped = _wrapped_columns(q, segments, mask)
     if wrapped:
         _warn_wrapped(wrapped, times)

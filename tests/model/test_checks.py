@@ -10,11 +10,13 @@ import sympy as sp
 import torch
 
 from lagsindy import LagrangianSINDy
+from lagsindy import model as model_module
 from lagsindy.formulation.weak import WindowWarning
 from lagsindy.model import (
     ANGLE_POLYNOMIAL_SHARE,
     POOR_ACCELERATIONS,
     UNEXPLAINED_FORCES,
+    degree_reading_gain,
     degrees_hint,
 )
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
@@ -147,19 +149,92 @@ def test_angle_polynomials_are_flagged_only_beyond_two_turns():
     assert fitted.warn_angle_polynomials(X) == []
 
 
-def test_degrees_hint_names_only_angles_inside_sin_and_cos_beyond_two_turns():
+def test_degrees_hint_names_only_angles_inside_sin_and_cos_beyond_two_turns(
+    monkeypatch,
+):
     system = cart_pendulum()
     library = system.paper_library()
     data = make_dataset(system, n_trajectories=2, duration=2.0, random_state=0)
     X = torch.as_tensor(np.asarray(data.X, dtype=float))
     assert library.coordinates_ == ["x", "theta"]
     assert degrees_hint(library, X) == ""
+    # the turn threshold alone (the data's reading is tested below)
+    monkeypatch.setattr(model_module, "degree_reading_gain", _reads_as_degrees)
     X[:, 0] = 50.0  # x is not inside sin/cos: a long track is not degrees
     assert degrees_hint(library, X) == ""
     X[:, 1] = 12.6  # just beyond two turns (4 pi = 12.57)
     hint = degrees_hint(library, X)
     assert "theta reaches 12.6" in hint and "x reaches" not in hint
     X[:, 1] = 12.5  # within two turns: a driven pendulum that flips over
+    assert degrees_hint(library, X) == ""
+
+
+def _reads_as_degrees(library, Xt, names):
+    return {name: 1.0 for name in names}
+
+
+def _spinning_pole(noise=0.0):
+    """A pendulum that goes over the top turn after turn, recorded in radians."""
+    system = single_pendulum()
+    system.initial_ranges = {"theta": (-0.5, 0.5), "theta_dot": (12.0, 15.0)}
+    return make_dataset(
+        system, n_trajectories=4, duration=4.0, excitation=None, noise=noise,
+        protocol="sensor" if noise else "shared", random_state=0,
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.05])
+def test_a_spinning_pole_gets_no_degrees_hint(noise):
+    data = _spinning_pole(noise)
+    X = torch.as_tensor(np.asarray(data.X, dtype=float))
+    library = single_pendulum().paper_library()
+    assert float(X[:, 0].abs().max()) > 4 * 2 * np.pi  # 4.4 turns
+    assert degrees_hint(library, X) == ""
+    # measured -1.0 (noise-free) and -0.84 (sensor noise 0.05)
+    gain = degree_reading_gain(library, X, ["theta"])["theta"]
+    assert gain < -0.4
+    # ... nor in the warnings that carry it (with sensor noise this fit fails:
+    # R^2 -0.55 and theta as a polynomial, measured)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est = LagrangianSINDy(library, fixed_term="mass").fit(
+            data.X, groups=data.groups
+        )
+        est.fitted_.warn_poor_accelerations(X, r2=0.1)
+    messages = [str(w.message) for w in caught]
+    assert [m for m in messages if "R^2 = 0.10" in m]
+    assert not [m for m in messages if "degrees" in m]
+
+
+@pytest.mark.parametrize(
+    "system",
+    [single_pendulum(), cart_pendulum()],
+    ids=["single", "cart-pole"],
+)
+def test_a_degree_record_gets_the_degrees_hint(system):
+    data = make_dataset(
+        system, n_trajectories=6, duration=4.0, excitation="sincos", random_state=0
+    )
+    j = system.coordinates.index("theta")
+    X = torch.as_tensor(_degrees(data.X, [j]))
+    library = system.paper_library()
+    hint = degrees_hint(library, X)
+    assert "theta reaches" in hint and "numpy.deg2rad" in hint
+    # measured 0.98 (single) and 0.95 (cart-pole)
+    assert degree_reading_gain(library, X, ["theta"])["theta"] > 0.75
+
+
+def test_degrees_hint_boundary_on_the_reading_gain(monkeypatch):
+    data = make_dataset(
+        single_pendulum(), n_trajectories=6, duration=4.0, excitation="sincos",
+        random_state=0,
+    )  # fmt: skip
+    X = torch.as_tensor(_degrees(data.X, [0]))
+    library = single_pendulum().paper_library()
+    gain = degree_reading_gain(library, X, ["theta"])["theta"]
+    monkeypatch.setattr(model_module, "DEGREES_R2_GAIN", gain - 1e-6)
+    assert "theta reaches" in degrees_hint(library, X)
+    monkeypatch.setattr(model_module, "DEGREES_R2_GAIN", gain + 1e-6)
     assert degrees_hint(library, X) == ""
 
 
