@@ -197,7 +197,7 @@ def test_one_long_recording_uses_time_blocks(formulation):
 
 
 # ----------------------------------------------------------------------- item 5
-def test_report_final_coefficients_honest_shares_and_invalid_start():
+def test_report_final_coefficients_honest_shares_and_invalid_start(monkeypatch):
     system = _cyclic_cart(0.4, 1.0, 0.15)
     data = make_dataset(
         system, n_trajectories=6, duration=3.0, excitation="sincos", random_state=2
@@ -206,8 +206,19 @@ def test_report_final_coefficients_honest_shares_and_invalid_start():
         ["x", "theta"],
         ["x_dot**2", "theta_dot**2", "x_dot*theta_dot*cos(theta)", "cos(theta)"],
     )
+    # the undriven cart's inertia is the largest term of its own equation: the
+    # default threshold keeps it
     est = LagrangianSINDy(lib, formulation="strong").fit(data.X, data.tau)
-    # this fit has no x_dot term: it cannot predict the cart's accelerations
+    assert "x_dot**2" in est.equation()
+    # the paper's global rule alone drops it: the fit cannot predict the cart's
+    # accelerations, and the diagnosis says so
+    from lagsindy.solvers import StagedFISTA
+
+    defaults = list(StagedFISTA.__init__.__defaults__)
+    defaults[-1] = None  # equation_threshold=None
+    monkeypatch.setattr(StagedFISTA.__init__, "__defaults__", tuple(defaults))
+    est = LagrangianSINDy(lib, formulation="strong").fit(data.X, data.tau)
+    assert "x_dot**2" not in est.equation()
     report = diagnose(est, data.X, data.tau, groups=data.groups)
     text = str(report)
     assert "cannot predict some accelerations" in text
