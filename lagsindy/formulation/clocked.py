@@ -42,8 +42,9 @@ def rows_on_even_clock(formulation, X, tau, groups, t, *, stacklevel=3):
     -------
     X, tau, groups, formulation
         For a weak (or automatic) formulation on an uneven clock: the rows every
-        ``dt`` within each gap-free segment (:func:`to_even_clock`), their forces and
-        segment labels, and the formulation with that ``dt`` (unless it had one).
+        ``dt`` within each gap-free segment (:func:`to_even_clock`; ``dt``: the
+        formulation's, else the clock's rebuilt cycle, else the median frame step),
+        their forces and segment labels, and the formulation with that ``dt``.
         When no segment is as long as the weak form's window, the strong form on
         the rows as given, with a warning saying why. For the strong form, the rows
         as given (they are independent samples; the clock does not matter).
@@ -61,7 +62,9 @@ def rows_on_even_clock(formulation, X, tau, groups, t, *, stacklevel=3):
         period = None
     if not isinstance(formulation, WeakForm):
         return X, tau, groups, formulation
-    even = to_even_clock(X, t, groups, tau, dt=period)
+    params = formulation.get_params()
+    step = params.get("dt") or period  # a given dt is the even clock's step
+    even = to_even_clock(X, t, groups, tau, dt=step)
     lengths = np.bincount(even.groups)
     window = formulation.window
     need = int(window) if isinstance(window, Integral) else WINDOW_FIRST
@@ -78,7 +81,6 @@ def rows_on_even_clock(formulation, X, tau, groups, t, *, stacklevel=3):
                 stacklevel=stacklevel + 1,
             )
             return X, tau, groups, StrongForm()
-    params = formulation.get_params()
     if params.get("dt") is None:
         params["dt"] = even.dt
     return even.X, even.tau, even.groups, type(formulation)(**params)
