@@ -25,7 +25,6 @@ import numpy as np
 from .records import (
     _GAP_FACTOR,
     _GLITCH_FRACTION,
-    _SKIP_FACTOR,
     _UNIFORM_RTOL,
     _segments,
 )
@@ -49,7 +48,7 @@ class EvenClock:
         The step of the even clock.
     changed : bool
         False when the input already was on an even clock (rows returned as they
-        were, only cut at gaps); True when rows were interpolated.
+        were, only cut at gaps); True when rows were interpolated or left out.
     report : str
         One line saying what was done (empty when nothing was).
     """
@@ -89,8 +88,9 @@ def to_even_clock(
     tau : array-like of shape (n_samples,) or (n_samples, n_tau), default=None
         Forces at the rows.
     dt : float, default=None
-        Step of the even clock; ``None``: the median of the steps shorter than 1.5
-        times the median step (the frame step, dropped frames left out).
+        Step of the even clock; ``None``: the frame step, the time the steps span
+        (gaps left out) over the number of frames they hold (each step a whole
+        number of median steps: dropped frames counted).
     gap_factor : float, default=5.0
         A step longer than ``gap_factor * dt`` cuts the trajectory there.
 
@@ -150,9 +150,13 @@ def to_even_clock(
     if positive.size == 0:
         raise ValueError("no trajectory has two distinct time stamps")
     if dt is None:
-        # the frame step: the median of the steps that are no dropped frames
+        # the frame step: the time the steps span (gaps left out) over the frames
+        # they hold, each step counted as a whole number of median steps (dropped
+        # frames), at least one
         median = float(np.median(positive))
-        step = float(np.median(positive[positive < _SKIP_FACTOR * median]))
+        used = positive[positive <= gap_factor * median]
+        frames = np.maximum(1.0, np.round(used / median))
+        step = float(used.sum() / frames.sum())
     else:
         step = float(dt)
     # segments: kept rows, cut at gaps; near-duplicate stamps left out
@@ -201,16 +205,17 @@ def to_even_clock(
         tau_out = np.concatenate(parts["tau"])
         if one:
             tau_out = tau_out[:, 0]
-    changed = bool(interpolated)
-    report = ""
-    if changed:
-        report = (
-            f"uneven clock: {interpolated} of {len(pieces)} segment(s) put on an even "
-            f"clock of dt = {step:.4g} s ({n} rows -> {X_out.shape[0]}; quintic "
-            "Hermite interpolation of the estimated q, q_dot, q_ddot)"
+    changed = bool(interpolated or dropped)
+    parts_report = []
+    if interpolated:
+        parts_report.append(
+            f"{interpolated} of {len(pieces)} segment(s) put on an even clock of dt "
+            f"= {step:.4g} s ({n} rows -> {X_out.shape[0]}; quintic Hermite "
+            "interpolation of the estimated q, q_dot, q_ddot)"
         )
-        if dropped:
-            report += f"; {dropped} repeated or near-duplicate row(s) left out"
+    if dropped:
+        parts_report.append(f"{dropped} repeated or near-duplicate row(s) left out")
+    report = ("uneven clock: " + "; ".join(parts_report)) if changed else ""
     return EvenClock(
         X=X_out,
         tau=tau_out,
