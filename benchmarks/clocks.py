@@ -683,8 +683,28 @@ def _edge_table(lines):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument(
+        "--stamp",
+        action="store_true",
+        help="only the acceptance case (20 %% jitter, 5 %% dropped) with the "
+        "prototype time-stamp weak form (benchmarks/_stampweak.py) beside the "
+        "default route: results/clocks_stamp.md",
+    )
     args = parser.parse_args(argv)
     cmd = _common.command("clocks", argv)
+    if args.stamp:
+        from ._stampweak import fit_uneven
+
+        t0 = time.perf_counter()
+        sizes = (10, 8.0)
+        rows = camera_study(sizes, fit_uneven, (0.2,), (0.05,))
+        body = _camera_table(rows, sizes) + (
+            f"\nTotal time: {time.perf_counter() - t0:.0f} s.\n"
+        )
+        write(
+            "clocks_stamp.md", header("Real clocks: time-stamp weak form", cmd) + body
+        )
+        return 0
     body = measure(quick=args.quick)
     name = "clocks_quick.md" if (args.quick or _tiny()) else "clocks.md"
     write(name, header("Real clocks (issue #40)", cmd) + body)
