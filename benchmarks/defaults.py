@@ -191,7 +191,7 @@ def main(argv=None):
         "defaults. With noise on the positions only, the derivatives come from the "
         "P-spline and their errors are smooth (correlated over many samples): the "
         "white-noise correction does not see them (its estimate is 0) and short "
-        'windows do not average them out. The default, `window="auto"`, fits 81 '
+        "windows do not average them out. The default, `window=\"auto\"`, fits 81 "
         "and 161 samples (then 321) when the velocities carry no white noise, and "
         "keeps the first window the next one confirms within 3 % (the window used "
         "is in the tables above).\n\n"
