@@ -15,10 +15,8 @@ What the same records give on ugly clocks against an even clock (issue #40):
      gap-free segment (:func:`lagsindy.differentiation.to_even_clock`);
    * ``resample``: :func:`lagsindy.differentiation.resample` onto an even 100 Hz
      grid inside each segment (P-spline; forces interpolated), then the same fit;
-   * ``former default (no t)`` (the acceptance case only): the segments as groups
-     and no time stamps, so the weak form takes the rows as evenly spaced;
-   * ``time-stamp weak form``: the hook ``fit_uneven`` (see :func:`measure`), for a
-     weak form that integrates on the actual times.
+   * ``former default (no t)`` (the acceptance case only): no time stamps;
+   * ``time-stamp weak form``: the hook ``fit_uneven`` (:func:`measure`; ``--stamp``).
 
    and compared with the fit of the same trajectories (initial states, inputs,
    noise level) sampled on an even clock with no drops and no gaps: the same terms?
@@ -46,12 +44,14 @@ What the same records give on ugly clocks against an even clock (issue #40):
 
     python -m benchmarks.clocks            # results/clocks.md
     python -m benchmarks.clocks --quick    # fewer, shorter records: clocks_quick.md
+    python -m benchmarks.clocks --stamp    # time-stamp weak form: clocks_stamp.md
 """
 
 from __future__ import annotations
 
 import argparse
 import inspect
+import os
 import time
 import warnings
 
@@ -68,8 +68,6 @@ RATE = 100.0
 
 
 def _tiny() -> bool:
-    import os
-
     return os.environ.get("LAGSINDY_BENCH_TINY", "") not in ("", "0")
 
 
@@ -683,28 +681,13 @@ def _edge_table(lines):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument(
-        "--stamp",
-        action="store_true",
-        help="only the acceptance case (20 %% jitter, 5 %% dropped) with the "
-        "prototype time-stamp weak form (benchmarks/_stampweak.py) beside the "
-        "default route: results/clocks_stamp.md",
-    )
+    parser.add_argument("--stamp", action="store_true", help="see the docstring")
     args = parser.parse_args(argv)
     cmd = _common.command("clocks", argv)
     if args.stamp:
-        from ._stampweak import fit_uneven
+        from ._stampweak import stamp_report
 
-        t0 = time.perf_counter()
-        sizes = (10, 8.0)
-        rows = camera_study(sizes, fit_uneven, (0.2,), (0.05,))
-        body = _camera_table(rows, sizes) + (
-            f"\nTotal time: {time.perf_counter() - t0:.0f} s.\n"
-        )
-        write(
-            "clocks_stamp.md", header("Real clocks: time-stamp weak form", cmd) + body
-        )
-        return 0
+        return stamp_report(cmd)
     body = measure(quick=args.quick)
     name = "clocks_quick.md" if (args.quick or _tiny()) else "clocks.md"
     write(name, header("Real clocks (issue #40)", cmd) + body)
