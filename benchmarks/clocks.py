@@ -10,12 +10,13 @@ What the same records give on ugly clocks against an even clock (issue #40):
    fitted by
 
    * ``default``: the documented path, ``derivatives(q, t, groups=...,
-     return_groups=True)`` (clock cleaning on) then ``LagrangianSINDy(...).fit(X,
-     tau, groups=segments)``: today's weak form takes the rows as evenly spaced;
+     return_clock=True)`` (clock cleaning on) then ``LagrangianSINDy(...).fit(X,
+     tau, t=clock)``: the fit puts the weak form's rows on an even clock per
+     gap-free segment (:func:`lagsindy.differentiation.to_even_clock`);
    * ``resample``: :func:`lagsindy.differentiation.resample` onto an even 100 Hz
      grid inside each segment (P-spline; forces interpolated), then the same fit;
-   * ``time-stamp weak form``: the hook ``fit_uneven`` (see :func:`measure`), to be
-     filled when the weak form integrates on the actual times.
+   * ``former default (no t)`` (the acceptance case only): no time stamps;
+   * ``time-stamp weak form``: the hook ``fit_uneven`` (:func:`measure`; ``--stamp``).
 
    and compared with the fit of the same trajectories (initial states, inputs,
    noise level) sampled on an even clock with no drops and no gaps: the same terms?
@@ -43,12 +44,14 @@ What the same records give on ugly clocks against an even clock (issue #40):
 
     python -m benchmarks.clocks            # results/clocks.md
     python -m benchmarks.clocks --quick    # fewer, shorter records: clocks_quick.md
+    python -m benchmarks.clocks --stamp    # time-stamp weak form: clocks_stamp.md
 """
 
 from __future__ import annotations
 
 import argparse
 import inspect
+import os
 import time
 import warnings
 
@@ -65,8 +68,6 @@ RATE = 100.0
 
 
 def _tiny() -> bool:
-    import os
-
     return os.environ.get("LAGSINDY_BENCH_TINY", "") not in ("", "0")
 
 
@@ -133,7 +134,23 @@ def _quiet(fn):
     return out, caught
 
 
-def route_default(rec, library):
+def route_default(rec, library, clock=None):
+    """The documented path: derivatives with the clock, then the fit given it."""
+    from lagsindy import LagrangianSINDy
+    from lagsindy.differentiation import derivatives
+
+    def run():
+        X, clk = derivatives(
+            rec["q"], rec["t"], groups=rec["groups"], angles="all",
+            return_clock=True, clean=True if clock is None else clock,
+        )  # fmt: skip
+        return LagrangianSINDy(library).fit(X, rec["tau"], t=clk)
+
+    return _quiet(run)
+
+
+def route_no_t(rec, library):
+    """The former default: the segments as groups, rows taken as evenly spaced."""
     from lagsindy import LagrangianSINDy
     from lagsindy.differentiation import derivatives
 
@@ -241,6 +258,10 @@ def camera_study(sizes, fit_uneven=None, jitters=JITTERS, drops=DROPS):
                     ("default", lambda: route_default(rec, library)),
                     ("resample", lambda: route_resample(rec, library)),
                 ]
+                if (jitter, drop) == (0.2, 0.05):  # the acceptance case
+                    routes.append(
+                        ("former default (no t)", lambda: route_no_t(rec, library))
+                    )
                 if fit_uneven is not None:
                     routes.append(
                         (
@@ -413,17 +434,25 @@ def logger_study(sizes):
             "q": rec["q"][fresh], "t": rec["true_t"][fresh],
             "groups": rec["groups"][fresh], "tau": rec["tau"][fresh],
         }  # fmt: skip
-        (ref, _), _ = _timed(lambda: route_resample(clean, library, dt=1e-3))
-        (got, _), wall = _timed(
-            lambda: route_resample(rec, library, dt=1e-3, clock=clock)
-        )
-        same, diff = compare(coefficients(got, False), coefficients(ref, False))
-        truth_terms = true_terms(sys_, ref.library_)
-        fit_lines.append(
-            f"| {noise:g} | {same} | {diff:.2%} | "
-            f"{set(coefficients(got, False).index) == truth_terms} | {wall:.0f} s |"
-        )
-        print(fit_lines[-1], flush=True)
+        for route in ("default", "resample"):
+            if route == "default":
+                (ref, _), _ = _timed(lambda: route_default(clean, library))
+                (got, _), wall = _timed(
+                    lambda: route_default(rec, library, clock=clock)
+                )
+            else:
+                (ref, _), _ = _timed(lambda: route_resample(clean, library, dt=1e-3))
+                (got, _), wall = _timed(
+                    lambda: route_resample(rec, library, dt=1e-3, clock=clock)
+                )
+            same, diff = compare(coefficients(got, False), coefficients(ref, False))
+            truth_terms = true_terms(sys_, ref.library_)
+            fit_lines.append(
+                f"| {noise:g} | {route} | {same} | {diff:.2%} | "
+                f"{set(coefficients(got, False).index) == truth_terms} | "
+                f"{wall:.0f} s |"
+            )
+            print(fit_lines[-1], flush=True)
     return lines, fit_lines
 
 
@@ -458,12 +487,17 @@ def triple_study(quick):
     fits = {}
     for name, idx in (("regular 100 Hz", regular), ("irregular", jittered)):
         q, t, g = q_all[idx], t_all[idx], stretch_all[idx]
-        for route in ("default", "resample"):
-            if name.startswith("regular") and route == "resample":
+        for route in ("default", "resample", "former default (no t)"):
+            if name.startswith("regular") and route != "default":
                 continue
 
             def run(q=q, t=t, g=g, route=route):
                 if route == "default":
+                    X, clock = derivatives(
+                        q, t, groups=g, angles="all", return_clock=True
+                    )
+                    return LagrangianSINDy(library, dt=0.01).fit(X, t=clock)
+                if route.startswith("former"):
                     X, seg = derivatives(
                         q, t, groups=g, angles="all", return_groups=True
                     )
@@ -596,12 +630,13 @@ def _logger_table(lines, fit_lines, sizes):
             "|---|---|---|---|---|---|---|---|---|",
             *lines,
             "",
-            "Fit of the logged record (uniform jitter; resample route onto 1 ms, the "
-            "cleaned clock) against the fit of the clean record on the true clock "
-            "(same route):\n",
-            "| noise (rad) | same terms | largest coefficient difference | true "
-            "terms | time |",
-            "|---|---|---|---|---|",
+            "Fit of the logged record (uniform jitter; the cleaned clock) against "
+            "the fit of the clean record on the true clock (same route). `default`: "
+            "`derivatives(..., return_clock=True)` then `fit(X, tau, t=clock)`; "
+            "`resample`: `resample(..., dt=1e-3)` then the fit:\n",
+            "| noise (rad) | route | same terms | largest coefficient difference | "
+            "true terms | time |",
+            "|---|---|---|---|---|---|",
             *fit_lines,
             "",
         ]
@@ -646,8 +681,13 @@ def _edge_table(lines):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--stamp", action="store_true", help="see the docstring")
     args = parser.parse_args(argv)
     cmd = _common.command("clocks", argv)
+    if args.stamp:
+        from ._stampweak import stamp_report
+
+        return stamp_report(cmd)
     body = measure(quick=args.quick)
     name = "clocks_quick.md" if (args.quick or _tiny()) else "clocks.md"
     write(name, header("Real clocks (issue #40)", cmd) + body)

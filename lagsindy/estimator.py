@@ -26,6 +26,7 @@ from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .dissipation import library_of
 from .export import export_model, linearize, to_casadi
+from .formulation.clocked import rows_on_even_clock
 from .formulation.scaling import IdentifiabilityWarning  # noqa: F401 - 0.1 path
 from .io.model_file import read_model_file, write_model_file
 from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 path
@@ -333,7 +334,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
     # ------------------------------------------------------------------ fit
     @_fit_context(prefer_skip_nested_validation=True)
-    def fit(self, X, y=None, groups=None):
+    def fit(self, X, y=None, groups=None, t=None):
         """Fit the Lagrangian to trajectories.
 
         Parameters
@@ -349,6 +350,13 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             strong form treats rows independently). Without it, trajectories are split
             where the positions jump. In a grid search, route it with scikit-learn's
             metadata routing (``est.set_fit_request(groups=True)``).
+        t : array-like of shape (n_samples,) or CleanedClock, default=None
+            Time of each row (or the ``CleanedClock`` of ``derivatives(...,
+            return_clock=True)``, whose cleaned times and segments are then used).
+            On an uneven clock (jitter, dropped frames, gaps) the weak form's rows
+            are first put on an even clock per gap-free segment
+            (:func:`lagsindy.differentiation.to_even_clock`), and ``dt`` (unless
+            given) is the clock's step. ``None``: rows are taken as evenly spaced.
 
         Returns
         -------
@@ -359,9 +367,13 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             delattr(self, name)
         device, dtype = resolve_device(self.device), resolve_dtype(self.dtype)
         Xa, tau, setup = self._setup(X, y)
+        formulation = pipeline.formulation_of(self.get_params(deep=False), setup.case)
+        if t is not None:
+            Xa, tau, groups, formulation = rows_on_even_clock(
+                formulation, Xa, tau, groups, t
+            )
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
-        formulation = pipeline.formulation_of(self.get_params(deep=False), setup.case)
         ladder = pipeline.fit_statistics(formulation, setup, Xt, tau_t, groups)
         stats, solution = pipeline.solve_ladder(
             ladder, setup, Xt, tau, verbose=self.verbose

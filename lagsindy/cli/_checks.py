@@ -228,6 +228,7 @@ def fit_numbers(args):
     )
     if getattr(args, "dt", None) is not None:
         number(args.dt, "dt", low=0, low_open=True, what="a positive number of seconds")
+    clock_options(args)
     window = getattr(args, "window", "auto")
     if window != "auto" and window < 5:
         raise CLIError(
@@ -313,6 +314,20 @@ def input_columns(columns, coords, args):
     return None
 
 
+def clock_options(args):
+    """``--gap-factor`` above 1 and a ``--time`` column name."""
+    factor = getattr(args, "gap_factor", None)
+    if factor is not None:
+        number(factor, "gap-factor", low=1, low_open=True, what="a number > 1 (steps)")
+    if not str(getattr(args, "time", "t")).strip():
+        raise CLIError("--time needs a column name, e.g. --time timestamp")
+
+
+def time_column(args):
+    """The name of the time column (``--time``, default ``t``)."""
+    return str(getattr(args, "time", "t")).strip() or "t"
+
+
 def derivatives_estimated(columns, coords, args):
     """Whether q_dot and q_ddot are estimated from q (not read from the CSV)."""
     if getattr(args, "derivatives", None) is not None:
@@ -333,13 +348,17 @@ def data_columns(columns, coords, args, source):
     for name in [*coords, *(inputs or [])]:
         if name not in columns:
             raise missing_column(source, name, columns)
+    time = time_column(args)
+    if time != "t" and time not in columns:
+        raise missing_column(source, time, columns)
     if (
         derivatives_estimated(columns, coords, args)
-        and "t" not in columns
+        and time not in columns
         and not getattr(args, "dt", None)
     ):
         raise CLIError(
-            f"{source} has positions only and no 't' column: add a time column 't' or "
-            "pass --dt SECONDS (the sampling interval)"
+            f"{source} has positions only and no {time!r} column: add a time column "
+            f"{time!r}, name it with --time COLUMN, or pass --dt SECONDS (the "
+            "sampling interval)"
         )
     return inputs

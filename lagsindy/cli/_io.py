@@ -13,12 +13,15 @@ from pathlib import Path
 
 import numpy as np
 
-from ._checks import CLIError, check_csv_file, missing_column, state_names
+from ._checks import CLIError, check_csv_file, missing_column, state_names, time_column
 from ._checks import check_out as _check_out
 from ._checks import derivatives_estimated as _columns_say_estimated
 from ._checks import input_columns as _header_inputs
 
 __all__ = ["CLIError"]
+
+# Fewest samples per segment each derivative method takes (derivatives()).
+_FEWEST = {None: 7, "pspline": 7, "spline": 5}
 
 
 def _say(args, *parts):
@@ -134,33 +137,42 @@ def _derivatives_estimated(df, coords, args):
 def _state_and_groups(df, coords, args, source, angles=(), ordered=True):
     """X ``[q, q_dot, q_ddot]`` and the trajectory labels to fit with.
 
-    When derivatives are estimated, ``angles`` are unwrapped per trajectory (as
-    ``Derivatives(angles=...)`` does in the API) and trajectories are cut at gaps in
-    ``t`` (one warning says where); the labels returned are then the segments.
-    ``ordered``: refuse a ``t`` that goes back within a trajectory also when the
+    When derivatives are estimated, the clock is cleaned (as ``derivatives()`` does:
+    stale and duplicate rows, a jittery clock over a regular cycle, gaps of
+    ``--gap-factor`` steps), ``angles`` are unwrapped per trajectory (as
+    ``Derivatives(angles=...)`` does in the API) and trajectories are cut at gaps
+    (one warning says where); the labels returned are then the segments. A
+    recorder's velocity columns ``<q>_dot`` (without ``<q>_ddot``) are used: to find
+    the cycle of a jittery clock, and as the velocities. ``args._t`` is set to the
+    time of each row (the cleaned clock; None without a time column).
+    ``ordered``: refuse a time that goes back within a trajectory also when the
     derivatives are given (fit and diagnose; ``predict`` takes rows one by one).
     """
     import pandas as pd
 
     names = state_names(coords)
+    time = time_column(args)
     q = _numeric(df, coords, source)
     method = getattr(args, "derivatives", None)
     groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
+    args._t = None
     if not _derivatives_estimated(df, coords, args):
-        if ordered and "t" in df.columns:  # the weak form takes the rows in order
-            _check_increasing(_numeric(df, ["t"], source)[:, 0], groups, source)
+        if ordered and time in df.columns:  # the weak form takes the rows in order
+            args._t = _numeric(df, [time], source)[:, 0]
+            _check_increasing(args._t, groups, source, time)
         X = pd.DataFrame(_numeric(df, names, source), columns=names, index=df.index)
         return X, groups
-    from ..differentiation import derivatives
+    from ..differentiation import clean_clock, derivatives
 
-    if "t" in df.columns:
-        t = _numeric(df, ["t"], source)[:, 0]
+    if time in df.columns:
+        t = _numeric(df, [time], source)[:, 0]
     elif getattr(args, "dt", None):
         t = np.arange(len(df)) * float(args.dt)
     else:
         raise CLIError(
-            f"{source} has positions only and no 't' column: add a time column 't' or "
-            "pass --dt SECONDS (the sampling interval)"
+            f"{source} has positions only and no {time!r} column: add a time column "
+            f"{time!r}, name it with --time COLUMN, or pass --dt SECONDS (the "
+            "sampling interval)"
         )
     for idx in _group_rows(groups, len(df)):
         if idx.size < 5:
@@ -168,23 +180,43 @@ def _state_and_groups(df, coords, args, source, angles=(), ordered=True):
                 f"a trajectory in {source} has {idx.size} rows; derivative estimation "
                 "needs at least 5 samples per trajectory"
             )
-    _check_increasing(t, groups, source)
-    kwargs = {"groups": groups, "return_groups": True}
+    _check_increasing(t, groups, source, time, slack=0.5)
+    velocity_names = names[len(coords) : 2 * len(coords)]
+    velocities = None
+    if method is None and all(c in df.columns for c in velocity_names):
+        velocities = _numeric(df, velocity_names, source)
+    kwargs = {"groups": groups, "return_groups": True, "return_clock": True}
     if method is not None:
         kwargs["method"] = method
     mask = [c in angles for c in coords]
     if any(mask):
         kwargs["angles"] = mask
+    gap_factor = float(getattr(args, "gap_factor", 5.0))
+    what = "velocities and accelerations"
     _say(
         args,
-        f"estimating velocities and accelerations of {coords} "
-        f"({method or 'default method'}"
+        f"estimating {'accelerations' if velocities is not None else what} of {coords}"
+        f" ({method or 'default method'}"
         + (f"; angles {list(angles)} unwrapped" if any(mask) else "")
+        + (
+            f"; the recorded velocities {velocity_names} used as the velocities and "
+            "to check the clock"
+            if velocities is not None
+            else ""
+        )
         + ") ...",
-    )
+    )  # fmt: skip
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        X, segments = derivatives(q, t, **kwargs)
+        try:
+            clock = clean_clock(
+                t, q, groups, gap_factor=gap_factor, angles=mask,
+                velocities=velocities, min_samples=_FEWEST.get(method, 3),
+            )  # fmt: skip
+        except ValueError as exc:
+            raise CLIError(f"{source}: {exc}") from None
+        clock.warn()
+        X, segments, clock = derivatives(q, t, clean=clock, **kwargs)
     for w in caught:
         text = str(w.message)
         if "gap(s) in the time stamps" in text:
@@ -203,15 +235,47 @@ def _state_and_groups(df, coords, args, source, angles=(), ordered=True):
             f"derivative estimation returned shape {X.shape}, expected "
             f"{(len(df), 3 * len(coords))}"
         )
+    if velocities is not None:
+        X[:, len(coords) : 2 * len(coords)] = velocities
+    args._t = clock.t
     return pd.DataFrame(X, columns=names, index=df.index), groups
 
 
-def _check_increasing(t, groups, source):
+def _on_even_clock(args, X, tau, groups):
+    """The rows put on an even clock when their times are uneven (as
+    ``LagrangianSINDy.fit(t=)`` does); returns ``(X, tau, groups, dt)``, ``dt``
+    None when nothing changed. One progress line says what was done."""
+    t = getattr(args, "_t", None)
+    if t is None or getattr(args, "formulation", "auto") == "strong":
+        return X, tau, groups, None
+    import pandas as pd
+
+    from ..differentiation import to_even_clock
+
+    even = to_even_clock(
+        np.asarray(X, dtype=float), t, groups, tau,
+        gap_factor=float(getattr(args, "gap_factor", 5.0)),
+    )  # fmt: skip
+    if not even.changed:
+        return X, tau, groups, None
+    _say(args, even.report)
+    X = pd.DataFrame(even.X, columns=list(X.columns))
+    return X, even.tau, even.groups, even.dt
+
+
+def _check_increasing(t, groups, source, name="t", slack=0.0):
+    """Refuse a time that goes back within a trajectory (``slack``: by more than
+    this many median steps; smaller steps back are a jittery clock, which the clock
+    cleaning rebuilds)."""
     for idx in _group_rows(groups, len(t)):
-        if np.any(np.diff(t[idx]) <= 0):
+        steps = np.diff(t[idx])
+        limit = 0.0
+        if slack and steps.size and np.any(steps > 0):
+            limit = -slack * float(np.median(steps[steps > 0]))
+        if np.any(steps <= limit if not slack else steps < limit):
             raise CLIError(
-                f"'t' must increase within each trajectory in {source} (sort the rows, "
-                "and give separate trajectories a 'trajectory' column)"
+                f"{name!r} must increase within each trajectory in {source} (sort the "
+                "rows, and give separate trajectories a 'trajectory' column)"
             )
 
 

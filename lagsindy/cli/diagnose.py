@@ -18,6 +18,7 @@ from ._io import (
     _input_columns,
     _load,
     _numeric,
+    _on_even_clock,
     _read_csv,
     _say,
     _state_and_groups,
@@ -108,6 +109,9 @@ def _saved_model_and_data(args):
     _checks.check_model_data(est.case_, inputs)
     X, groups = _state_and_groups(df, coords, args, args.data, angles)
     tau = _apply_delay(args, df, X, tau, groups, None)
+    X, tau, groups, dt = _on_even_clock(args, X, tau, groups)
+    if dt is not None:
+        est.set_params(dt=dt)
     return est, X, tau, groups
 
 

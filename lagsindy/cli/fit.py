@@ -22,6 +22,7 @@ from ._io import (
     _derivatives_estimated,
     _input_columns,
     _numeric,
+    _on_even_clock,
     _read_csv,
     _say,
     _state_and_groups,
@@ -105,10 +106,12 @@ def check_fit(args):
         _check_inputs_fit(args, inputs)
         if (
             getattr(args, "delay", None) is not None
-            and "t" not in columns
+            and _checks.time_column(args) not in columns
             and not getattr(args, "dt", None)
         ):
-            raise CLIError("--delay needs a 't' column or --dt SECONDS")
+            raise CLIError(
+                "--delay needs a time column ('t' or --time COLUMN) or --dt SECONDS"
+            )
     return coords, angles, inputs
 
 
@@ -273,6 +276,9 @@ def _fit_csv(args):
         verbose=0 if args.quiet else 1,
     )
     tau = _apply_delay(args, df, X, tau, groups, est)
+    X, tau, groups, dt = _on_even_clock(args, X, tau, groups)
+    if dt is not None:
+        est.set_params(dt=dt)
     n_groups = 1 if groups is None else len(np.unique(groups))
     _say(
         args,
@@ -301,12 +307,17 @@ def _apply_delay(args, df, X, tau, groups, est):
         )
     from ..delay import estimate_delay, shift_input
 
-    if "t" in df.columns:
-        t = _numeric(df, ["t"], args.data)[:, 0]
+    time = _checks.time_column(args)
+    if getattr(args, "_t", None) is not None:
+        t = args._t  # the cleaned clock
+    elif time in df.columns:
+        t = _numeric(df, [time], args.data)[:, 0]
     elif getattr(args, "dt", None):
         t = np.arange(len(df)) * float(args.dt)
     else:
-        raise CLIError("--delay needs a 't' column or --dt SECONDS")
+        raise CLIError(
+            "--delay needs a time column ('t' or --time COLUMN) or --dt SECONDS"
+        )
     if value == "auto":
         if est is None:
             raise CLIError(

@@ -92,8 +92,25 @@ def _add_derivative_options(p):
         "--dt",
         type=float,
         default=None,
-        help="sampling interval in seconds when the CSV has no 't' column (default: "
-        "none; without 't' and --dt the command stops and asks for one)",
+        help="sampling interval in seconds when the CSV has no time column (default: "
+        "none; without one and --dt the command stops and asks for one)",
+    )
+    p.add_argument(
+        "--time",
+        metavar="COLUMN",
+        default="t",
+        help="the time column (stamps may be uneven: jitter, dropped frames and "
+        "gaps are handled as derivatives() and LagrangianSINDy.fit(t=) do: the clock "
+        "cleaned, trajectories cut at gaps, the weak form's rows put on an even "
+        "clock)",
+    )
+    p.add_argument(
+        "--gap-factor",
+        metavar="FACTOR",
+        type=float,
+        default=5.0,
+        help="a time step longer than FACTOR base steps is a gap: the trajectory is "
+        "cut there (as derivatives(gap_factor=))",
     )
 
 

@@ -23,6 +23,7 @@ from ._io import (
 
 def _predict(args) -> int:
     _check_out(args.out)
+    _checks.clock_options(args)
     coords, _ = _checks.peek_model(args.model)
     columns = _checks.csv_header(args.data)
     if coords is not None and columns is not None:
@@ -45,7 +46,8 @@ def _predict(args) -> int:
             quality = f"R^2 of accelerations: {est.score(X):.4f}"
         else:
             quality = None
-    out = df[[c for c in ("trajectory", "t") if c in df.columns]].copy()
+    time = _checks.time_column(args)
+    out = df[[c for c in ("trajectory", time) if c in df.columns]].copy()
     forces = forces.to_frame() if forces.ndim == 1 else forces
     out = out.join(forces).join(acc)
     _write_csv(out, args.out)

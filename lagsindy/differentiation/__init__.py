@@ -34,7 +34,8 @@ stamps dropped, a jittery clock over a regular cycle rebuilt on it when the moti
 says so, trajectories cut at gaps of ``gap_factor`` (5) base periods, single dropped
 frames kept, the rows near every segment's end flagged, each defect reported once
 in one line. :func:`resample` puts an uneven record on an even clock through the
-P-spline; :func:`time_test_functions` gives the weak form's test functions on a
+P-spline, :func:`to_even_clock` puts estimated states there (what
+``LagrangianSINDy.fit(..., t=)`` does on an uneven clock); :func:`time_test_functions` gives the weak form's test functions on a
 segment's actual sample times.
 
 Cost of the P-spline: uniformly sampled trajectories of up to ~1190 samples share
@@ -161,5 +162,6 @@ from .records import (  # noqa: F401
     check_weak_form_segments,
     split_gaps,
 )
+from .evenclock import EvenClock, to_even_clock  # noqa: F401
 from .resample import Resampled, resample  # noqa: F401
 from .transformer import Derivatives  # noqa: F401

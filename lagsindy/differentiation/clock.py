@@ -477,11 +477,11 @@ class _State:
                 f"{_SKIP_FACTOR:g} times their trajectory's median step (dropped "
                 f"frames), before row(s) {_describe_rows(dropped, stamps)}: kept, "
                 "the derivatives use the actual times. LagrangianSINDy's weak form "
-                "still assumes evenly spaced rows within a trajectory and such steps "
-                "bias it (0.5 % of the samples dropped moved a cart-pendulum's "
-                "coefficients by 2 %): fit on an even clock "
-                "(lagsindy.differentiation.resample) or cut there "
-                "(groups=split_gaps(t, groups, gap_factor=1.5))"
+                "takes rows as evenly spaced unless it is given the times, and such "
+                "steps bias it (0.5 % of the samples dropped moved a cart-pendulum's "
+                "coefficients by 2 %): fit with the times, fit(X, tau, t=clock) "
+                "(derivatives(..., return_clock=True)), which puts the rows on an "
+                "even clock"
             )
         if short.size:
             n_seg = len(np.unique(groups[short]))

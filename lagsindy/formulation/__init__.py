@@ -7,7 +7,8 @@
   (batched kernels and ``torch.func``), their strong-form Gram statistics;
 * :mod:`~lagsindy.formulation.weak`: the integral (weak) form over trajectories;
 * :mod:`~lagsindy.formulation.scaling`: row and column balancing of the statistics;
-* :mod:`~lagsindy.formulation.probes`: probe forces (what the fit may miss).
+* :mod:`~lagsindy.formulation.probes`: probe forces (what the fit may miss);
+* :mod:`~lagsindy.formulation.clocked`: rows given time stamps put on an even clock.
 """
 
 from __future__ import annotations
