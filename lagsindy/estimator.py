@@ -21,7 +21,7 @@ from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
-from . import pipeline
+from . import partitioned, pipeline
 from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .dissipation import library_of
@@ -357,6 +357,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         # A refit starts from scratch: a failed fit leaves the estimator unfitted.
         for name in [k for k in vars(self) if k.endswith("_") and not k.endswith("__")]:
             delattr(self, name)
+        if partitioned.is_partitioned(X):  # Dask, Parquet, chunks: map-reduce
+            fitted, names = partitioned.fit_state(self.get_params(False), X, y, groups)
+            self.n_features_in_ = 3 * fitted.n_dof
+            if names is not None:
+                self.feature_names_in_ = np.asarray(names, dtype=object)
+            return self._publish(fitted)
         device, dtype = resolve_device(self.device), resolve_dtype(self.dtype)
         Xa, tau, setup = self._setup(X, y)
         Xt = to_tensor(Xa, dtype=dtype, device=device)
