@@ -281,7 +281,8 @@ def sampling_interval(data, n_dof, medians):
     r = np.concatenate([v for v, _ in found["values"]])
     w = np.concatenate([w for _, w in found["values"]])
     order = np.argsort(r, kind="stable")
-    cum = found["below"] + np.cumsum(w[order])
+    below = hist["below"] + float(hist["hist"][:k].sum())  # under bin k
+    cum = below + np.cumsum(w[order])
     j = int(np.searchsorted(cum, half))
     return float(r[order][min(j, r.size - 1)])
 
