@@ -338,9 +338,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
         Parameters
         ----------
-        X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+        X : array-like or DataFrame of shape (n_samples, 3 * n_dof), or partitioned data
             Rows ``[q..., q_dot..., q_ddot...]``. DataFrame columns are matched by
-            name (``theta``, ``theta_dot``, ``theta_ddot``).
+            name (``theta``, ``theta_dot``, ``theta_ddot``). A Dask DataFrame or
+            array, a Parquet path or an iterable of chunks is fitted partition by
+            partition (:mod:`lagsindy.partitioned`; ``y`` and ``groups`` then name
+            the force and trajectory columns).
         y : array-like of shape (n_samples, n_dof) or (n_samples,), default=None
             Generalized forces tau (case I). ``None`` for passive data. A coordinate
             that is never driven (an undriven link) has a column of zeros.

@@ -14,13 +14,14 @@ the defaults (a ``trajectory`` column, forces ``tau_<coordinate>``) do not fit.
 """
 
 from .fit import fit_state, partitioned_setup
-from .sources import Chunk, PartitionedData, as_partitioned, is_partitioned
+from .sources import Chunk, PartitionedData, as_partitioned, collect, is_partitioned
 from .statistics import combine, stack_trajectories, trajectory_pass
 
 __all__ = [
     "Chunk",
     "PartitionedData",
     "as_partitioned",
+    "collect",
     "combine",
     "fit_state",
     "is_partitioned",

@@ -21,7 +21,7 @@ import pandas as pd
 
 from .._expr import ACCELERATION_SUFFIX, VELOCITY_SUFFIX
 
-__all__ = ["Chunk", "PartitionedData", "as_partitioned", "is_partitioned"]
+__all__ = ["Chunk", "PartitionedData", "as_partitioned", "collect", "is_partitioned"]
 
 
 @dataclass
@@ -459,6 +459,26 @@ class _Reader:
 
             X = derivatives(X, time, groups=labels, **self.derivatives)
         return Chunk(X, tau, labels, index)
+
+
+def _rows(chunk):
+    return {"labels": chunk.trajectories, "rows": [(chunk.X, chunk.tau, chunk.labels)]}
+
+
+def collect(data, groups=None, y=None):
+    """Partitioned data read into memory: ``(X, tau, groups)`` arrays (``X``
+    ``[q, q_dot, q_ddot]``, ``tau`` None for passive data), in partition order.
+
+    For the consumers that need every row at once (:func:`lagsindy.diagnose`);
+    the trajectories must not be split across partitions.
+    """
+    from .statistics import combine
+
+    data = as_partitioned(data, groups=groups, y=y)
+    parts = data.map_reduce(_rows, combine)["rows"]
+    X = np.concatenate([x for x, _, _ in parts])
+    tau = None if parts[0][1] is None else np.concatenate([t for _, t, _ in parts])
+    return X, tau, np.concatenate([g for _, _, g in parts])
 
 
 def _apply(func, read, part, index):

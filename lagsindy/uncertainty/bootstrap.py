@@ -276,7 +276,12 @@ def bootstrap(
     est : LagrangianSINDy
         Its parameters define the configuration (it is cloned; ``est`` is not
         changed).
-    X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+    X : array-like or DataFrame of shape (n_samples, 3 * n_dof), or partitioned data
+        A Dask DataFrame or array, a Parquet path or chunks (see
+        :mod:`lagsindy.partitioned`; ``tau`` and ``groups`` then name columns):
+        the per-trajectory statistics are summed where the data are, and the
+        resamples solved from them (case I, or case III with ``fixed_term``;
+        at least 10 trajectories).
     tau : array-like of shape (n_samples, n_dof), default=None
         Generalized forces (case I); ``None`` for passive data.
     groups : array-like of shape (n_samples,), default=None
