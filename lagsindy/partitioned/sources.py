@@ -89,6 +89,8 @@ def is_partitioned(data) -> bool:
             or (isinstance(c, tuple) and len(c) == 3)
             for c in data
         )
+    if callable(data) and not isinstance(data, type):
+        return True  # a function returning a new iterator of chunks each call
     return hasattr(data, "__iter__") and hasattr(data, "__next__")
 
 
@@ -350,7 +352,7 @@ class PartitionedData:
     def _iterate(self):
         if callable(self.data):
             return iter(self.data())
-        if getattr(self, "_one_shot", False) and self._passes > 0:
+        if getattr(self, "_one_shot", False) and self._passes > 1:
             raise ValueError(
                 "this fit reads the data more than once (the weak form, passive "
                 "data or a bootstrap take several passes), but the chunks came from "
