@@ -232,7 +232,7 @@ def test_local_cluster_bootstrap_and_diagnose(client):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         a = diagnose(fitted, data.X, data.tau, groups=data.groups, max_effects=1)
-        b = diagnose(fitted, ddf, "auto", "trajectory", max_effects=1)
+        b = diagnose(fitted, ddf, groups="trajectory", max_effects=1)
     assert a.effects == b.effects
     np.testing.assert_allclose(
         b.final.fitted_.all_coef(), a.final.fitted_.all_coef(), rtol=1e-12

@@ -49,12 +49,22 @@ def partitioned_setup(params: dict, data):
     if library is not None and library.coordinates is not None:
         wanted = library.coordinates
         wanted = [wanted] if isinstance(wanted, str) else list(wanted)
-        if data.coordinates is None and not data.layout["tuples"]:
-            if sorted(wanted) != sorted(coordinates):
+        if data.layout["positional"]:  # q0, q1, ...: the library names them
+            if len(wanted) != len(coordinates):
                 raise ValueError(
-                    f"the library's coordinates {wanted} differ from the data's "
-                    f"{coordinates}"
+                    f"the library has {len(wanted)} coordinates {wanted}, the data "
+                    f"{len(coordinates)}"
                 )
+            coordinates = wanted
+        elif sorted(wanted) != sorted(coordinates):
+            raise ValueError(
+                f"the library's coordinates {wanted} differ from the data's "
+                f"{coordinates}"
+            )
+        elif wanted != coordinates:  # read the columns in the library's order
+            data.coordinates = wanted
+            data.layout = data._layout()
+            coordinates = wanted
     # n_samples is checked after the first pass (it is not known before)
     library = pipeline.build_library(library, coordinates, 1 << 62)
     case = pipeline.resolve_case(params.get("case", "auto"), True if data.has_forces else None)

@@ -113,7 +113,7 @@ def as_partitioned(data, groups=None, y=None) -> PartitionedData:
                 "the labels into a column of the data"
             )
         kwargs["trajectory"] = groups
-    if y is not None:
+    if y is not None and not (isinstance(y, str) and y == "auto"):
         if isinstance(y, str) or (
             isinstance(y, (list, tuple)) and all(isinstance(c, (str, int)) for c in y)
         ):
@@ -232,7 +232,12 @@ class PartitionedData:
             if d * blocks != n:
                 raise ValueError(f"X chunks must have 3 * n_dof columns, got {n}")
             coords = self.coordinates or [f"q{i}" for i in range(d)]
-            return {"tuples": True, "coordinates": coords, "forces": tau is not None}
+            return {
+                "tuples": True,
+                "positional": self.coordinates is None,
+                "coordinates": coords,
+                "forces": tau is not None,
+            }
         positional = self._kind == "array"
         traj = self.trajectory
         if traj is not None and traj not in columns:
@@ -303,6 +308,7 @@ class PartitionedData:
                 tau_cols = wanted
         return {
             "tuples": False,
+            "positional": positional and self.coordinates is None,
             "coordinates": list(coords),
             "state": state,
             "tau": tau_cols,
