@@ -9,7 +9,7 @@ Dask workers), sampled every 20 ms with psutil (a dependency of
 Sizes (``--trajectories`` x ``--samples`` per trajectory, sampled at 100 Hz):
 
 * this machine (default): 1,000 x 1,000 (1e6 rows) fitted in memory and by 1 and
-  2 Dask workers, then 4,000 x 1,000 (4e6 rows) by 2 workers only;
+  2 Dask workers, then 2,000 x 1,000 (2e6 rows) by 2 workers only;
 * the issue's size (``--full``): 10,000 x 10,000 (1e8 rows), the in-memory
   comparison on the first 1,000 trajectories (1e7 rows). Simulating the data takes
   about 50 s per 1e6 rows on the 2-core machine (about 1.5 h for 1e8).
@@ -43,25 +43,20 @@ def _system():
 
 
 def write_data(folder: Path, n_traj: int, n_samples: int) -> Path:
-    """The log as Parquet files of ``PER_FILE`` whole trajectories each (made
-    once; a ``meta.json`` says what the folder holds)."""
-    import pandas as pd
-
+    """The log as Parquet files of ``PER_FILE`` whole trajectories each (file
+    ``k`` always holds the same simulated trajectories: files already there are
+    kept, so a larger run extends a smaller one)."""
     from lagsindy.systems import make_dataset
 
     folder.mkdir(parents=True, exist_ok=True)
-    meta = {"trajectories": n_traj, "samples": n_samples, "rate": RATE}
-    stamp = folder / "meta.json"
-    if stamp.exists() and json.loads(stamp.read_text()) == meta:
-        return folder
-    for old in folder.glob("*.parquet"):
-        old.unlink()
     system = _system()
     for k, first in enumerate(range(0, n_traj, PER_FILE)):
-        n = min(PER_FILE, n_traj - first)
+        path = folder / f"part-{k:05d}.parquet"
+        if path.exists():
+            continue
         data = make_dataset(
             system,
-            n_trajectories=n,
+            n_trajectories=PER_FILE,
             duration=n_samples / RATE,
             rate=RATE,
             excitation="paper",
@@ -70,10 +65,9 @@ def write_data(folder: Path, n_traj: int, n_samples: int) -> Path:
         frame = data.to_frame()
         frame["trajectory"] = frame["trajectory"].astype(np.int64) + first
         frame = frame.drop(columns=["t"])
-        frame.to_parquet(folder / f"part-{k:05d}.parquet", index=False)
-        print(f"  wrote {first + n}/{n_traj} trajectories", flush=True)
-    stamp.write_text(json.dumps(meta))
-    del pd
+        frame.to_parquet(path.with_suffix(".tmp"), index=False)
+        path.with_suffix(".tmp").rename(path)
+        print(f"  wrote {first + PER_FILE}/{n_traj} trajectories", flush=True)
     return folder
 
 
@@ -122,7 +116,7 @@ def measure(spec: dict) -> dict:
     import warnings
 
     warnings.simplefilter("ignore")
-    files = sorted(Path(spec["folder"]).glob("*.parquet"))[: spec["files"]]
+    files = sorted(Path(spec["folder"]).glob("part-*.parquet"))[: spec["files"]]
     est = _estimator()
     with PeakRSS() as peak:
         start = time.perf_counter()
@@ -198,9 +192,9 @@ def main(argv=None):
     if args.full:
         n_samples, compare, large = 10_000, 1_000, 10_000
     else:
-        n_samples, compare, large = 1_000, 1_000, 4_000
+        n_samples, compare, large = 1_000, 1_000, 2_000
     folder = Path(args.dir or os.environ.get("TMPDIR", "/tmp")) / (
-        f"lagsindy_scale_{large}x{n_samples}"
+        f"lagsindy_scale_{n_samples}"
     )
     t0 = time.perf_counter()
     write_data(folder, large, n_samples)
