@@ -12,7 +12,12 @@ import torch
 
 from lagsindy import LagrangianSINDy, bootstrap, diagnose, pipeline
 from lagsindy.formulation.forms import StrongForm
-from lagsindy.partitioned import PartitionedData, combine, is_partitioned
+from lagsindy.partitioned import (
+    PartitionedData,
+    combine,
+    is_partitioned,
+    partitioned_setup,
+)
 from lagsindy.partitioned.statistics import strong_pass
 from lagsindy.systems import make_dataset, single_pendulum
 
@@ -100,8 +105,6 @@ def test_summed_statistics_equal_in_memory():
 
 
 def _setup(est, data):
-    from lagsindy.partitioned import partitioned_setup
-
     source = PartitionedData(_chunks(data.to_frame()))
     return partitioned_setup(est.get_params(deep=False), source)
 
@@ -118,10 +121,35 @@ def test_case_iii_search_and_mass_gather_the_same_rows():
         _same(want, got)
 
 
-def test_weak_dt_is_the_exact_weighted_median():
+def test_gathered_rows_are_the_in_memory_rows():
+    """Case III's and case II's row subsamples, gathered from the partitions, are
+    the rows of the concatenated data at the same indices."""
+    from lagsindy.partitioned.fit import _gathered
+
+    data = _data(passive=True, n=30)
+    est = _estimator("strong", True, fixed_term=None)
+    source = PartitionedData(_chunks(data.to_frame(), 7))
+    setup, _ = partitioned_setup(est.get_params(deep=False), source)
+    total = source.map_reduce(strong_pass(setup, torch.float64), combine)
+    rows = _gathered(source, setup, total, torch.float64, "cpu")
+    assert rows.shape == data.X.shape
+    pick = setup.solver.subsample_rows(len(data.X), 2000)  # case III's scoring rows
+    np.testing.assert_array_equal(rows[torch.as_tensor(pick)].numpy(), data.X[pick])
+    missing = np.setdiff1d(np.arange(len(data.X)), rows.rows)
+    assert missing.size  # case III gathers 4000 of the 6000 rows, not all
+    with pytest.raises(IndexError):
+        rows[torch.as_tensor(missing[:1])]
+
+
+@pytest.mark.parametrize("bins", [8, 4096])
+def test_weak_dt_is_the_exact_weighted_median(monkeypatch, bins):
     """Partitions with different local medians: the three-round median equals
-    the in-memory estimate bit for bit (a wrong weight under the median's bin
-    moved it by 2e-10)."""
+    the in-memory estimate bit for bit, however coarse the histogram (8 bins:
+    hundreds of ratios in the median's bin; a wrong weight under that bin moved
+    dt by 2e-10 on a double pendulum)."""
+    from lagsindy.partitioned import statistics
+
+    monkeypatch.setattr(statistics, "MEDIAN_BINS", bins)
     data = _data(noise=2e-3, n=12, seed=3)
     want = _in_memory("weak", False, data)
     got = _estimator("weak", False).fit(_chunks(data.to_frame(), 2))

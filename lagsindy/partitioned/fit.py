@@ -148,13 +148,11 @@ def _gathered(data, setup, total, dtype, device):
     sizes = total["sizes"]
     n = sum(s for _, s in sizes)
     solver = setup.solver
+    sizes_used = [SELECTION_ROWS, SCORING_ROWS]  # case III's search
+    if setup.case == "acceleration":  # case II starts from case III's search
+        sizes_used.append(CASE_II_ROWS)
     rows = np.unique(
-        np.concatenate(
-            [
-                solver.subsample_rows(n, size)
-                for size in (SELECTION_ROWS, SCORING_ROWS, CASE_II_ROWS)
-            ]
-        )
+        np.concatenate([solver.subsample_rows(n, size) for size in sizes_used])
     )
     starts = np.cumsum([0] + [s for _, s in sizes])
     wanted = {}
