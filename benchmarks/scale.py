@@ -240,7 +240,9 @@ def report(results, made, args, n_samples) -> str:
         if "error" in r:
             text += f"| {r['mode']} | - | error: {r['error']} | | | | |\n"
             continue
-        name = "in memory" if r["mode"] == "memory" else f"Dask, {r['workers']} worker(s)"
+        name = (
+            "in memory" if r["mode"] == "memory" else f"Dask, {r['workers']} worker(s)"
+        )
         rate = r["rows"] / r["seconds"]
         rel, diff = "-", "-"
         if base is not None and "error" not in base:

@@ -194,8 +194,9 @@ def test_derivatives_per_partition():
 def test_bootstrap_from_chunks_equals_in_memory():
     data = _data()
     est = _estimator("weak", False)
-    want = bootstrap(est, data.X, data.tau, groups=data.groups, n_resamples=8,
-                     random_state=0)
+    want = bootstrap(
+        est, data.X, data.tau, groups=data.groups, n_resamples=8, random_state=0
+    )
     got = bootstrap(est, _chunks(data.to_frame()), n_resamples=8, random_state=0)
     assert got.fast_path
     np.testing.assert_allclose(got.coefficient, want.coefficient, rtol=1e-12)
@@ -252,8 +253,9 @@ def test_local_cluster_bootstrap_and_diagnose(client):
     data = _data()
     ddf = _dask_frame(data.to_frame())
     est = _estimator("strong", False)
-    want = bootstrap(est, data.X, data.tau, groups=data.groups, n_resamples=8,
-                     random_state=1)
+    want = bootstrap(
+        est, data.X, data.tau, groups=data.groups, n_resamples=8, random_state=1
+    )
     got = bootstrap(est, ddf, n_resamples=8, random_state=1)
     np.testing.assert_allclose(got.samples, want.samples, rtol=1e-12, atol=1e-14)
     fitted = est.fit(data.X, data.tau)

@@ -67,7 +67,9 @@ def partitioned_setup(params: dict, data):
             coordinates = wanted
     # n_samples is checked after the first pass (it is not known before)
     library = pipeline.build_library(library, coordinates, 1 << 62)
-    case = pipeline.resolve_case(params.get("case", "auto"), True if data.has_forces else None)
+    case = pipeline.resolve_case(
+        params.get("case", "auto"), True if data.has_forces else None
+    )
     dissipation = pipeline.build_dissipation(params.get("dissipation"), library)
     setup = pipeline.make_setup(params, library, dissipation, case)
     formulation = pipeline.formulation_of(params, case)

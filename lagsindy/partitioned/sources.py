@@ -85,8 +85,7 @@ def is_partitioned(data) -> bool:
         return False  # array-likes (tensors, sparse matrices) are in memory
     if isinstance(data, (list, tuple)):
         return len(data) > 0 and all(
-            isinstance(c, pd.DataFrame)
-            or (isinstance(c, tuple) and len(c) == 3)
+            isinstance(c, pd.DataFrame) or (isinstance(c, tuple) and len(c) == 3)
             for c in data
         )
     if callable(data) and not isinstance(data, type):
@@ -328,7 +327,9 @@ class PartitionedData:
         """State column names (``None`` for positional data)."""
         if self.layout["tuples"] or self._kind == "array":
             return None
-        return [str(c) for c in self.layout["state"]] if self.derivatives is None else None
+        return (
+            [str(c) for c in self.layout["state"]] if self.derivatives is None else None
+        )
 
     # ----------------------------------------------------------------- chunks
     @property
@@ -400,9 +401,7 @@ class PartitionedData:
             tasks.append(dask.delayed(_apply)(func, read, part, k))
         while len(tasks) > 1:
             pairs = [tasks[i : i + 2] for i in range(0, len(tasks), 2)]
-            tasks = [
-                dask.delayed(combine)(*p) if len(p) == 2 else p[0] for p in pairs
-            ]
+            tasks = [dask.delayed(combine)(*p) if len(p) == 2 else p[0] for p in pairs]
         (total,) = dask.compute(tasks[0])
         return total
 

@@ -481,7 +481,9 @@ class GatheredRows:
     def __getitem__(self, index):
         idx = np.asarray(index.cpu() if torch.is_tensor(index) else index)
         pos = np.searchsorted(self.rows, idx)
-        if np.any(pos >= self.rows.size) or np.any(self.rows[np.minimum(pos, self.rows.size - 1)] != idx):
+        if np.any(pos >= self.rows.size) or np.any(
+            self.rows[np.minimum(pos, self.rows.size - 1)] != idx
+        ):
             raise IndexError("a row that was not gathered from the partitions")
         return self.values[torch.as_tensor(pos, device=self.device)]
 
@@ -491,4 +493,10 @@ def gram_statistics(total, formulation_name, **kwargs) -> GramStatistics:
     return GramStatistics(total["gram"], int(total["n"]), formulation_name, **kwargs)
 
 
-__all__ += ["SAMPLE_ROWS", "TrajectoryStatistics", "gram_statistics", "sampling_interval", "stack_trajectories"]
+__all__ += [
+    "SAMPLE_ROWS",
+    "TrajectoryStatistics",
+    "gram_statistics",
+    "sampling_interval",
+    "stack_trajectories",
+]

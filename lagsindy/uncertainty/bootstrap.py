@@ -445,15 +445,50 @@ def bootstrap(
             return refit_resample(base, Xa, tau_a, rows_of, mult, weak)
 
     return _resample(
-        full, setup, stats, mults, jack_mults, start, seam if fast else None,
-        scale if fast else None, Xt, memo, refit, all_coef, ref, fast, resampling,
-        n_groups, level, method, n_jobs, verbose,
+        full,
+        setup,
+        stats,
+        mults,
+        jack_mults,
+        start,
+        seam if fast else None,
+        scale if fast else None,
+        Xt,
+        memo,
+        refit,
+        all_coef,
+        ref,
+        fast,
+        resampling,
+        n_groups,
+        level,
+        method,
+        n_jobs,
+        verbose,
     )
 
 
 def _resample(
-    full, setup, stats, mults, jack_mults, start, seam, scale, Xt, memo, refit,
-    all_coef, ref, fast, resampling, n_groups, level, method, n_jobs, verbose,
+    full,
+    setup,
+    stats,
+    mults,
+    jack_mults,
+    start,
+    seam,
+    scale,
+    Xt,
+    memo,
+    refit,
+    all_coef,
+    ref,
+    fast,
+    resampling,
+    n_groups,
+    level,
+    method,
+    n_jobs,
+    verbose,
 ):
     """Solve every resample (and jackknife sample) and build the report: from the
     per-group statistics when ``fast``, else by ``refit(mult)``."""
@@ -606,8 +641,26 @@ def _bootstrap_partitioned(
         )
     start = full.stages_[0].coef if full.stages_ else None
     return _resample(
-        full, setup, stats, mults, jack_mults, start, seam, scale, Xt, memo, None,
-        all_coef, ref, True, "trajectories", n_groups, level, method, None, verbose,
+        full,
+        setup,
+        stats,
+        mults,
+        jack_mults,
+        start,
+        seam,
+        scale,
+        Xt,
+        memo,
+        None,
+        all_coef,
+        ref,
+        True,
+        "trajectories",
+        n_groups,
+        level,
+        method,
+        None,
+        verbose,
     )
 
 
