@@ -158,6 +158,7 @@ def measure(spec: dict) -> dict:
         elapsed = time.perf_counter() - start
     out = {
         **spec,
+        "load": os.getloadavg()[0],  # other processes on the machine (1 min)
         "rows": n_rows,
         "seconds": elapsed,
         "read_seconds": read,
@@ -233,12 +234,13 @@ def report(results, made, args, n_samples) -> str:
     )
     text += (
         "| fit | rows | time | rows / s | of in-memory | peak memory | "
-        "max coef. difference (rel.) |\n|---|---|---|---|---|---|---|\n"
+        "max coef. difference (rel.) | load average |\n"
+        "|---|---|---|---|---|---|---|---|\n"
     )
     base = next((r for r in results if r.get("mode") == "memory"), None)
     for r in results:
         if "error" in r:
-            text += f"| {r['mode']} | - | error: {r['error']} | | | | |\n"
+            text += f"| {r['mode']} | - | error: {r['error']} | | | | | |\n"
             continue
         name = (
             "in memory" if r["mode"] == "memory" else f"Dask, {r['workers']} worker(s)"
@@ -252,7 +254,7 @@ def report(results, made, args, n_samples) -> str:
                 diff = f"{np.abs(a - b).max() / np.abs(a).max():.1e}"
         text += (
             f"| {name} | {r['rows']:,} | {r['seconds']:.1f} s | {rate:,.0f} | {rel} | "
-            f"{r['peak_mib']:.0f} MiB | {diff} |\n"
+            f"{r['peak_mib']:.0f} MiB | {diff} | {r.get('load', float('nan')):.1f} |\n"
         )
     last = results[-1]
     if "equation" in last:
