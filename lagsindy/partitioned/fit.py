@@ -42,8 +42,20 @@ __all__ = ["fit_state", "partitioned_setup"]
 
 
 def partitioned_setup(params: dict, data):
-    """The :class:`~lagsindy.pipeline.FitSetup` of an estimator's parameters on
-    ``data`` (a :class:`PartitionedData`), and its formulation."""
+    """The fit setup of an estimator's parameters on partitioned data.
+
+    Parameters
+    ----------
+    params : dict
+        ``LagrangianSINDy.get_params(deep=False)``.
+    data : PartitionedData
+
+    Returns
+    -------
+    setup : FitSetup
+        As an in-memory fit of the same parameters builds it.
+    formulation : StrongForm or WeakForm
+    """
     library = params.get("library")
     coordinates = data.layout["coordinates"]
     if library is not None and library.coordinates is not None:

@@ -71,10 +71,21 @@ def _is_parquet_path(data) -> bool:
 
 
 def is_partitioned(data) -> bool:
-    """Whether ``fit`` should read ``data`` partition by partition: a
-    :class:`PartitionedData`, a Dask DataFrame or array, a Parquet path, or an
-    iterable of chunks (a list, tuple or generator of DataFrames or ``(X, tau,
-    groups)`` tuples) rather than one in-memory table."""
+    """Whether ``fit`` should read ``data`` partition by partition.
+
+    Parameters
+    ----------
+    data : object
+        What was passed as ``X``.
+
+    Returns
+    -------
+    bool
+        True for a :class:`PartitionedData`, a Dask DataFrame or array, a Parquet
+        path, a function returning chunks, or an iterable of chunks (a list or
+        tuple of DataFrames or ``(X, tau, groups)`` tuples, a generator); False
+        for one in-memory table (arrays, DataFrames, tensors, nested lists).
+    """
     if isinstance(data, PartitionedData) or _dask_kind(data) is not None:
         return True
     if _is_parquet_path(data):
@@ -94,8 +105,21 @@ def is_partitioned(data) -> bool:
 
 
 def as_partitioned(data, groups=None, y=None) -> PartitionedData:
-    """``data`` as a :class:`PartitionedData` (``fit(X, y, groups)``'s arguments:
-    ``groups`` names the trajectory column, ``y`` the force columns)."""
+    """``data`` as a :class:`PartitionedData`.
+
+    Parameters
+    ----------
+    data : PartitionedData or what :func:`is_partitioned` accepts
+    groups : str or int, default=None
+        The trajectory column (``fit``'s ``groups``); ``None``: ``"trajectory"``.
+    y : str, list of str or "auto", default=None
+        The force columns (``fit``'s ``y``); ``None`` or ``"auto"``: the columns
+        ``tau_<coordinate>`` when present.
+
+    Returns
+    -------
+    PartitionedData
+    """
     if isinstance(data, PartitionedData):
         if groups is not None or y is not None:
             raise ValueError(
@@ -473,11 +497,22 @@ def _rows(chunk):
 
 
 def collect(data, groups=None, y=None):
-    """Partitioned data read into memory: ``(X, tau, groups)`` arrays (``X``
-    ``[q, q_dot, q_ddot]``, ``tau`` None for passive data), in partition order.
+    """Partitioned data read into memory, in partition order.
 
     For the consumers that need every row at once (:func:`lagsindy.diagnose`);
     the trajectories must not be split across partitions.
+
+    Parameters
+    ----------
+    data, groups, y
+        As for :func:`as_partitioned`.
+
+    Returns
+    -------
+    X : ndarray of shape (n_samples, 3 * n_dof)
+        ``[q, q_dot, q_ddot]``.
+    tau : ndarray of shape (n_samples, n_dof) or None
+    groups : ndarray of shape (n_samples,)
     """
     from .statistics import combine
 

@@ -55,8 +55,25 @@ _OPERATORS: dict = {}
 
 
 def combine(a, b):
-    """The sum of two partial results (dicts), lists concatenated in order; a
-    trajectory found in both raises (it was split across partitions)."""
+    """The sum of two partial results of a pass.
+
+    Parameters
+    ----------
+    a, b : dict or None
+        Partial results (of consecutive partitions, ``a`` first); ``None`` is
+        nothing.
+
+    Returns
+    -------
+    dict
+        Numbers and arrays added, lists (``labels``, ``sizes``, ...) concatenated
+        in order, nested dicts combined alike.
+
+    Raises
+    ------
+    ValueError
+        When a trajectory label is in both (split across partitions).
+    """
     if a is None:
         return b
     if b is None:
@@ -429,8 +446,18 @@ class trajectory_pass:  # noqa: N801
 
 
 def stack_trajectories(parts) -> list:
-    """The partitions' :class:`TrajectoryStatistics` (lists per sampling
-    interval) stacked along the trajectories, in partition order."""
+    """The partitions' per-trajectory statistics stacked along the trajectories.
+
+    Parameters
+    ----------
+    parts : list of list of TrajectoryStatistics
+        Per partition (in order), one per sampling interval.
+
+    Returns
+    -------
+    list of TrajectoryStatistics
+        One per sampling interval, over every trajectory.
+    """
     out = []
     for node in range(len(parts[0])):
         items = [p[node] for p in parts]
