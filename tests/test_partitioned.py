@@ -76,7 +76,7 @@ def _same(a, b, rtol=RTOL):
     np.testing.assert_allclose(b.residual_, a.residual_, rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("form", ["strong", "weak"])
+@pytest.mark.parametrize("form", ["strong", "weak", "auto"])
 @pytest.mark.parametrize("passive", [False, True])
 def test_chunks_equal_in_memory(form, passive):
     data = _data(passive)
@@ -86,6 +86,21 @@ def test_chunks_equal_in_memory(form, passive):
     assert list(got.feature_names_in_) == ["theta", "theta_dot", "theta_ddot"]
     head = data.to_frame()[list(got.feature_names_in_)].iloc[:50]
     np.testing.assert_allclose(got.predict(head), want.predict(data.X[:50]))
+
+
+def test_auto_falls_back_to_the_strong_form_like_in_memory():
+    """Trajectories shorter than the weak form's 81-sample window: the same
+    warning and the same strong-form model as in memory."""
+    data = make_dataset(
+        SYSTEM, n_trajectories=12, duration=0.5, noise=1e-3, random_state=0
+    )
+    with pytest.warns(UserWarning, match="fell back to the strong form"):
+        want = _in_memory("auto", False, data)
+    with pytest.warns(UserWarning, match="fell back to the strong form") as seen:
+        got = _estimator("auto", False).fit(_chunks(data.to_frame()))
+    assert got.formulation_ == "strong"
+    _same(want, got)
+    assert seen[0].filename == __file__  # points at the caller's fit
 
 
 def test_summed_statistics_equal_in_memory():

@@ -234,7 +234,9 @@ def fit_state(params: dict, X, y=None, groups=None):
         ladder, setup, Xsolve, tau_s, verbose=verbose
     )
     fitted = pipeline.fitted_state(setup, stats, solution, tau_1d=False)
-    pipeline.check_fit(fitted, setup, stats, solution, Xs, tau_s)
+    # (stacklevel: the caller of LagrangianSINDy.fit, one frame further than
+    # in memory)
+    pipeline.check_fit(fitted, setup, stats, solution, Xs, tau_s, stacklevel=5)
     return fitted, data.feature_names
 
 

@@ -13,6 +13,7 @@ their searches evaluate (the same rows an in-memory fit would use) in one more p
 from __future__ import annotations
 
 import dataclasses
+import threading
 
 import numpy as np
 import torch
@@ -105,10 +106,11 @@ def combine(a, b):
 
 def _operator(setup, dtype):
     """The fit's operator (with its probe forces), built once per setup and
-    process."""
+    thread (a threaded scheduler runs partitions side by side; an operator keeps
+    buffers between calls)."""
     from ..pipeline import fit_operator
 
-    key = (id(setup), dtype)
+    key = (id(setup), dtype, threading.get_ident())
     if key not in _OPERATORS or _OPERATORS[key][0] is not setup:
         if len(_OPERATORS) > 8:
             _OPERATORS.clear()
