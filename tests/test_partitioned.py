@@ -226,6 +226,7 @@ def test_not_partitioned():
     data = _data()
     assert not is_partitioned(data.X) and not is_partitioned(data.to_frame())
     assert not is_partitioned([[1.0, 2.0, 3.0]])
+    assert not is_partitioned([(1.0, 2.0, 3.0), (0.5, 1.0, 2.0)])  # rows
     assert is_partitioned(_chunks(data.to_frame()))
 
 

@@ -95,8 +95,15 @@ def is_partitioned(data) -> bool:
     if hasattr(data, "__array__") or hasattr(data, "shape"):
         return False  # array-likes (tensors, sparse matrices) are in memory
     if isinstance(data, (list, tuple)):
+        # chunks, not rows: DataFrames, or (X, tau, groups) of arrays (a row of
+        # three numbers is a tuple of length 3 too)
         return len(data) > 0 and all(
-            isinstance(c, pd.DataFrame) or (isinstance(c, tuple) and len(c) == 3)
+            isinstance(c, pd.DataFrame)
+            or (
+                isinstance(c, tuple)
+                and len(c) == 3
+                and (hasattr(c[0], "shape") or isinstance(c[0], list))
+            )
             for c in data
         )
     if callable(data) and not isinstance(data, type):
