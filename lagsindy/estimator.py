@@ -21,7 +21,7 @@ from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
-from . import pipeline
+from . import partitioned, pipeline
 from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .dissipation import library_of
@@ -339,9 +339,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
         Parameters
         ----------
-        X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+        X : array-like or DataFrame of shape (n_samples, 3 * n_dof), or partitioned data
             Rows ``[q..., q_dot..., q_ddot...]``. DataFrame columns are matched by
-            name (``theta``, ``theta_dot``, ``theta_ddot``).
+            name (``theta``, ``theta_dot``, ``theta_ddot``). A Dask DataFrame or
+            array, a Parquet path or an iterable of chunks is fitted partition by
+            partition (:mod:`lagsindy.partitioned`; ``y`` and ``groups`` then name
+            the force and trajectory columns).
         y : array-like of shape (n_samples, n_dof) or (n_samples,), default=None
             Generalized forces tau (case I). ``None`` for passive data. A coordinate
             that is never driven (an undriven link) has a column of zeros.
@@ -365,6 +368,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         # A refit starts from scratch: a failed fit leaves the estimator unfitted.
         for name in [k for k in vars(self) if k.endswith("_") and not k.endswith("__")]:
             delattr(self, name)
+        if partitioned.is_partitioned(X):  # Dask, Parquet, chunks: map-reduce
+            fitted, names = partitioned.fit_state(self.get_params(False), X, y, groups)
+            self.n_features_in_ = 3 * fitted.n_dof
+            if names is not None:
+                self.feature_names_in_ = np.asarray(names, dtype=object)
+            return self._publish(fitted)
         device, dtype = resolve_device(self.device), resolve_dtype(self.dtype)
         Xa, tau, setup = self._setup(X, y)
         formulation = pipeline.formulation_of(self.get_params(deep=False), setup.case)

@@ -51,6 +51,7 @@ __all__ = [
     "FitSetup",
     "build_dissipation",
     "check_fit",
+    "fit_operator",
     "fit_statistics",
     "fitted_state",
     "fitted_formulation",
@@ -192,16 +193,24 @@ def fit_statistics(formulation, setup: FitSetup, Xt, tau_t, groups) -> list:
     :mod:`lagsindy.formulation.forms`): every feature's columns and the target; in
     the probed cases without a dissipation library, with probe forces set aside (see
     :mod:`lagsindy.formulation.probes`)."""
-    n_features = setup.n_features
+    operator, names = fit_operator(setup, Xt.device, Xt.dtype)
+    ladder = formulation.statistics(operator, Xt, tau_t, groups)
+    return split_probes(ladder, setup.n_features, names, int(tau_t is not None))
+
+
+def fit_operator(setup: FitSetup, device, dtype):
+    """The Euler-Lagrange operator a fit's statistics use, and the names of the
+    probe forces it adds after the features (in the probed cases without a
+    dissipation library): ``(operator, names)``. The statistics of its columns go
+    through :func:`~lagsindy.formulation.probes.split_probes` (``n_features`` and
+    ``names``) before a solve, as :func:`fit_statistics` does."""
     probes = []
     if setup.case in PROBED_CASES and setup.dissipation.library is None and probing():
         probes = build_dissipation(DissipationLibrary(PROBE_KINDS), setup.library).terms
     operator = setup.operator(
-        range(n_features + len(probes)), Xt.device, Xt.dtype, extra_forces=probes
+        range(setup.n_features + len(probes)), device, dtype, extra_forces=probes
     )
-    ladder = formulation.statistics(operator, Xt, tau_t, groups)
-    names = [t.name for t in probes]
-    return split_probes(ladder, n_features, names, int(tau_t is not None))
+    return operator, [t.name for t in probes]
 
 
 # -------------------------------------------------------------------------- solve

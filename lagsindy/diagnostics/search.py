@@ -12,6 +12,7 @@ import numpy as np
 from sklearn.utils.validation import check_is_fitted
 
 from .._validation import validate_state, validate_tau
+from ..partitioned import collect, is_partitioned
 from ..formulation.operator import reuse_weak_columns
 from .catalogue import DEFAULT_CATALOGUE, velocity_eps
 from .loop import DiagnosisSettings, Search
@@ -48,9 +49,12 @@ def diagnose(
     ----------
     est : LagrangianSINDy
         A fitted estimator (not modified).
-    X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+    X : array-like or DataFrame of shape (n_samples, 3 * n_dof), or partitioned data
         Data in the estimator's layout: time-ordered trajectories (the held-out
-        trajectory criterion integrates along them).
+        trajectory criterion integrates along them). Partitioned data (a Dask
+        DataFrame, a Parquet path, chunks: see :mod:`lagsindy.partitioned`) are
+        read into memory (``tau`` and ``groups`` then name their columns): diagnose
+        a subset of the trajectories when all of them do not fit.
     tau : array-like of shape (n_samples, n_dof), default=None
         Generalized forces; ``None`` for passive data (the model's scale is then set by
         its fixed term).
@@ -129,6 +133,8 @@ def diagnose(
     0.2
     """
     check_is_fitted(est)
+    if is_partitioned(X):  # its folds integrate whole trajectories: in memory
+        X, tau, groups = collect(X, groups=groups, y=tau)
     Xa, _, _ = validate_state(est, X, reset=False, coordinates=est.coordinates_)
     tau_a = (
         None

@@ -51,17 +51,28 @@ import warnings
 from numbers import Integral, Real
 
 import numpy as np
+import torch
 from joblib import Parallel, delayed
 from scipy.stats import norm
 from sklearn.base import clone
 from sklearn.utils import check_random_state
 
 from .. import pipeline
+from .._torch import resolve_dtype
 from .._validation import validate_state
-from ..formulation.forms import group_rows
+from ..formulation.forms import StrongForm, WeakForm, group_rows
 from ..formulation.operator import NOISE_ROWS
 from ..formulation.probes import without_probes
+from ..partitioned import (
+    as_partitioned,
+    combine,
+    is_partitioned,
+    stack_trajectories,
+    trajectory_pass,
+)
 from ._resampling import (
+    DT_NODES,
+    GroupStats,
     batch_supported,
     batched_resamples,
     fast_path_supported,
@@ -265,7 +276,12 @@ def bootstrap(
     est : LagrangianSINDy
         Its parameters define the configuration (it is cloned; ``est`` is not
         changed).
-    X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+    X : array-like or DataFrame of shape (n_samples, 3 * n_dof), or partitioned data
+        A Dask DataFrame or array, a Parquet path or chunks (see
+        :mod:`lagsindy.partitioned`; ``tau`` and ``groups`` then name columns):
+        the per-trajectory statistics are summed where the data are, and the
+        resamples solved from them (case I, or case III with ``fixed_term``;
+        at least 10 trajectories).
     tau : array-like of shape (n_samples, n_dof), default=None
         Generalized forces (case I); ``None`` for passive data.
     groups : array-like of shape (n_samples,), default=None
@@ -320,6 +336,10 @@ def bootstrap(
     if not (isinstance(level, Real) and 0 < level < 1):
         raise ValueError(f"level must be in (0, 1), got {level!r}")
     full = clone(est).fit(X, tau, groups=groups)
+    if is_partitioned(X):
+        return _bootstrap_partitioned(
+            full, X, tau, groups, n_resamples, level, method, random_state, verbose
+        )
     Xa, tau_a, _ = validate_state(
         full, X, reset=False, y=tau, coordinates=full.coordinates_
     )
@@ -418,6 +438,61 @@ def bootstrap(
             f"{'fast path' if fast else 'full refits'}"
         )
 
+    refit = None
+    if not fast:
+
+        def refit(mult):
+            return refit_resample(base, Xa, tau_a, rows_of, mult, weak)
+
+    return _resample(
+        full,
+        setup,
+        stats,
+        mults,
+        jack_mults,
+        start,
+        seam if fast else None,
+        scale if fast else None,
+        Xt,
+        memo,
+        refit,
+        all_coef,
+        ref,
+        fast,
+        resampling,
+        n_groups,
+        level,
+        method,
+        n_jobs,
+        verbose,
+    )
+
+
+def _resample(
+    full,
+    setup,
+    stats,
+    mults,
+    jack_mults,
+    start,
+    seam,
+    scale,
+    Xt,
+    memo,
+    refit,
+    all_coef,
+    ref,
+    fast,
+    resampling,
+    n_groups,
+    level,
+    method,
+    n_jobs,
+    verbose,
+):
+    """Solve every resample (and jackknife sample) and build the report: from the
+    per-group statistics when ``fast``, else by ``refit(mult)``."""
+    n_resamples = len(mults)
     all_mults = np.concatenate([mults, jack_mults])
     n_jobs_eff = 1 if n_jobs is None else n_jobs
     chunks = np.array_split(
@@ -449,10 +524,7 @@ def bootstrap(
         else:
 
             def work(ix):
-                return [
-                    refit_resample(base, Xa, tau_a, rows_of, all_mults[i], weak)
-                    for i in ix
-                ]
+                return [refit(all_mults[i]) for i in ix]
 
         results = Parallel(n_jobs=n_jobs, verbose=max(0, verbose - 1))(
             delayed(work)(ix) for ix in chunks
@@ -496,6 +568,99 @@ def bootstrap(
         fast_path=bool(fast),
         n_failed=n_failed,
         estimator=full,
+    )
+
+
+def _bootstrap_partitioned(
+    full, X, tau, groups, n_resamples, level, method, random_state, verbose
+):
+    """:func:`bootstrap` of partitioned data (Dask, Parquet, chunks): the
+    per-trajectory statistics summed where the data are (one pass), the resamples
+    solved from them like the in-memory fast path."""
+    if not fast_path_supported(full):
+        raise ValueError(
+            "a bootstrap of partitioned data solves the resamples from "
+            "per-trajectory statistics, which needs case I (forces) or case III "
+            "with fixed_term=<a known term>; this configuration chooses between "
+            f"models on the data (case={full.case_!r}, fixed_term="
+            f"{full.fixed_term!r}): pass fixed_term=, or bootstrap in memory"
+        )
+    data = as_partitioned(X, groups=groups, y=tau)
+    setup = pipeline.setup_of(full)
+    dtype = resolve_dtype(full.dtype)
+    estimated, dts = False, None
+    form = StrongForm()
+    if full.formulation_ == "weak":
+        dt = float(full.dt_)
+        estimated = pipeline.formulation_of(full.get_params(deep=False)).dt is None
+        dts = [c * dt for c in DT_NODES] if estimated else [dt]
+        form = WeakForm(window=int(full.window_), dt=dt, noise_cov=full.noise_cov_)
+    task = trajectory_pass(setup, dtype, form, dts, steps=estimated)
+    total = data.map_reduce(task, combine)
+    nodes = stack_trajectories(total["traj"])
+    n_groups = len(nodes[0])
+    if n_groups < _MIN_TRAJECTORIES:
+        raise ValueError(
+            f"a bootstrap of partitioned data resamples whole trajectories and needs "
+            f"at least {_MIN_TRAJECTORIES}, got {n_groups}: record more trajectories "
+            "or bootstrap in memory (time blocks)"
+        )
+    stats = GroupStats(nodes)
+    if estimated:
+        owner = [np.full(r.size, k) for k, (r, _) in enumerate(total["rows"])]
+        r = torch.as_tensor(np.concatenate([r for r, _ in total["rows"]]))
+        w = torch.as_tensor(np.concatenate([w for _, w in total["rows"]]))
+        order = torch.argsort(r)
+        steps = (r[order], w[order], torch.as_tensor(np.concatenate(owner))[order])
+        stats = GroupStats(nodes, np.asarray(dts), steps)
+    all_coef = full.fitted_.all_coef()
+    ref = full.library_.index(full.fixed_term_) if full.case_ == "fixed" else None
+    rng = check_random_state(random_state)
+    mults = rng.multinomial(
+        n_groups, np.full(n_groups, 1.0 / n_groups), size=n_resamples
+    )
+    jack_mults = (
+        1 - np.eye(n_groups, dtype=np.int64)
+        if method == "bca"
+        else np.zeros((0, n_groups))
+    )
+    Xt = torch.zeros((0, 3 * full.n_dof_), dtype=dtype)  # the statistics suffice
+    memo = {}
+    seam = fast_resample(setup, stats, np.ones(n_groups), Xt, memo)
+    scale = max(np.abs(all_coef).max(), 1e-300)
+    if not reproduces(seam, all_coef, _SEAM_RTOL, scale):
+        raise ValueError(
+            "the per-trajectory statistics of the partitions do not reproduce the "
+            "partitioned fit (a solve that depends on rounding?); bootstrap in "
+            "memory instead"
+        )
+    if verbose:
+        print(
+            f"[lagsindy] bootstrap: {n_resamples} resamples of {n_groups} "
+            "trajectories (partitioned data), fast path"
+        )
+    start = full.stages_[0].coef if full.stages_ else None
+    return _resample(
+        full,
+        setup,
+        stats,
+        mults,
+        jack_mults,
+        start,
+        seam,
+        scale,
+        Xt,
+        memo,
+        None,
+        all_coef,
+        ref,
+        True,
+        "trajectories",
+        n_groups,
+        level,
+        method,
+        None,
+        verbose,
     )
 
 
