@@ -48,14 +48,18 @@ class StageRuns:
 def _equation_shares(datafits, index, m):
     """Every problem's equation shares in the batch's coordinates, ``(n, n_eq, m)``
     and ``(n, n_eq)`` (see :class:`~lagsindy.solvers.GramQuadratic`), or ``(None,
-    None)`` unless every problem has them for as many equations."""
+    None)`` when no problem has them. A problem without them (or with fewer
+    equations) gets zeros there, which leave it the global threshold alone."""
     shares = [getattr(d, "equation_shares", None) for d in datafits]
-    if any(s is None for s in shares) or len({s.shape[0] for s in shares}) != 1:
+    n_eq = max((s.shape[0] for s in shares if s is not None), default=0)
+    if n_eq == 0:
         return None, None
-    out = np.zeros((len(datafits), shares[0].shape[0], m))
-    for r, (s, idx) in enumerate(zip(shares, index)):
-        out[r][:, idx] = s.detach().cpu().numpy()
-    targets = np.stack([d.target_shares.detach().cpu().numpy() for d in datafits])
+    out = np.zeros((len(datafits), n_eq, m))
+    targets = np.zeros((len(datafits), n_eq))
+    for r, (d, s, idx) in enumerate(zip(datafits, shares, index)):
+        if s is not None:
+            out[r, : s.shape[0]][:, idx] = s.detach().cpu().numpy()
+            targets[r, : s.shape[0]] = d.target_shares.detach().cpu().numpy()
     return out, targets
 
 
