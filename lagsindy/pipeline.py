@@ -266,6 +266,9 @@ def solve(
     """
     p = problem(stats, setup, Xt, tau, memo=memo, start=start)
     solution = solve_case(setup.case, p)
+    constrain = getattr(setup.library, "constrain", None)
+    if callable(constrain) and setup.case == "forces":  # e.g. a robot's consistency
+        solution = constrain(p, solution)
     solution.row_scale = p.balanced.row_scale
     if warn and setup.case != "acceleration":
         free = np.flatnonzero(p.identifiable)

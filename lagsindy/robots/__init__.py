@@ -19,6 +19,7 @@ from .examples import example_urdf
 from .export import ConsistentParameters, consistent_parameters, feasibility, to_urdf
 from .fitting import BaseParameterLibrary, BaseTerms
 from .library import RobotLibrary
+from .report import fitted_to_urdf, joint_coefficients, parameter_table
 from .urdf import RobotTree, build_tree
 
 __all__ = [
@@ -38,5 +39,8 @@ __all__ = [
     "euler_lagrange_columns",
     "example_urdf",
     "feasibility",
+    "fitted_to_urdf",
+    "joint_coefficients",
+    "parameter_table",
     "to_urdf",
 ]

@@ -24,11 +24,14 @@ coefficient).
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import torch
 from sklearn.base import BaseEstimator
 
 from .base_parameters import base_parameters
+from .export import consistent_parameters
 
 
 class BaseTerms:
@@ -140,6 +143,8 @@ class BaseParameterLibrary(BaseEstimator):
         penalize = bool(getattr(robot, "penalize", False))
         self.unpenalized_ = [] if penalize else list(self.terms_)
         self.nominal_ = base.values(robot.nominal_)
+        self.n_terms_ = len(self.terms_)
+        self._representatives = {}
         return self
 
     @property
@@ -153,7 +158,14 @@ class BaseParameterLibrary(BaseEstimator):
         return self
 
     def __getattr__(self, name):
-        if name in ("terms_", "coordinates_", "base_", "robot_", "unpenalized_"):
+        if name in (
+            "terms_",
+            "coordinates_",
+            "base_",
+            "robot_",
+            "unpenalized_",
+            "n_terms_",
+        ):
             self.build()
             return self.__dict__[name]
         raise AttributeError(
@@ -197,6 +209,58 @@ class BaseParameterLibrary(BaseEstimator):
         """Alias of :meth:`torch_terms`."""
         return self.torch_terms()
 
+    def constrain(self, problem, solution):
+        """The pipeline's hook after the sparse solve (case I): the constrained refit
+        of :func:`lagsindy.robots.consistency.constrained_refit` when the robot library
+        has ``consistent=True``; otherwise a warning when the fitted base parameters
+        are not physically consistent (with the violation)."""
+        from .consistency import VIOLATION_TOL, constrained_refit, violation
+
+        n = self.n_terms_
+        coef = np.asarray(solution.coef, float)
+        n_features = len(coef)
+        gram = problem.balanced.gram.detach().cpu().numpy()
+        keep = list(range(n_features)) + [n_features]
+        gram = gram[np.ix_(keep, keep)]
+        if not getattr(self.robot_, "consistent", True):
+            gap = violation(self.robot_, self.base_, coef[:n])
+            self.violation_ = gap
+            if gap > VIOLATION_TOL:
+                warnings.warn(
+                    "the fitted base parameters are not physically consistent: the "
+                    f"nearest consistent link parameters miss them by {gap:.2g} "
+                    "(relative); fit with consistent=True (the default) to constrain "
+                    "them",
+                    UserWarning,
+                    stacklevel=9,
+                )
+            return solution
+        dissipative = [t.dissipative for t in problem.dissipation_terms]
+        found = constrained_refit(
+            self.robot_,
+            self.base_,
+            gram,
+            coef,
+            n,
+            dissipative,
+            coef[n:] != 0,
+        )
+        self._representatives[found.coef[:n].tobytes()] = found.parameters
+        if len(self._representatives) > 64:
+            self._representatives.pop(next(iter(self._representatives)))
+        solution.coef = found.coef
+        return solution
+
+    def link_parameters(self, beta):
+        """Consistent full link parameters whose base parameters are ``beta``: the
+        constrained fit's own, else :func:`lagsindy.robots.consistent_parameters`
+        (a ``ConsistentParameters``'s ``parameters``)."""
+        beta = np.asarray(beta, float)
+        known = self.__dict__.get("_representatives", {}).get(beta.tobytes())
+        if known is not None:
+            return known
+        return consistent_parameters(self.robot_, self.base_, beta).parameters
+
     def table(self, values=None) -> list:
         """``(name, combination, value)`` per base parameter."""
         self._ensure_built()
@@ -214,6 +278,4 @@ class BaseParameterLibrary(BaseEstimator):
     def __setstate__(self, state):
         self.__dict__.update(state)
         if "robot_" in state and "base_" in state:
-            self._terms = BaseTerms(
-                self.robot_.torch_terms(), self.base_.independent
-            )
+            self._terms = BaseTerms(self.robot_.torch_terms(), self.base_.independent)

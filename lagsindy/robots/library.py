@@ -50,6 +50,14 @@ class RobotLibrary(BaseEstimator):
         out of the L1 penalty and the hard threshold, so that the sparse regression
         selects only among the dissipation candidates; ``True`` makes them ordinary
         candidates.
+    consistent : bool, default=True
+        In a fit with forces (case I): refit the coefficients, after the sparse solve
+        chose the dissipation terms, with physically consistent link parameters
+        (every body's pseudo-inertia positive semidefinite, rotor inertias and
+        dissipative coefficients non-negative; see
+        :mod:`lagsindy.robots.consistency`). ``False``: the unconstrained least
+        squares, with a warning saying how far its base parameters are from
+        consistent ones (``library_.violation_``).
 
     Attributes
     ----------
@@ -82,6 +90,7 @@ class RobotLibrary(BaseEstimator):
         locked=None,
         gravity=GRAVITY,
         penalize=False,
+        consistent=True,
     ):
         self.path = path
         self.joints = joints
@@ -89,6 +98,7 @@ class RobotLibrary(BaseEstimator):
         self.locked = locked
         self.gravity = gravity
         self.penalize = penalize
+        self.consistent = consistent
 
     def _key(self):
         return repr(
