@@ -33,6 +33,9 @@ from .export import consistent_parameters, feasibility, pseudo_inertia
 # ADMM's relative tolerance on the primal and dual residuals, and its iteration cap.
 TOL = 1e-8
 MAX_ITER = 5000
+# Negative pseudo-inertia eigenvalues (relative to the largest mass) taken as
+# round-off when the sparse solution is checked for consistency.
+ROUND_OFF = 1e-9
 # ADMM step, relative to the mean curvature of the least squares.
 RHO = 0.003  # measured on the 7-joint arm: 1.0 converges 10 times slower
 # Fitted base parameters whose nearest consistent full parameters miss them by more
@@ -222,6 +225,32 @@ def constrained_refit(robot, base, gram, coef, n_terms, dissipative, support):
     xu = np.asarray(coef, float)
     f_con = 0.5 * x @ g @ x - h_y @ x
     f_unc = 0.5 * xu @ g @ xu - h_y @ xu
+    # The sparse solution itself, when consistent, is the constrained optimum (the
+    # least squares on its support): its base parameters with link parameters moved
+    # from ADMM's by the least-norm change, if those are consistent.
+    pi_u = pi + np.linalg.lstsq(k_mat, xu[:n_terms] - k_mat @ pi, rcond=None)[0]
+    d_u = xu[n_terms:][diss_idx]
+    # (consistent to round-off: a body on the boundary, a rod, has eigenvalue 0)
+    slack = ROUND_OFF * max(1.0, float(np.abs(ref[0:n_link:10]).max(initial=0.0)))
+    if (
+        feasibility(pi_u, n_bodies).min() >= -slack
+        and pi_u[n_link:].min(initial=0.0) >= -slack
+        and np.all(d_u[nonneg] >= 0)
+    ):
+        clipped = pi_u.copy()
+        clipped[:n_link] = _project_psd(
+            np.einsum(
+                "bij,kij->bk",
+                np.stack([pseudo_inertia(p) for p in pi_u[:n_link].reshape(-1, 10)]),
+                _SVEC,
+            ).reshape(-1),
+            n_bodies,
+        )
+        clipped[:n_link] = np.einsum(
+            "bk,pk->bp", clipped[:n_link].reshape(n_bodies, 10), p_body
+        ).ravel()
+        clipped[n_link:] = np.maximum(pi_u[n_link:], 0.0)
+        x, pi, f_con = xu.copy(), clipped, f_unc
     return ConsistentFit(
         coef=x,
         parameters=pi,
