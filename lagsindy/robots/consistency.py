@@ -6,17 +6,17 @@ statistics subject to physical consistency:
 
 * the base parameters are ``beta = K pi`` for full link parameters ``pi`` whose
   bodies each have a positive semidefinite pseudo-inertia ``J_b`` (Wensing, Kim and
-  Slotine, 2018), parametrized as ``J_b = L_b L_b^T`` with ``L_b`` lower triangular
-  (every ``L_b`` gives a consistent body; the least-squares objective is convex in
-  ``J_b``, and the factorized problem has the same minima);
-* rotor inertias ``Ia_j = r_j^2 >= 0``;
+  Slotine, 2018);
+* rotor inertias ``>= 0``;
 * dissipative coefficients (viscous, Coulomb, ...) ``>= 0``, the others (offsets,
   springs) free.
 
 The objective is the fit's own least squares, ``x^T G x / 2 - g^T x`` with the
-balanced Gram matrix ``[G g]`` of the statistics, minimized as a least-squares
-residual by scipy's trust-region reflective solver (analytic Jacobians), started from the URDF's own (consistent) link parameters and the sparse
-solution's dissipation coefficients. The full parameters found are a consistent
+balanced Gram matrix ``[G g]`` of the statistics: a convex problem in the
+pseudo-inertias, solved by ADMM (a linear solve, then the projection: eigenvalues
+clipped at 0 per body, rotor inertias and dissipative coefficients at 0), started
+from the URDF's own link parameters. When the sparse solution is itself consistent
+(to round-off) it is kept as it is. The full parameters found are a consistent
 representative for :func:`lagsindy.robots.to_urdf`.
 """
 
@@ -93,18 +93,6 @@ def _pi_of_j(j):
 
 
 _TRIL = np.tril_indices(4)
-
-
-def _cholesky_start(params, floor):
-    """Lower-triangular factors of the bodies' pseudo-inertias (made positive
-    definite by ``floor`` where they are not)."""
-    out = []
-    for p in params.reshape(-1, 10):
-        j = pseudo_inertia(p)
-        w, v = np.linalg.eigh(j)
-        j = (v * np.maximum(w, floor)) @ v.T
-        out.append(np.linalg.cholesky(j)[_TRIL])
-    return np.concatenate(out)
 
 
 def _svec_basis():

@@ -130,7 +130,7 @@ class BaseParameterLibrary(BaseEstimator):
         self.random_state = random_state
 
     def build(self):
-        """Build the robot library and reduce it to base parameters; returns ``self``."""
+        """Build the robot library, reduce it to base parameters; returns ``self``."""
         if self.robot is None:
             raise ValueError("BaseParameterLibrary needs robot= (a RobotLibrary)")
         robot = self.robot._ensure_built()
