@@ -1,4 +1,4 @@
-"""Robot arms, prototype fit: base parameters + friction by least squares, vs pinocchio.
+"""Robot arms: LagrangianSINDy on a URDF library, and the classical fit, vs pinocchio.
 
 The targets the robot-arm estimator must reach (issue #42), measured on the simulated
 data of :mod:`benchmarks.robots_data` (7-joint arm, 1 kHz, 1e-4 rad position noise,
@@ -378,7 +378,7 @@ def main(argv=None) -> int:
     fit_wall = res["ours"]["t_reg"].wall * frac + res["ours"]["t_ls"].wall
     lines = [
         header(
-            "Robot arms: prototype fit (base parameters + friction, least squares)",
+            "Robot arms: LagrangianSINDy on a URDF library vs the classical base-parameter fit",
             _common.command("robots", argv),
         ).rstrip()
     ]
