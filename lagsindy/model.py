@@ -418,6 +418,8 @@ class FittedLagrangian:
         if check.fraction > MASS_BAD_FRACTION:
             velocities = {str(v) for v in self.lagrangian.free_symbols}
             absent = [c for c in self.coordinates if f"{c}_dot" not in velocities]
+            if is_term_function(self.terms):  # its symbols are the terms' names
+                absent = []
             hint = (
                 f"; no learned term contains the velocity of {absent}" if absent else ""
             )
