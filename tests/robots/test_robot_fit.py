@@ -220,6 +220,15 @@ def test_to_urdf_needs_a_urdf_library(tmp_path):
         est.to_urdf(tmp_path / "x.urdf")
 
 
+def test_model_file_refused_with_a_clear_error(strong_fit, tmp_path):
+    import pickle
+
+    with pytest.raises(ValueError, match="to_urdf"):
+        strong_fit.save(tmp_path / "m.json")
+    back = pickle.loads(pickle.dumps(strong_fit))
+    np.testing.assert_array_equal(back.coef_, strong_fit.coef_)
+
+
 def test_parameter_table(strong_fit):
     table = parameter_table(strong_fit)
     assert list(table.columns) == ["parameter", "combination", "value", "urdf"]
