@@ -1,4 +1,4 @@
-"""Robot arms, prototype fit: base parameters + friction by least squares, vs pinocchio.
+"""Robot arms: LagrangianSINDy on a URDF library, and the classical fit, vs pinocchio.
 
 The targets the robot-arm estimator must reach (issue #42), measured on the simulated
 data of :mod:`benchmarks.robots_data` (7-joint arm, 1 kHz, 1e-4 rad position noise,
@@ -182,6 +182,9 @@ def seven_joint(duration, el_samples):
         tauf,
         spring_col,
     )
+    est_fit = estimator_fit(data, lib, (q, qd, qdd), tauf, split, spring=True)
+    est_plain = estimator_fit(data, lib, (q, qd, qdd), tauf, split, spring=False)
+    diag = diagnosis(est_plain["est"], (q, qd, qdd), tauf, split)
     # the true model at the same filtered states
     truth = lib.nominal_.copy()
     truth[-d:] = data.armature
@@ -224,6 +227,9 @@ def seven_joint(duration, el_samples):
             np.abs(back.nominal_[: 10 * 7] - cons.parameters[: 10 * 7]).max()
         )
     return dict(
+        est_fit=est_fit,
+        est_plain=est_plain,
+        diag=diag,
         data=data,
         n=n,
         split=split,
@@ -241,6 +247,60 @@ def seven_joint(duration, el_samples):
         t_cons=t_cons,
         round_trip=round_trip,
         n_terms=len(lib),
+    )
+
+
+def estimator_fit(data, lib, states, tauf, split, spring):
+    """``LagrangianSINDy`` on the training part: the URDF library (base parameters,
+    physically consistent by default), viscous, Coulomb and offset friction per joint
+    (and the spring kind with ``spring``), strong form; held-out R^2 per joint."""
+    from lagsindy import DissipationLibrary, LagrangianSINDy
+    from lagsindy.robots import FRICTION_KINDS, feasibility
+
+    q, qd, qdd = states
+    X = np.hstack([q, qd, qdd])
+    kinds = list(FRICTION_KINDS) + (["spring"] if spring else [])
+    est = LagrangianSINDy(
+        lib, dissipation=DissipationLibrary(kinds), formulation="strong"
+    )
+    with _quiet() as caught, _clock() as clock:
+        est.fit(X[:split], tauf[:split])
+    pred = est.predict(X[split:])
+    names = [t.name for t in est.dissipation_terms_]
+    visc = np.array(
+        [est.dissipation_coef_[names.index(f"viscous({j})")] for j in data.joints]
+    )
+    pi = est.library_.link_parameters(est.coef_)
+    return dict(
+        est=est,
+        r2=r2_per_joint(tauf[split:], pred),
+        visc_err=np.abs(visc / data.viscous - 1),
+        clock=clock,
+        min_eig=float(feasibility(pi, 7).min()),
+        rotor_min=float(pi[70:].min()),
+        warnings=[str(w.message)[:120] for w in caught.caught],
+        spring=(
+            float(est.dissipation_coef_[names.index("spring(joint4)")])
+            if "spring(joint4)" in names
+            else None
+        ),
+    )
+
+
+def diagnosis(est, states, tauf, split):
+    """``diagnose`` on the training part, from the fit without the spring kind."""
+    from lagsindy import diagnose
+    from lagsindy.robots import ROBOT_CATALOGUE
+
+    X = np.hstack(states)[:split]
+    catalogue = [k for k in ROBOT_CATALOGUE if k != "delay"]
+    if _tiny():
+        catalogue = ["spring"]
+    with _quiet(), _clock() as clock:
+        report = diagnose(est, X, tauf[:split], catalogue=catalogue)
+    return dict(
+        clock=clock,
+        steps=[(s.candidate.name, float(s.coefficient)) for s in report.steps],
     )
 
 
@@ -318,7 +378,7 @@ def main(argv=None) -> int:
     fit_wall = res["ours"]["t_reg"].wall * frac + res["ours"]["t_ls"].wall
     lines = [
         header(
-            "Robot arms: prototype fit (base parameters + friction, least squares)",
+            "Robot arms: LagrangianSINDy on a URDF library vs the classical base-parameter fit",
             _common.command("robots", argv),
         ).rstrip()
     ]
@@ -343,6 +403,14 @@ def main(argv=None) -> int:
         _row("lagsindy regressor: base + friction", res["ours"]["r2"]),
         _row("pinocchio regressor: base + friction", res["theirs"]["r2"]),
         _row("lagsindy: base + friction + spring column", res["with_spring"]["r2"]),
+        _row(
+            "LagrangianSINDy: URDF library + friction (consistent)",
+            res["est_plain"]["r2"],
+        ),
+        _row(
+            "LagrangianSINDy: URDF library + friction + spring kind (consistent)",
+            res["est_fit"]["r2"],
+        ),
         "",
         "Largest |R^2 - true model's| over the joints: "
         f"{np.abs(res['ours']['r2'] - res['r2_true']).max():.4f} (without the spring), "
@@ -357,6 +425,47 @@ def main(argv=None) -> int:
     ]
     for name, err in res["visc_err"].items():
         lines.append(_row(name, 100 * err, "{:.1f} %"))
+    ef, ep, dg = res["est_fit"], res["est_plain"], res["diag"]
+    lines.append(
+        _row("LagrangianSINDy + spring kind", 100 * ef["visc_err"], "{:.1f} %")
+    )
+    found = ", ".join(f"{t} = {c:.3f}" for t, c in dg["steps"]) or "nothing"
+    pin_cpu = res["theirs"]["t_reg"].cpu * frac + res["theirs"]["t_ls"].cpu
+    pin_wall = res["theirs"]["t_reg"].wall * frac + res["theirs"]["t_ls"].wall
+    lines += [
+        "",
+        "## LagrangianSINDy on the URDF library",
+        "",
+        f"`LagrangianSINDy(CandidateLibrary.from_urdf(...), dissipation="
+        f'DissipationLibrary(["viscous", "coulomb", "bias", "spring"]), '
+        f'formulation="strong")` on the {n_train} training samples: '
+        f"{res['base'].n_base} base parameters (unpenalized) + 28 dissipation "
+        "candidates (sparse), physically consistent by default. "
+        f"Held-out R^2 minus the true model's, worst joint: "
+        f"{(ef['r2'] - res['r2_true']).min():+.4f} (acceptance: -0.005); viscous "
+        f"friction within {100 * ef['visc_err'].max():.1f} % on every joint "
+        f"(acceptance: 10 %); spring(joint4) = {ef['spring']:.3f} N m/rad (true "
+        f"{res['data'].spring[1]:.1f}); smallest pseudo-inertia eigenvalue of the "
+        f"link parameters {ef['min_eig']:.2e}, smallest rotor inertia "
+        f"{ef['rotor_min']:.2e} (feasible: >= 0).",
+        "",
+        f"Without the spring kind (viscous, Coulomb, offsets only), "
+        f'`diagnose(est, X, tau, catalogue=["viscous", "coulomb", "bias", '
+        f'"spring"])` on the training part adds: {found} '
+        f"({dg['clock'].cpu:.1f} s CPU, {dg['clock'].wall:.1f} s wall).",
+        "",
+        "| fit, same data and process | wall s | CPU s |",
+        "|---|---|---|",
+        _trow("LagrangianSINDy fit (+ spring kind), whole `fit`", ef["clock"]),
+        _trow("LagrangianSINDy fit (friction only), whole `fit`", ep["clock"]),
+        f"| pinocchio regressor + least squares (training part) | {pin_wall:.3f} | "
+        f"{pin_cpu:.3f} |",
+        "",
+        f"The fit's CPU time is {ef['clock'].cpu / pin_cpu:.1f} times the classical "
+        f"pipeline's; {'within' if ef['clock'].cpu <= 10 else 'ABOVE'} the issue's "
+        "10 s target in CPU time (wall-clock time is the shared machine's: see the "
+        "load average below).",
+    ]
     cons = res["cons"]
     lines += [
         "",

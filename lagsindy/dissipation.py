@@ -476,9 +476,13 @@ def reduce_forces(lagrangian_terms, force_terms, coordinates, *, tol: float = 1e
         return [], []
     # The outcome depends on the expressions only (the columns are compared at
     # fixed random states): kept as the indices of the removed candidates.
+    from .evaluator import is_term_function
+
     key = (
         tuple(coordinates),
-        tuple(lagrangian_terms),
+        (lagrangian_terms,)  # a torch term function: the object itself
+        if is_term_function(lagrangian_terms)
+        else tuple(lagrangian_terms),
         tuple(tuple(t.forces) for t in force_terms),
         float(tol),
     )
@@ -499,7 +503,14 @@ def _reduce_forces(lagrangian_terms, force_terms, coordinates, tol) -> dict:
 
     n_dof = len(coordinates)
     rng = np.random.default_rng(0)
-    n_points = int(np.ceil(3 * (len(lagrangian_terms) + len(force_terms)) / n_dof)) + 24
+    from .evaluator import is_term_function
+
+    n_l = (
+        len(lagrangian_terms.names)
+        if is_term_function(lagrangian_terms)
+        else len(lagrangian_terms)
+    )
+    n_points = int(np.ceil(3 * (n_l + len(force_terms)) / n_dof)) + 24
     X = np.concatenate(
         [
             rng.uniform(-np.pi, np.pi, (n_points, n_dof)),
@@ -513,7 +524,6 @@ def _reduce_forces(lagrangian_terms, force_terms, coordinates, tol) -> dict:
     Xt = torch.as_tensor(X, dtype=torch.float64)
     cols = ev.columns(*torch.split(Xt, n_dof, dim=1)).numpy()
     cols = cols.reshape(-1, cols.shape[2])  # (n_points * n_dof, p + f)
-    n_l = len(lagrangian_terms)
     basis = np.zeros((cols.shape[0], 0))
     for k in range(n_l):
         c = cols[:, k]

@@ -588,6 +588,16 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         :func:`lagsindy.export.linearize`)."""
         return linearize(self, x_eq, u_eq, dt, input_matrix=input_matrix)
 
+    def to_urdf(self, path):
+        """Write a model fitted with a URDF library into a copy of its URDF: link
+        parameters (a physically consistent representative of the fitted base
+        parameters) and joint friction. See :func:`lagsindy.robots.fitted_to_urdf`.
+        Returns the :class:`pathlib.Path` written."""
+        check_is_fitted(self)
+        from .robots.report import fitted_to_urdf
+
+        return fitted_to_urdf(self, path)
+
     def save(self, path):
         """Write the fitted model as a JSON file that is safe to share.
 

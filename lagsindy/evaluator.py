@@ -38,7 +38,10 @@ Term providers
   differentiated by forward-mode automatic differentiation, vmapped over samples.
   This is how terms that are not sympy expressions come in (e.g. the energies of a
   robot's links, linear in their inertial parameters). :class:`TorchTerms` wraps a
-  plain function.
+  plain function. Optionally, batched methods that replace differentiation
+  (:class:`lagsindy.robots.fitting.BaseTerms` has them, by the Newton-Euler
+  recursion): ``columns(q, qd, qdd)`` (n, n_dof, n_terms), ``mass_matrices(q, qd)``
+  (n, n_terms, n_dof, n_dof) and ``bias(q, qd)`` (n, n_terms, n_dof).
 
 Force vectors are always sympy expressions (one per coordinate).
 """
@@ -125,6 +128,30 @@ def _checked_provider(provider, n_dof: int):
 def is_term_function(terms) -> bool:
     """Whether ``terms`` is a torch term function (``names`` and ``fn``), not a list."""
     return hasattr(terms, "names") and callable(getattr(terms, "fn", None))
+
+
+def library_terms(library):
+    """The terms of a built library as the evaluator takes them: its torch term
+    function when it has one (``library.torch_terms()``, e.g. a robot's), else its
+    ``terms_``."""
+    provider = getattr(library, "torch_terms", None)
+    return provider() if callable(provider) else library.terms_
+
+
+def subset_terms(terms, indices):
+    """Terms at ``indices``: a list of sympy terms, or a torch term function (its
+    ``subset(indices)`` when it has one, else a :class:`TorchTerms` picking them)."""
+    indices = [int(k) for k in indices]
+    if not is_term_function(terms):
+        return [terms[k] for k in indices]
+    if callable(getattr(terms, "subset", None)):
+        return terms.subset(indices)
+    fn = terms.fn
+    index = torch.as_tensor(indices, dtype=torch.long)
+    return TorchTerms(
+        [terms.names[k] for k in indices],
+        lambda q, qd: fn(q, qd).index_select(-1, index.to(q.device)),
+    )
 
 
 # ------------------------------------------------------------------- evaluator
@@ -311,7 +338,10 @@ class TermEvaluator:
     ) -> torch.Tensor:
         """Columns ``Theta`` (terms, then ``-Q_j``), (n_samples, n_dof, n_columns)."""
         parts = []
-        if self.fn is not None:
+        fast = getattr(self.provider, "columns", None)  # a provider's own recursion
+        if callable(fast) and self.n_terms:
+            parts.append(fast(q, qd, qdd))
+        elif self.fn is not None:
             parts.append(
                 lagrangian_columns(self.fn, q, qd, qdd, chunk_size=self.chunk_size)
             )
@@ -382,8 +412,12 @@ class TermEvaluator:
             the model ``sum_k c_k phi_k`` with forces ``d_j Q_j`` has
             ``M(c) qdd + h(c) = tau``.
         """
-        mass, n_mat, o = self.components(q, qd)
-        bias = torch.einsum("skij,sj->ski", n_mat, qd) - o
+        fast = getattr(self.provider, "bias", None)  # a provider's own recursion
+        if callable(fast) and self.n_terms:
+            mass, bias = self.provider.mass_matrices(q, qd), fast(q, qd)
+        else:
+            mass, n_mat, o = self.components(q, qd)
+            bias = torch.einsum("skij,sj->ski", n_mat, qd) - o
         if self._force_fn is not None:
             bias = torch.cat([bias, -self.force_values(q, qd).transpose(1, 2)], dim=1)
         return mass, bias
@@ -393,6 +427,9 @@ class TermEvaluator:
         kernels = self.kernels
         if kernels is not None:
             return kernels.mass_matrices(q, qd, general_components(self.chunk_size))
+        fast = getattr(self.provider, "mass_matrices", None)
+        if callable(fast) and self.n_terms:
+            return fast(q, qd)
         return self.components(q, qd)[0]
 
     def mass_matrices_t(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:

@@ -321,28 +321,19 @@ class CandidateLibrary(BaseEstimator):
         )
 
     @classmethod
-    def from_urdf(
-        cls,
-        path,
-        joints=None,
-        *,
-        armature=True,
-        locked=None,
-        gravity=(0.0, 0.0, -9.81),
-    ):
+    def from_urdf(cls, path, joints=None, **kwargs):
         """The energy regressor of a robot arm from its URDF (a :class:`RobotLibrary`).
 
         Terms: the 10 inertial parameters of every moving link (``m_<link>``,
         ``mx_<link>``, ..., ``Izz_<link>``) and a rotor inertia ``Ia_<joint>`` per
-        joint, evaluated in torch; see :class:`lagsindy.robots.RobotLibrary` for the
-        parameters and :func:`lagsindy.robots.base_parameters` for their
-        identifiable combinations.
+        joint, evaluated in torch; keywords (``armature=True``, ``locked=None``,
+        ``gravity=(0, 0, -9.81)``, ``penalize=False``) and fitting: see
+        :class:`lagsindy.robots.RobotLibrary`; identifiable combinations:
+        :func:`lagsindy.robots.base_parameters`.
         """
         from .robots.library import RobotLibrary
 
-        return RobotLibrary(
-            path, joints, armature=armature, locked=locked, gravity=gravity
-        )
+        return RobotLibrary(path, joints, **kwargs)
 
     @classmethod
     def from_terms(cls, coordinates, terms, **kwargs):

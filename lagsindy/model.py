@@ -21,6 +21,7 @@ import torch
 from ._torch import to_numpy, to_tensor
 from .cases.fixed import SCORING_ROWS, r2_scores
 from .dynamics import MechanicalModel
+from .evaluator import is_term_function, library_terms
 from .formulation import feature_operator
 from .formulation.forms import WeakForm
 from .formulation.operator import forward_accelerations
@@ -107,6 +108,8 @@ def _even_rows(Xt, limit: int):
 def _trig_coordinates(library) -> set:
     """Names of the coordinates that appear inside a ``sin`` or ``cos`` term."""
     inside = set()
+    if is_term_function(library_terms(library)):  # not sympy: no sin/cos to read
+        return inside
     for term in library.terms_:
         for atom in term.atoms(sp.sin, sp.cos):
             inside |= {str(s_) for s_ in atom.free_symbols}
@@ -268,21 +271,34 @@ class FittedLagrangian:
         self.coef = np.asarray(self.coef, dtype=float)
         self.dissipation_coef = np.asarray(self.dissipation_coef, dtype=float)
         self.coordinates = list(self.library.coordinates_)
-        terms = self.library.terms_
+        terms = library_terms(self.library)
+        provider = is_term_function(terms)
+        # a torch term function's terms print as symbols named after them
+        shown = [sp.Symbol(n) for n in terms.names] if provider else terms
         self.lagrangian = sp.Add(
-            *[sp.Float(c) * t for c, t in zip(self.coef, terms) if c != 0]
+            *[sp.Float(c) * t for c, t in zip(self.coef, shown) if c != 0]
         )
         rayleigh, forces = assemble(
             self.dissipation_terms, self.dissipation_coef, self.coordinates
         )
         self.dissipation = {"D": rayleigh, "forces": forces}
-        self.model = MechanicalModel(
-            self.lagrangian,
-            self.coordinates,
-            dissipation=rayleigh,
-            forces=forces,
-            name="learned model",
-        )
+        if provider:
+            self.model = MechanicalModel.from_terms(
+                self.coordinates,
+                terms,
+                self.coef,
+                dissipation=rayleigh,
+                forces=forces,
+                name="learned model",
+            )
+        else:
+            self.model = MechanicalModel(
+                self.lagrangian,
+                self.coordinates,
+                dissipation=rayleigh,
+                forces=forces,
+                name="learned model",
+            )
         self._cache = None
 
     # ------------------------------------------------------------------ names
@@ -292,7 +308,7 @@ class FittedLagrangian:
 
     @property
     def terms(self) -> list:
-        return self.library.terms_
+        return library_terms(self.library)
 
     @property
     def feature_names(self) -> np.ndarray:
@@ -453,6 +469,8 @@ class FittedLagrangian:
         if check.fraction > MASS_BAD_FRACTION:
             velocities = {str(v) for v in self.lagrangian.free_symbols}
             absent = [c for c in self.coordinates if f"{c}_dot" not in velocities]
+            if is_term_function(self.terms):  # its symbols are the terms' names
+                absent = []
             hint = (
                 f"; no learned term contains the velocity of {absent}" if absent else ""
             )

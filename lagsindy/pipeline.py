@@ -30,6 +30,7 @@ from . import _validation as val
 from ._torch import to_numpy
 from .cases import Problem, SparseSolve, solve_case
 from .dissipation import DissipationLibrary, reduce_forces
+from .evaluator import library_terms
 from .formulation import feature_operator
 from .formulation.forms import StrongForm, WeakForm, make_formulation, with_window
 from .formulation.probes import (
@@ -132,7 +133,7 @@ class FitSetup:
         forces = list(self.dissipation.terms) + list(extra_forces)
         return feature_operator(
             self.library.coordinates_,
-            self.library.terms_,
+            library_terms(self.library),
             forces,
             indices,
             device,
@@ -183,7 +184,7 @@ def build_dissipation(dissipation, library) -> Dissipation:
             f"the dissipation library's coordinates {list(dlib.coordinates_)} differ "
             f"from the Lagrangian library's {coordinates}"
         )
-    terms, removed = reduce_forces(library.terms_, dlib.terms_, coordinates)
+    terms, removed = reduce_forces(library_terms(library), dlib.terms_, coordinates)
     return Dissipation(terms, removed, dlib)
 
 
@@ -274,6 +275,9 @@ def solve(
     """
     p = problem(stats, setup, Xt, tau, memo=memo, start=start)
     solution = solve_case(setup.case, p)
+    constrain = getattr(setup.library, "constrain", None)
+    if callable(constrain) and setup.case == "forces":  # e.g. a robot's consistency
+        solution = constrain(p, solution)
     solution.row_scale = p.balanced.row_scale
     if warn and setup.case != "acceleration":
         free = np.flatnonzero(p.identifiable)
@@ -464,6 +468,8 @@ def build_library(library, coordinates, n_samples):
     elif library.coordinates is None:
         library.set_params(coordinates=coordinates)
     library.build()
+    if callable(getattr(library, "regression_library", None)):  # a robot's base
+        library = library.regression_library()  # parameters (lagsindy.robots)
     n_dof, n_terms = len(library.coordinates_), len(library.terms_)
     if n_samples * n_dof < n_terms:
         raise ValueError(
@@ -535,7 +541,8 @@ def make_setup(params: dict, library, dissipation: Dissipation, case: str) -> Fi
         dissipation=dissipation,
         case=case,
         solver=SparseSolve.from_params(params, n_terms, dissipative),
-        unpenalized=_as_list(params.get("unpenalized")),
+        unpenalized=_as_list(params.get("unpenalized"))
+        + list(getattr(library, "unpenalized_", ())),
         fixed_term=params.get("fixed_term"),
         normalize=params.get("normalize", True),
     )

@@ -19,6 +19,7 @@ from sklearn.model_selection import GroupKFold
 from .. import pipeline
 from .._torch import to_numpy
 from ..dissipation import DEFAULT_EPS, DissipationLibrary
+from ..evaluator import is_term_function, library_terms
 from ..force_kinds import get as get_kind
 from ..force_kinds import names as kind_names
 from ..formulation.forms import StrongForm, WeakForm
@@ -50,11 +51,22 @@ def _columns(est, candidates):
     cons = [c for c in candidates if c.kind == "conservative"]
     diss = [c for c in candidates if c.kind in kind_names()]
     gain = [c for c in candidates if c.kind == "gain"]
-    lib_terms = list(est.library_.terms_) + [c.term for c in cons]
+    lib_terms = library_terms(est.library_)
+    if is_term_function(lib_terms):  # a robot's terms: no sympy terms to add to
+        if cons:
+            raise ValueError(
+                "conservative candidates are sympy terms, and this library's terms are "
+                "a torch term function (a robot's): leave 'conservative' out of the "
+                "catalogue (lagsindy.robots.ROBOT_CATALOGUE; a spring is 'spring')"
+            )
+        n_lib = len(lib_terms.names)
+    else:
+        lib_terms = list(lib_terms) + [c.term for c in cons]
+        n_lib = len(lib_terms)
     forces = list(est.dissipation_terms_) + [c.term for c in diss]
     coords = list(est.coordinates_)
     op = EulerLagrangeOperator(coords, lib_terms, forces=[f.forces for f in forces])
-    n_lib, n_force = len(lib_terms), len(forces)
+    n_force = len(forces)
     n_features = n_lib + n_force + len(gain)
     # (the library's names are cached; a conservative candidate's name is its str)
     names = list(est.library_.get_feature_names_out()) + [c.name for c in cons]

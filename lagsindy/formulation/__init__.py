@@ -13,6 +13,7 @@
 
 from __future__ import annotations
 
+from ..evaluator import is_term_function, subset_terms
 from .forms import (
     AutoForm,
     GramStatistics,
@@ -61,10 +62,10 @@ def gram_statistics(
 
 def feature_operator(coordinates, terms, force_terms, indices, device, dtype):
     """Operator of the features at ``indices`` (Lagrangian terms, then force terms)."""
-    n_terms = len(terms)
+    n_terms = len(terms.names) if is_term_function(terms) else len(terms)
     return EulerLagrangeOperator(
         coordinates,
-        [terms[k] for k in indices if k < n_terms],
+        subset_terms(terms, [k for k in indices if k < n_terms]),
         forces=[force_terms[k - n_terms].forces for k in indices if k >= n_terms],
         dtype=dtype,
         device=device,

@@ -631,6 +631,12 @@ MAX_FILE_BYTES = 20_000_000
 def write_model_file(est, path) -> Path:
     """Write the model document of a fitted estimator (:func:`model_to_dict`) as a
     JSON file, one field per line (readable and diff-friendly); the path written."""
+    if hasattr(est.library_, "torch_terms"):
+        raise ValueError(
+            "a model file stores sympy terms, and this model's terms are a torch term "
+            "function (a URDF library's): keep it with pickle or joblib, or write the "
+            "identified robot with est.to_urdf(path)"
+        )
     doc = model_to_dict(est)
     path = Path(path)
     lines = [

@@ -13,14 +13,21 @@ from .base_parameters import (
     base_parameters,
     base_parameters_from_columns,
 )
+from .effects import FRICTION_KINDS, ROBOT_CATALOGUE
 from .energy import RobotTerms, euler_lagrange_columns
 from .examples import example_urdf
 from .export import ConsistentParameters, consistent_parameters, feasibility, to_urdf
+from .fitting import BaseParameterLibrary, BaseTerms
 from .library import RobotLibrary
+from .report import fitted_to_urdf, joint_coefficients, parameter_table
 from .urdf import RobotTree, build_tree
 
 __all__ = [
+    "FRICTION_KINDS",
+    "ROBOT_CATALOGUE",
+    "BaseParameterLibrary",
     "BaseParameters",
+    "BaseTerms",
     "ConsistentParameters",
     "RobotLibrary",
     "RobotTerms",
@@ -32,5 +39,8 @@ __all__ = [
     "euler_lagrange_columns",
     "example_urdf",
     "feasibility",
+    "fitted_to_urdf",
+    "joint_coefficients",
+    "parameter_table",
     "to_urdf",
 ]

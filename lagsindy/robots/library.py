@@ -44,6 +44,20 @@ class RobotLibrary(BaseEstimator):
         joint it mimics. Their links are merged into the body that carries them.
     gravity : sequence of 3 float, default=(0, 0, -9.81)
         Gravity in the URDF's root link frame (the URDF convention: z up).
+    penalize : bool, default=False
+        In a :class:`~lagsindy.LagrangianSINDy` fit (which regresses on the base
+        parameters, :meth:`regression_library`): ``False`` leaves the base parameters
+        out of the L1 penalty and the hard threshold, so that the sparse regression
+        selects only among the dissipation candidates; ``True`` makes them ordinary
+        candidates.
+    consistent : bool, default=True
+        In a fit with forces (case I): refit the coefficients, after the sparse solve
+        chose the dissipation terms, with physically consistent link parameters
+        (every body's pseudo-inertia positive semidefinite, rotor inertias and
+        dissipative coefficients non-negative; see
+        :mod:`lagsindy.robots.consistency`). ``False``: the unconstrained least
+        squares, with a warning saying how far its base parameters are from
+        consistent ones (``library_.violation_``).
 
     Attributes
     ----------
@@ -75,12 +89,16 @@ class RobotLibrary(BaseEstimator):
         armature=True,
         locked=None,
         gravity=GRAVITY,
+        penalize=False,
+        consistent=True,
     ):
         self.path = path
         self.joints = joints
         self.armature = armature
         self.locked = locked
         self.gravity = gravity
+        self.penalize = penalize
+        self.consistent = consistent
 
     def _key(self):
         return repr(
@@ -110,6 +128,20 @@ class RobotLibrary(BaseEstimator):
         self.nominal_ = nominal
         self._built_key = self._key()
         return self
+
+    @property
+    def coordinates(self):
+        """The coordinate joints (read from the URDF; what the data's columns are
+        named after)."""
+        return None if self.path is None else list(self._ensure_built().coordinates_)
+
+    def regression_library(self, random_state=0):
+        """The library a :class:`~lagsindy.LagrangianSINDy` fit regresses on: the
+        base parameters (:class:`lagsindy.robots.fitting.BaseParameterLibrary`),
+        built."""
+        from .fitting import BaseParameterLibrary
+
+        return BaseParameterLibrary(self, random_state=random_state).build()
 
     def _ensure_built(self):
         if self.__dict__.get("_built_key") != self._key():
