@@ -26,7 +26,7 @@ LAYERS = [
     ("solvers", ["solvers"]),
     ("formulation", ["formulation", "euler_lagrange"]),
     ("cases", ["cases"]),
-    ("fitted state", ["model", "io.model_file"]),
+    ("fitted state", ["angle_units", "model", "io.model_file"]),
     ("what a model is used for", ["export"]),
     ("pipeline", ["pipeline", "partitioned"]),
     ("estimator", ["estimator"]),

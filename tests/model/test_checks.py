@@ -9,8 +9,7 @@ import pytest
 import sympy as sp
 import torch
 
-from lagsindy import LagrangianSINDy
-from lagsindy import model as model_module
+from lagsindy import LagrangianSINDy, angle_units
 from lagsindy.formulation.weak import WindowWarning
 from lagsindy.model import (
     ANGLE_POLYNOMIAL_SHARE,
@@ -159,7 +158,7 @@ def test_degrees_hint_names_only_angles_inside_sin_and_cos_beyond_two_turns(
     assert library.coordinates_ == ["x", "theta"]
     assert degrees_hint(library, X) == ""
     # the turn threshold alone (the data's reading is tested below)
-    monkeypatch.setattr(model_module, "degree_reading_gain", _reads_as_degrees)
+    monkeypatch.setattr(angle_units, "degree_reading_gain", _reads_as_degrees)
     X[:, 0] = 50.0  # x is not inside sin/cos: a long track is not degrees
     assert degrees_hint(library, X) == ""
     X[:, 1] = 12.6  # just beyond two turns (4 pi = 12.57)
@@ -232,9 +231,9 @@ def test_degrees_hint_boundary_on_the_reading_gain(monkeypatch):
     X = torch.as_tensor(_degrees(data.X, [0]))
     library = single_pendulum().paper_library()
     gain = degree_reading_gain(library, X, ["theta"])["theta"]
-    monkeypatch.setattr(model_module, "DEGREES_R2_GAIN", gain - 1e-6)
+    monkeypatch.setattr(angle_units, "DEGREES_R2_GAIN", gain - 1e-6)
     assert "theta reaches" in degrees_hint(library, X)
-    monkeypatch.setattr(model_module, "DEGREES_R2_GAIN", gain + 1e-6)
+    monkeypatch.setattr(angle_units, "DEGREES_R2_GAIN", gain + 1e-6)
     assert degrees_hint(library, X) == ""
 
 
