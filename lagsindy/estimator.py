@@ -17,11 +17,11 @@ import sympy as sp
 import torch
 from sklearn.base import BaseEstimator, RegressorMixin, _fit_context, clone
 from sklearn.metrics import r2_score
-from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
+from sklearn.utils._param_validation import HasMethods, Hidden, Interval, StrOptions
 from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
-from . import pipeline
+from . import pipeline, settings
 from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from .dissipation import library_of
@@ -33,35 +33,38 @@ from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 pat
     MassCheck,
     mass_matrix_check,
 )
+from .solvers import StagedFISTA
 
 _CASES = {"auto", "forces", "fixed", "acceleration"}
 
+_DEPRECATED = [Hidden(StrOptions({settings.DEPRECATED}))]
 _PARAMETER_CONSTRAINTS = {
     "library": [HasMethods(["build", "get_feature_names_out"]), None],
     "dissipation": [HasMethods(["build"]), None],
     "lam": [Interval(Real, 0, None, closed="left")],
     "alpha": [Interval(Real, 0, None, closed="neither"), None],
-    "threshold": [Interval(Real, 0, 1, closed="left")],
-    "dissipation_threshold": [Interval(Real, 0, 1, closed="left")],
-    "lam_decay": [Interval(Real, 1, None, closed="left")],
-    "step_growth": [Interval(Real, 0, None, closed="neither")],
-    "max_stages": [Interval(Integral, 1, None, closed="left")],
-    "max_iter": [Interval(Integral, 1, None, closed="left")],
-    "tol": [Interval(Real, 0, None, closed="left")],
-    "solver_tol": [Interval(Real, 0, None, closed="neither")],
+    "solver": [StagedFISTA, None],
     "fixed_term": [str, sp.Basic, None],
     "unpenalized": ["array-like", None],
     "case": [StrOptions(_CASES)],
     "formulation": [StrOptions({"auto", "strong", "weak"}), HasMethods(["statistics"])],
-    "window": [Interval(Integral, 5, None, closed="left"), StrOptions({"auto"})],
-    "dt": [Interval(Real, 0, None, closed="neither"), None],
-    "noise_cov": [StrOptions({"auto"}), "array-like", None],
     "normalize": ["boolean"],
-    "debias": ["boolean"],
     "device": [str, torch.device],
     "dtype": [StrOptions({"float64", "float32"})],
     "random_state": ["random_state"],
     "verbose": ["verbose"],
+    # the deprecated flat settings (see lagsindy.settings)
+    **{
+        k: [*StagedFISTA._parameter_constraints[k], *_DEPRECATED]
+        for k in settings.SOLVER_PARAMS
+    },
+    "window": [
+        Interval(Integral, 5, None, closed="left"),
+        StrOptions({"auto"}),
+        *_DEPRECATED,
+    ],
+    "dt": [Interval(Real, 0, None, closed="neither"), None, *_DEPRECATED],
+    "noise_cov": [StrOptions({"auto"}), "array-like", None, *_DEPRECATED],
 }
 
 
@@ -77,10 +80,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
         \frac{1}{2n}\|y - \Theta w\|_2^2 + \lambda \|w\|_1
 
-    by FISTA in stages: after each stage terms below a relative ``threshold`` are
-    removed, :math:`\lambda` is divided by ``lam_decay`` and the step raised, until
-    the relative residual is below ``tol`` or ``max_stages`` have run; the final
-    support is refitted without penalty (``debias``).
+    by FISTA in stages: after each stage the terms below a relative threshold are
+    removed and :math:`\lambda` lowered, and the final support is refitted without
+    penalty (the schedule's settings: ``solver``, a
+    :class:`~lagsindy.solvers.StagedFISTA`).
 
     Three cases, as in the paper:
 
@@ -113,28 +116,11 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         current stage (the largest safe step; it rises by itself as terms leave).
         A given ``alpha`` is multiplied by ``step_growth`` at each stage, as in the
         paper; a step that makes FISTA diverge is halved automatically.
-    threshold : float, default=0.05
-        Hard threshold between stages, relative to the largest scaled coefficient: a
-        term contributing less than ``threshold`` times the dominant term is dropped;
-        a link 100 times lighter than the rest needs e.g. 1e-3 (a fit with forces
-        warns when a coordinate's accelerations are then predicted poorly).
-    dissipation_threshold : float, default=1e-3
-        The hard threshold for dissipation terms. Friction and damping forces are
-        usually a few percent of the conservative ones, so they get a lower threshold;
-        with noisy data prefer :func:`lagsindy.diagnose`, which adds an effect only when
-        it improves held-out predictions.
-    lam_decay : float, default=10.0
-        Division of ``lam`` between stages.
-    step_growth : float, default=2.0
-        Multiplication of a given ``alpha`` between stages.
-    max_stages : int, default=5
-    max_iter : int, default=20000
-        FISTA iterations per stage.
-    tol : float, default=1e-3
-        Stop the stages when the relative residual
-        :math:`\|y - \Theta w\|^2 / \|y\|^2` is at most ``tol``.
-    solver_tol : float, default=1e-7
-        KKT tolerance of each FISTA stage (scaled problem).
+    solver : StagedFISTA, default=None
+        Settings of the staged sparse solve: hard thresholds of Lagrangian and
+        dissipation terms, stages, iterations, tolerances, debiasing; see
+        :class:`lagsindy.solvers.StagedFISTA`. ``None``: its defaults. Grid searches
+        reach them as ``solver__threshold`` and so on.
     fixed_term : str, sympy.Expr, "mass" or None, default=None
         How passive data (case III) fix the Lagrangian's arbitrary scale. A term
         known to be in the Lagrangian (e.g. ``"theta_dot**2"``): its coefficient is
@@ -149,33 +135,19 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         ``"viscous(theta)"``): they are not shrunk and never thresholded.
     case : {"auto", "forces", "fixed", "acceleration"}, default="auto"
         ``"auto"``: case I when ``tau`` is given, else case III.
-    formulation : {"auto", "strong", "weak"}, default="auto"
+    formulation : {"auto", "strong", "weak"} or formulation object, default="auto"
         ``"strong"``: the paper's pointwise Euler-Lagrange residual (needs
         accelerations). ``"weak"``: the equations integrated against smooth test
-        functions over windows of ``window`` samples (no accelerations; noise is
-        averaged and its bias corrected); rows must be time-ordered trajectories
-        (pass ``groups`` to ``fit``; without it, one record split where the positions
-        jump). Cases I and III. ``"auto"``: the weak form whenever the rows are
-        time-ordered trajectories long enough, else the strong form with a warning
-        saying why (``formulation_``); case II always uses the strong form.
-    window : int or "auto", default="auto"
-        Samples per test function of the weak form (windows start every
-        ``window // 4``). ``"auto"``: 81, or 161, 321, 641 when the longer window
-        changes the coefficients by over 3 % and the next one confirms it (smoothed
-        derivatives bias short windows); else 81 with a :class:`WindowWarning`.
-    dt : float, default=None
-        Sampling interval for the weak formulation; ``None`` estimates it from
-        ``q[s+1] - q[s] = dt (qd[s] + qd[s+1]) / 2`` (``dt_``).
-    noise_cov : "auto", array-like of shape (2 * n_dof, 2 * n_dof) or None, default="auto"
-        Weak formulation only: covariance of white noise on ``[q, qd]`` whose effect on
-        the Gram matrix is subtracted (errors-in-variables correction of the
-        attenuation bias). ``"auto"`` estimates it from fourth-order differences of the
-        data (``noise_cov_``); ``None`` applies no correction.
+        functions over windows of each trajectory (no accelerations; noise averaged,
+        its bias corrected; rows time-ordered, trajectories labelled by ``groups``);
+        cases I and III. ``"auto"``: the weak form whenever the rows are time-ordered
+        trajectories long enough, else the strong form with a warning saying why
+        (``formulation_``); case II always uses the strong form. The weak form's
+        ``window``, ``dt`` and ``noise_cov`` are set on its object:
+        :class:`lagsindy.formulation.WeakForm` (or ``AutoForm``).
     normalize : bool, default=True
         Balance row (per coordinate) and column scales; see
         :class:`lagsindy.formulation.BalancedGram`.
-    debias : bool, default=True
-        Refit the final support without penalty (removes L1 shrinkage).
     device : str, default="cpu"
         Torch device for the Euler-Lagrange tensors (``"cuda"`` where available).
     dtype : {"float64", "float32"}, default="float64"
@@ -187,6 +159,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         otherwise deterministic.
     verbose : int, default=0
         Print stage progress when positive.
+    threshold, dissipation_threshold, lam_decay, step_growth : deprecated
+        Use ``solver=StagedFISTA(...)``; set, they warn (``FutureWarning``) and work.
+    max_stages, max_iter, tol, solver_tol, debias : deprecated
+        Use ``solver=StagedFISTA(...)``.
+    window, dt, noise_cov : deprecated
+        Use ``formulation=WeakForm(...)``; set, they warn and work.
 
     Attributes
     ----------
@@ -272,32 +250,43 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         dissipation=None,
         lam=1e-3,
         alpha=None,
-        threshold=0.05,
-        dissipation_threshold=1e-3,
-        lam_decay=10.0,
-        step_growth=2.0,
-        max_stages=5,
-        max_iter=20_000,
-        tol=1e-3,
-        solver_tol=1e-7,
+        solver=None,
         fixed_term=None,
         unpenalized=None,
         case="auto",
         formulation="auto",
-        window="auto",
-        dt=None,
-        noise_cov="auto",
         normalize=True,
-        debias=True,
         device="cpu",
         dtype="float64",
         random_state=None,
         verbose=0,
+        threshold=settings.DEPRECATED,
+        dissipation_threshold=settings.DEPRECATED,
+        lam_decay=settings.DEPRECATED,
+        step_growth=settings.DEPRECATED,
+        max_stages=settings.DEPRECATED,
+        max_iter=settings.DEPRECATED,
+        tol=settings.DEPRECATED,
+        solver_tol=settings.DEPRECATED,
+        debias=settings.DEPRECATED,
+        window=settings.DEPRECATED,
+        dt=settings.DEPRECATED,
+        noise_cov=settings.DEPRECATED,
     ):
         self.library = library
         self.dissipation = dissipation
         self.lam = lam
         self.alpha = alpha
+        self.solver = solver
+        self.fixed_term = fixed_term
+        self.unpenalized = unpenalized
+        self.case = case
+        self.formulation = formulation
+        self.normalize = normalize
+        self.device = device
+        self.dtype = dtype
+        self.random_state = random_state
+        self.verbose = verbose
         self.threshold = threshold
         self.dissipation_threshold = dissipation_threshold
         self.lam_decay = lam_decay
@@ -306,19 +295,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         self.max_iter = max_iter
         self.tol = tol
         self.solver_tol = solver_tol
-        self.fixed_term = fixed_term
-        self.unpenalized = unpenalized
-        self.case = case
-        self.formulation = formulation
+        self.debias = debias
         self.window = window
         self.dt = dt
         self.noise_cov = noise_cov
-        self.normalize = normalize
-        self.debias = debias
-        self.device = device
-        self.dtype = dtype
-        self.random_state = random_state
-        self.verbose = verbose
 
     def __sklearn_is_fitted__(self):
         # model_ is set last in fit: a fit that raised leaves the estimator unfitted.
@@ -357,11 +337,13 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         # A refit starts from scratch: a failed fit leaves the estimator unfitted.
         for name in [k for k in vars(self) if k.endswith("_") and not k.endswith("__")]:
             delattr(self, name)
+        params = self.get_params(deep=False)
+        settings.warn_deprecated(params, stacklevel=3)  # the caller of fit
         device, dtype = resolve_device(self.device), resolve_dtype(self.dtype)
-        Xa, tau, setup = self._setup(X, y)
+        Xa, tau, setup = self._setup(X, y, params)
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
-        formulation = pipeline.formulation_of(self.get_params(deep=False), setup.case)
+        formulation = pipeline.formulation_of(params, setup.case)
         ladder = pipeline.fit_statistics(formulation, setup, Xt, tau_t, groups)
         stats, solution = pipeline.solve_ladder(
             ladder, setup, Xt, tau, verbose=self.verbose
@@ -371,7 +353,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         pipeline.check_fit(fitted, setup, stats, solution, Xt, tau)
         return self._publish(fitted)
 
-    def _setup(self, X, y):
+    def _setup(self, X, y, params):
         """Validated data and the :class:`~lagsindy.pipeline.FitSetup` of a fit."""
         coordinates = None if self.library is None else self.library.coordinates
         if isinstance(coordinates, str):
@@ -383,7 +365,6 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         library = pipeline.build_library(self.library, coordinates, Xa.shape[0])
         case = pipeline.resolve_case(self.case, tau)
         dissipation = pipeline.build_dissipation(self.dissipation, library)
-        params = self.get_params(deep=False)
         return Xa, tau, pipeline.make_setup(params, library, dissipation, case)
 
     @classmethod
@@ -401,7 +382,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             Hyperparameters (``lam``, ``fixed_term``, ...; ``get_params()`` of
             another estimator works); the library is the fitted state's, the
             dissipation library (unless given) the one its terms come from;
-            ``feature_names_in`` sets ``feature_names_in_``.
+            ``feature_names_in`` sets ``feature_names_in_``. Flat settings (a model
+            file's ``threshold``, ``window``, ...) become the ``solver`` and
+            ``formulation`` objects, silently.
 
         Returns
         -------
@@ -601,7 +584,9 @@ def _with_params(cls, library, params):
     try:
         est = cls(clone(library), **params)
         est._validate_params()
-    except (InvalidParameterError, TypeError) as exc:
+        # flat settings (a model file's, an older version's) into their objects
+        est.set_params(**settings.as_objects(est.get_params(deep=False)))
+    except (InvalidParameterError, TypeError, ValueError) as exc:
         raise ValueError(f"the hyperparameters are not valid: {exc}") from None
     return est
 

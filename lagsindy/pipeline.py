@@ -31,7 +31,7 @@ from ._torch import to_numpy
 from .cases import Problem, SparseSolve, solve_case
 from .dissipation import DissipationLibrary, reduce_forces
 from .formulation import feature_operator
-from .formulation.forms import StrongForm, WeakForm, make_formulation, with_window
+from .formulation.forms import StrongForm, WeakForm, with_window
 from .formulation.probes import (
     PROBE_KINDS,
     PROBED_CASES,
@@ -44,6 +44,7 @@ from .formulation.probes import (
 from .formulation.scaling import BalancedGram, warn_if_not_identifiable
 from .formulation.weak import choose_window
 from .model import FittedLagrangian, feature_index
+from .settings import as_objects, formulation_settings, solver_settings
 from .solvers import warn_not_converged
 
 __all__ = [
@@ -51,6 +52,7 @@ __all__ = [
     "FitSetup",
     "build_dissipation",
     "check_fit",
+    "copy_with",
     "fit_statistics",
     "fitted_state",
     "fitted_formulation",
@@ -454,15 +456,25 @@ def check_known_terms(setup: FitSetup):
 
 
 def make_setup(params: dict, library, dissipation: Dissipation, case: str) -> FitSetup:
-    """The :class:`FitSetup` of an estimator's parameters (``get_params()``), its
-    built library and dissipation, and the case."""
+    """The :class:`FitSetup` of an estimator's parameters (``get_params()``; the
+    solver settings: :func:`~lagsindy.settings.solver_settings`), its built library
+    and dissipation, and the case."""
     n_terms = len(library.terms_)
     dissipative = [False] * n_terms + [t.dissipative for t in dissipation.terms]
+    solver = SparseSolve.from_settings(
+        solver_settings(params),
+        lam=params.get("lam", 1e-3),
+        alpha=params.get("alpha"),
+        n_terms=n_terms,
+        dissipative=dissipative,
+        random_state=params.get("random_state"),
+        verbose=params.get("verbose", 0),
+    )
     setup = FitSetup(
         library=library,
         dissipation=dissipation,
         case=case,
-        solver=SparseSolve.from_params(params, n_terms, dissipative),
+        solver=solver,
         unpenalized=_as_list(params.get("unpenalized")),
         fixed_term=params.get("fixed_term"),
         normalize=params.get("normalize", True),
@@ -472,23 +484,26 @@ def make_setup(params: dict, library, dissipation: Dissipation, case: str) -> Fi
 
 
 def formulation_of(params: dict, case: str = "forces"):
-    """The formulation object of an estimator's parameters (``get_params()``):
-    ``formulation`` (a name or an object) with the weak form's ``window``, ``dt`` and
-    ``noise_cov``; case II always the strong form."""
-    formulation = params.get("formulation", "auto")
+    """The formulation object of an estimator's parameters (``get_params()``; see
+    :func:`~lagsindy.settings.formulation_settings`); case II always the strong
+    form."""
+    formulation = formulation_settings(params)
     if case == "acceleration":
-        if formulation == "weak" or isinstance(formulation, WeakForm):
+        if type(formulation) is WeakForm:
             raise ValueError(
                 "formulation='weak' is for cases I and III; case='acceleration' "
                 "needs the strong form"
             )
         return StrongForm()
-    return make_formulation(
-        formulation,
-        window=params.get("window", "auto"),
-        dt=params.get("dt"),
-        noise_cov=params.get("noise_cov", "auto"),
-    )
+    return formulation
+
+
+def copy_with(est, **params):
+    """An unfitted copy of ``est`` with its settings as objects (its deprecated flat
+    parameters folded into ``solver`` and ``formulation``, so refits do not warn
+    again and accept a formulation object), then ``params`` set."""
+    copy = clone(est).set_params(**as_objects(est.get_params(deep=False)))
+    return copy.set_params(**params) if params else copy
 
 
 def fitted_formulation(est):

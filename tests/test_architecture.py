@@ -26,7 +26,7 @@ LAYERS = [
     ("solvers", ["solvers"]),
     ("formulation", ["formulation", "euler_lagrange"]),
     ("cases", ["cases"]),
-    ("fitted state", ["model", "io.model_file"]),
+    ("fitted state", ["model", "io.model_file", "settings"]),
     ("what a model is used for", ["export"]),
     ("pipeline", ["pipeline"]),
     ("estimator", ["estimator"]),

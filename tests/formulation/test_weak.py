@@ -11,7 +11,7 @@ from _sympy_reference import random_states
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy._expr import compile_torch, symbols_for
 from lagsindy.evaluator import TorchTerms
-from lagsindy.formulation import testfunctions, weak_integrals
+from lagsindy.formulation import AutoForm, testfunctions, weak_integrals
 from lagsindy.formulation.operator import EulerLagrangeOperator
 from lagsindy.formulation.testfunctions import _band, _correlate, bump_function
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
@@ -403,10 +403,14 @@ def test_long_record_fits_as_with_the_whole_band(monkeypatch):
         random_state=0,
     )  # fmt: skip
     library = cart_pendulum().paper_library()
-    whole = LagrangianSINDy(library, window=81).fit(data.X, data.tau)
+    whole = LagrangianSINDy(library, formulation=AutoForm(window=81)).fit(
+        data.X, data.tau
+    )
     monkeypatch.setattr(testfunctions, "BAND_ENTRIES", 1000)
     monkeypatch.setattr(testfunctions, "BAND_BLOCK", 8)
-    blocks = LagrangianSINDy(library, window=81).fit(data.X, data.tau)
+    blocks = LagrangianSINDy(library, formulation=AutoForm(window=81)).fit(
+        data.X, data.tau
+    )
     # measured: 3.1e-13 relative at most
     np.testing.assert_allclose(blocks.coef_, whole.coef_, rtol=1e-12, atol=0)
     assert np.array_equal(blocks.coef_ != 0, whole.coef_ != 0)
