@@ -20,7 +20,16 @@ LAYERS = [
     ("differentiation", ["differentiation"]),
     (
         "terms and forces",
-        ["_batched", "_torchfunc", "evaluator", "library", "dissipation", "force_kinds", "robots"],
+        [
+            "_batched",
+            "_torchfunc",
+            "evaluator",
+            "library",
+            "reduction",
+            "dissipation",
+            "force_kinds",
+            "robots",
+        ],
     ),
     ("mechanics", ["dynamics"]),
     ("solvers", ["solvers"]),
