@@ -1,71 +1,27 @@
-"""The :class:`LagrangianSINDy` estimator (scikit-learn API), a facade over the pipeline.
+"""The :class:`LagrangianSINDy` estimator (scikit-learn API), a facade.
 
-``fit`` reads as the data flow: validate the data (:mod:`lagsindy._validation`),
-build the library and the dissipation candidates, compute the Gram statistics in the
-chosen formulation (:mod:`lagsindy.formulation`), balance them, solve the case
-(:mod:`lagsindy.cases`) and keep the result as a
-:class:`~lagsindy.model.FittedLagrangian`, whose fields become the fitted attributes.
-Prediction, scoring and simulation delegate to that state.
+``fit`` reads as the data flow of :mod:`lagsindy.pipeline` (data validated, library
+and dissipation built, Gram statistics of the formulation, the case solved, a
+:class:`~lagsindy.model.FittedLagrangian` kept, whose fields become the fitted
+attributes); its parameters are checked against :mod:`lagsindy.settings`. Prediction,
+scoring and simulation delegate to the fitted state.
 """
 
 from __future__ import annotations
 
-from numbers import Integral, Real
-
 import numpy as np
-import sympy as sp
-import torch
 from sklearn.base import BaseEstimator, RegressorMixin, _fit_context, clone
 from sklearn.metrics import r2_score
-from sklearn.utils._param_validation import HasMethods, Hidden, Interval, StrOptions
 from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
 from . import pipeline, settings
 from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
-from .dissipation import library_of
 from .export import export_model, linearize, to_casadi
 from .formulation.scaling import IdentifiabilityWarning  # noqa: F401 - 0.1 path
 from .io.model_file import read_model_file, write_model_file
-from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 path
-    FittedLagrangian,
-    MassCheck,
-    mass_matrix_check,
-)
-from .solvers import StagedFISTA
-
-_CASES = {"auto", "forces", "fixed", "acceleration"}
-
-_DEPRECATED = [Hidden(StrOptions({settings.DEPRECATED}))]
-_PARAMETER_CONSTRAINTS = {
-    "library": [HasMethods(["build", "get_feature_names_out"]), None],
-    "dissipation": [HasMethods(["build"]), None],
-    "lam": [Interval(Real, 0, None, closed="left")],
-    "alpha": [Interval(Real, 0, None, closed="neither"), None],
-    "solver": [StagedFISTA, None],
-    "fixed_term": [str, sp.Basic, None],
-    "unpenalized": ["array-like", None],
-    "case": [StrOptions(_CASES)],
-    "formulation": [StrOptions({"auto", "strong", "weak"}), HasMethods(["statistics"])],
-    "normalize": ["boolean"],
-    "device": [str, torch.device],
-    "dtype": [StrOptions({"float64", "float32"})],
-    "random_state": ["random_state"],
-    "verbose": ["verbose"],
-    # the deprecated flat settings (see lagsindy.settings)
-    **{
-        k: [*StagedFISTA._parameter_constraints[k], *_DEPRECATED]
-        for k in settings.SOLVER_PARAMS
-    },
-    "window": [
-        Interval(Integral, 5, None, closed="left"),
-        StrOptions({"auto"}),
-        *_DEPRECATED,
-    ],
-    "dt": [Interval(Real, 0, None, closed="neither"), None, *_DEPRECATED],
-    "noise_cov": [StrOptions({"auto"}), "array-like", None, *_DEPRECATED],
-}
+from .model import FittedLagrangian, MassCheck, mass_matrix_check  # noqa: F401
 
 
 class LagrangianSINDy(RegressorMixin, BaseEstimator):
@@ -122,29 +78,24 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         :class:`lagsindy.solvers.StagedFISTA`. ``None``: its defaults. Grid searches
         reach them as ``solver__threshold`` and so on.
     fixed_term : str, sympy.Expr, "mass" or None, default=None
-        How passive data (case III) fix the Lagrangian's arbitrary scale. A term
-        known to be in the Lagrangian (e.g. ``"theta_dot**2"``): its coefficient is
-        fixed to 1, as in the paper. ``"mass"``: the data mean of the trace of the
-        learned mass matrix is fixed instead (one convex problem, no prior
-        knowledge; it cannot collapse to a Lagrangian that vanishes where the data
-        lie, which fixing one coefficient can). ``None``: try the mass normalization
-        and every candidate term, keep the model that best predicts the measured
-        accelerations (``fixed_term_``, ``normalization_``).
+        How passive data (case III) fix the Lagrangian's arbitrary scale: a term known
+        to be in the Lagrangian (e.g. ``"theta_dot**2"``) gets coefficient 1, as in
+        the paper; ``"mass"`` fixes the data mean of the trace of the learned mass
+        matrix (no prior knowledge; it cannot collapse to a Lagrangian that vanishes
+        where the data lie); ``None`` tries both and keeps the model that best
+        predicts the measured accelerations (``fixed_term_``, ``normalization_``).
     unpenalized : list of str, default=None
         Terms known to be present (Lagrangian terms, or dissipation names such as
         ``"viscous(theta)"``): they are not shrunk and never thresholded.
     case : {"auto", "forces", "fixed", "acceleration"}, default="auto"
         ``"auto"``: case I when ``tau`` is given, else case III.
     formulation : {"auto", "strong", "weak"} or formulation object, default="auto"
-        ``"strong"``: the paper's pointwise Euler-Lagrange residual (needs
-        accelerations). ``"weak"``: the equations integrated against smooth test
-        functions over windows of each trajectory (no accelerations; noise averaged,
-        its bias corrected; rows time-ordered, trajectories labelled by ``groups``);
-        cases I and III. ``"auto"``: the weak form whenever the rows are time-ordered
-        trajectories long enough, else the strong form with a warning saying why
-        (``formulation_``); case II always uses the strong form. The weak form's
-        ``window``, ``dt`` and ``noise_cov`` are set on its object:
-        :class:`lagsindy.formulation.WeakForm` (or ``AutoForm``).
+        ``"strong"``: the paper's pointwise residual (needs accelerations);
+        ``"weak"``: the equations integrated against test functions over windows of
+        each time-ordered trajectory (no accelerations; noise averaged, its bias
+        corrected); ``"auto"``: weak where it can run, else strong with a warning.
+        Case II always uses the strong form. Objects and their settings (``window``,
+        ``dt``, ``noise_cov``): :mod:`lagsindy.formulation` (``WeakForm``).
     normalize : bool, default=True
         Balance row (per coordinate) and column scales; see
         :class:`lagsindy.formulation.BalancedGram`.
@@ -152,72 +103,52 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Torch device for the Euler-Lagrange tensors (``"cuda"`` where available).
     dtype : {"float64", "float32"}, default="float64"
     random_state : int, RandomState instance or None, default=None
-        Seeds the row subsamples drawn when the data are large: the rows used to
-        rank candidate fixed terms in case III (above 4000 rows) and the rows of
-        case II (above 20000 rows). ``None``: evenly spaced rows, so the fit is
-        deterministic and never uses numpy's global random state. Fits are
-        otherwise deterministic.
+        Seeds the row subsamples of large data (case III's ranking of fixed terms
+        above 4000 rows, case II above 20000); ``None``: evenly spaced rows, so fits
+        are deterministic and never use numpy's global random state.
     verbose : int, default=0
         Print stage progress when positive.
     threshold, dissipation_threshold, lam_decay, step_growth : deprecated
-        Use ``solver=StagedFISTA(...)``; set, they warn (``FutureWarning``) and work.
     max_stages, max_iter, tol, solver_tol, debias : deprecated
-        Use ``solver=StagedFISTA(...)``.
+        Use ``solver=StagedFISTA(...)``; set, they warn (``FutureWarning``) and work.
     window, dt, noise_cov : deprecated
-        Use ``formulation=WeakForm(...)``; set, they warn and work.
+        Use ``formulation=WeakForm(...)`` (or ``AutoForm``); set, they warn.
 
     Attributes
     ----------
-    coef_ : ndarray of shape (n_terms,)
-        Coefficients over ``library_``'s terms (zero where pruned).
-    dissipation_coef_ : ndarray of shape (n_dissipation_terms,)
-        Coefficients of ``dissipation_terms_`` (empty without ``dissipation``).
-    dissipation_terms_ : list of lagsindy.dissipation.ForceTerm
-        The dissipation candidates (after removing those that duplicate a
-        Lagrangian column, listed in ``dissipation_removed_``).
-    dissipation_ : dict
-        The learned non-conservative part: ``{"D": Rayleigh function (sympy),
-        "forces": [direct generalized force per coordinate (sympy)]}``.
-    support_ : ndarray of bool, shape (n_terms,)
+    coef_, support_ : ndarray of shape (n_terms,)
+        Coefficients over ``library_``'s terms (zero where pruned); the kept ones.
     lagrangian_ : sympy.Expr
-        The learned Lagrangian with numeric coefficients.
-    model_ : MechanicalModel
-        The learned model (equations of motion, simulation).
-    library_ : CandidateLibrary
-        The fitted copy of the library.
-    coordinates_ : list of str
-    n_dof_ : int
-    term_names_ : ndarray of str
-    fixed_term_ : str or None
-        The term whose coefficient is 1 in the reported scale (passive data).
-    normalization_ : {"term", "mass"} or None
-        How the scale was fixed in case III.
-    case_ : str
-        ``"forces"`` (I), ``"fixed"`` (III) or ``"acceleration"`` (II).
-    n_iter_ : int
-        FISTA iterations over all stages.
-    stages_ : list of lagsindy.solvers.Stage
-        The sparsification path.
-    residual_ : float
-        Relative residual of the final fit (with forces: warns above 0.5).
-    formulation_ : {"strong", "weak"}
-        The formulation used (the choice of ``formulation="auto"``).
-    window_ : int
-        The weak form's window (the choice of ``window="auto"``).
+        The learned Lagrangian with numeric coefficients; ``model_``, a
+        :class:`MechanicalModel`, gives its equations of motion and simulation.
+    dissipation_coef_, dissipation_terms_, dissipation_removed_ : ndarray, list
+        The coefficients of the dissipation candidates
+        (:class:`~lagsindy.dissipation.ForceTerm`), the candidates, and those
+        removed as duplicates of a Lagrangian column. ``dissipation_``: the learned
+        part, ``{"D": Rayleigh function, "forces": [force per coordinate]}``.
+    library_, coordinates_, n_dof_, term_names_
+        The fitted copy of the library, its coordinates, their number, term names.
+    case_, fixed_term_, normalization_
+        ``"forces"`` (I), ``"fixed"`` (III) or ``"acceleration"`` (II); in case III
+        the term whose coefficient is 1 and how the scale was fixed (``"term"``,
+        ``"mass"``).
+    formulation_, window_, dt_, noise_cov_
+        The formulation used (``"strong"`` or ``"weak"``: the choice of ``"auto"``),
+        the weak form's window (the choice of ``window="auto"``), sampling interval
+        and subtracted noise covariance (``None``: none or negligible).
+    n_iter_, stages_, residual_
+        FISTA iterations over all stages, the sparsification path (a list of
+        :class:`lagsindy.solvers.Stage`), the final relative residual (with forces:
+        warns above 0.5).
     mass_check_ : MassCheck
         The learned mass matrix checked on (up to 500 of) the fitted samples:
         ``mass_check_.fraction`` of them have it singular or indefinite, along
         ``mass_check_.coordinates``; ``mass_check_.ok`` is False (and the fit warns)
         above 1 %; with forces, also where it is negative definite (``.negative``).
-    dt_ : float or None
-        Sampling interval used by the weak formulation.
-    noise_cov_ : ndarray or None
-        Noise covariance subtracted by the weak form (``None``: none or negligible).
     fitted_ : lagsindy.model.FittedLagrangian
         The fitted state these attributes come from (what a model file stores).
-    n_features_in_ : int
-    feature_names_in_ : ndarray of str
-        Only when X was a DataFrame.
+    n_features_in_, feature_names_in_
+        The number of columns of X; their names when X was a DataFrame.
 
     See Also
     --------
@@ -231,8 +162,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
     Examples
     --------
-    >>> import numpy as np
-    >>> from lagsindy import LagrangianSINDy, CandidateLibrary
+    >>> from lagsindy import LagrangianSINDy
     >>> from lagsindy.systems import single_pendulum, make_dataset
     >>> data = make_dataset(single_pendulum(), n_trajectories=5, duration=2.0,
     ...                     excitation="paper", random_state=0)
@@ -241,7 +171,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
     L = 0.5*theta_dot**2 + 9.81*cos(theta)
     """
 
-    _parameter_constraints: dict = _PARAMETER_CONSTRAINTS
+    _parameter_constraints: dict = settings.PARAMETER_CONSTRAINTS
 
     def __init__(
         self,
@@ -382,9 +312,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             Hyperparameters (``lam``, ``fixed_term``, ...; ``get_params()`` of
             another estimator works); the library is the fitted state's, the
             dissipation library (unless given) the one its terms come from;
-            ``feature_names_in`` sets ``feature_names_in_``. Flat settings (a model
-            file's ``threshold``, ``window``, ...) become the ``solver`` and
-            ``formulation`` objects, silently.
+            ``feature_names_in`` sets ``feature_names_in_``. Flat settings (a
+            file's ``threshold``, ``window``) become ``solver``/``formulation``.
 
         Returns
         -------
@@ -394,14 +323,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         feature_names_in = params.pop("feature_names_in", None)
         params.pop("library", None)  # the fitted state's
         dissipation = params.pop("dissipation", None)
-        est = _with_params(cls, fitted.library, params)
+        if dissipation is None:
+            dissipation = fitted.candidates()
+        est = cls(clone(fitted.library), **settings.checked_params(params))
         est.n_features_in_ = 3 * fitted.n_dof
         if feature_names_in is not None:
             est.feature_names_in_ = np.asarray(feature_names_in, dtype=object)
-        if dissipation is None and fitted.dissipation_terms:
-            dissipation = fitted.dissipation_library or library_of(
-                fitted.dissipation_terms, fitted.coordinates
-            )
         if dissipation is not None:
             est.set_params(dissipation=clone(dissipation))
         return est._publish(fitted)
@@ -567,28 +494,6 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             return cls.from_fitted(fitted, feature_names_in=names, **params)
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
-
-
-def _with_params(cls, library, params):
-    """``cls(library, **params)``, the parameters checked (they may come from a
-    file written by another version)."""
-    from sklearn.utils._param_validation import InvalidParameterError
-
-    known = set(cls().get_params(deep=False)) - {"library", "dissipation"}
-    unknown = sorted(set(params) - known)
-    if unknown:
-        raise ValueError(
-            f"unknown hyperparameters {unknown[:5]} (a model file from a newer "
-            "lagsindy version?)"
-        )
-    try:
-        est = cls(clone(library), **params)
-        est._validate_params()
-        # flat settings (a model file's, an older version's) into their objects
-        est.set_params(**settings.as_objects(est.get_params(deep=False)))
-    except (InvalidParameterError, TypeError, ValueError) as exc:
-        raise ValueError(f"the hyperparameters are not valid: {exc}") from None
-    return est
 
 
 # (set outside the class body: one line, not a step of the fit)

@@ -20,6 +20,7 @@ import torch
 
 from ._torch import to_numpy, to_tensor
 from .cases.fixed import SCORING_ROWS, r2_scores
+from .dissipation import library_of
 from .dynamics import MechanicalModel
 from .formulation import feature_operator
 from .formulation.forms import WeakForm
@@ -250,6 +251,13 @@ class FittedLagrangian:
         return np.asarray(
             names + [t.name for t in self.dissipation_terms], dtype=object
         )
+
+    def candidates(self):
+        """The dissipation library of the candidates (rebuilt from their terms when
+        the state does not hold it, as after loading a file); ``None`` without any."""
+        if self.dissipation_library is not None or not self.dissipation_terms:
+            return self.dissipation_library
+        return library_of(self.dissipation_terms, self.coordinates)
 
     def all_coef(self) -> np.ndarray:
         """Coefficients of the Lagrangian terms followed by the dissipation terms."""

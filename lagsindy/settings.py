@@ -17,8 +17,19 @@ version) and load into the objects (:func:`as_objects`).
 from __future__ import annotations
 
 import warnings
+from numbers import Integral, Real
 
 import numpy as np
+import sympy as sp
+import torch
+from sklearn.utils._param_validation import (
+    HasMethods,
+    Hidden,
+    Interval,
+    InvalidParameterError,
+    StrOptions,
+    validate_parameter_constraints,
+)
 
 from .formulation.forms import AutoForm, StrongForm, WeakForm, make_formulation
 from .solvers import StagedFISTA
@@ -26,8 +37,10 @@ from .solvers import StagedFISTA
 __all__ = [
     "DEPRECATED",
     "FORMULATION_PARAMS",
+    "PARAMETER_CONSTRAINTS",
     "SOLVER_PARAMS",
     "as_objects",
+    "checked_params",
     "flat_settings",
     "formulation_settings",
     "solver_settings",
@@ -40,6 +53,37 @@ DEPRECATED = "deprecated"
 SOLVER_PARAMS = tuple(StagedFISTA().get_params())
 #: The flat parameters that :class:`~lagsindy.formulation.WeakForm` holds.
 FORMULATION_PARAMS = tuple(WeakForm().get_params())
+_CASES = {"auto", "forces", "fixed", "acceleration"}
+_DEPRECATED = [Hidden(StrOptions({DEPRECATED}))]
+#: The constraints of :class:`~lagsindy.LagrangianSINDy`'s parameters (scikit-learn's
+#: parameter validation), the deprecated flat settings included.
+PARAMETER_CONSTRAINTS = {
+    "library": [HasMethods(["build", "get_feature_names_out"]), None],
+    "dissipation": [HasMethods(["build"]), None],
+    "lam": [Interval(Real, 0, None, closed="left")],
+    "alpha": [Interval(Real, 0, None, closed="neither"), None],
+    "solver": [StagedFISTA, None],
+    "fixed_term": [str, sp.Basic, None],
+    "unpenalized": ["array-like", None],
+    "case": [StrOptions(_CASES)],
+    "formulation": [StrOptions({"auto", "strong", "weak"}), HasMethods(["statistics"])],
+    "normalize": ["boolean"],
+    "device": [str, torch.device],
+    "dtype": [StrOptions({"float64", "float32"})],
+    "random_state": ["random_state"],
+    "verbose": ["verbose"],
+    # the deprecated flat settings
+    **{
+        k: [*StagedFISTA._parameter_constraints[k], *_DEPRECATED] for k in SOLVER_PARAMS
+    },
+    "window": [
+        Interval(Integral, 5, None, closed="left"),
+        StrOptions({"auto"}),
+        *_DEPRECATED,
+    ],
+    "dt": [Interval(Real, 0, None, closed="neither"), None, *_DEPRECATED],
+    "noise_cov": [StrOptions({"auto"}), "array-like", None, *_DEPRECATED],
+}
 _SOLVER_DEFAULTS = StagedFISTA().get_params()
 _FORM_DEFAULTS = WeakForm().get_params()
 _FORM_CLASSES = {"auto": AutoForm, "weak": WeakForm, "strong": StrongForm}
@@ -131,6 +175,8 @@ def as_objects(params: dict) -> dict:
     are the defaults). What ``set_params`` of a copy that must not warn takes, and
     what a model file's flat values load into.
     """
+    solver_settings(params)  # an object and its flat parameters both set: an error
+    formulation_settings(params)
     out = dict(params)
     solver = _flat(params, SOLVER_PARAMS)
     if params.get("solver") is None and solver:
@@ -149,6 +195,29 @@ def as_objects(params: dict) -> dict:
         if k in out:
             out[k] = DEPRECATED
     return out
+
+
+def checked_params(params: dict) -> dict:
+    """Hyperparameters from elsewhere (a model file, another version's estimator),
+    checked, with the flat settings folded into their objects (:func:`as_objects`).
+
+    Raises ``ValueError`` naming an unknown name or an invalid value (``library``
+    and ``dissipation`` are not hyperparameters here).
+    """
+    known = set(PARAMETER_CONSTRAINTS) - {"library", "dissipation"}
+    unknown = sorted(set(params) - known)
+    if unknown:
+        raise ValueError(
+            f"unknown hyperparameters {unknown[:5]} (a model file from a newer "
+            "lagsindy version?)"
+        )
+    try:
+        validate_parameter_constraints(
+            PARAMETER_CONSTRAINTS, params, caller_name="LagrangianSINDy"
+        )
+        return as_objects(params)
+    except (InvalidParameterError, TypeError, ValueError) as exc:
+        raise ValueError(f"the hyperparameters are not valid: {exc}") from None
 
 
 def flat_settings(params: dict) -> dict:
