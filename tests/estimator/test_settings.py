@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lagsindy import LagrangianSINDy, settings
+from lagsindy import LagrangianSINDy, pipeline, settings
 from lagsindy.formulation import AutoForm, StrongForm, WeakForm
 from lagsindy.solvers import StagedFISTA
 from lagsindy.systems import make_dataset, single_pendulum
@@ -118,3 +118,31 @@ def test_saved_settings_objects_are_flat_in_the_file_and_come_back(tmp_path, pen
         settings.checked_params(bad)
     with pytest.raises(ValueError, match="unknown hyperparameters"):
         settings.checked_params(dict(hyper, shrinkage=1.0))
+
+
+def test_lam_and_alpha_stay_flat_and_reach_the_solve(pend):
+    """``alpha`` (the first stage's step) and ``lam`` are not solver settings: the
+    setup passes them to the staged solve beside ``solver``."""
+    lib = single_pendulum().paper_library()
+    solver = StagedFISTA(max_iter=50, step_growth=3.0)
+    est = _fit(
+        LagrangianSINDy(lib, formulation="strong", alpha=1e-3, solver=solver), pend
+    )
+    assert est.stages_[0].step == 1e-3 and est.stages_[0].lam == 1e-3
+    if len(est.stages_) > 1:
+        assert est.stages_[1].step == pytest.approx(3e-3)  # step_growth, exactly
+    auto = _fit(LagrangianSINDy(lib, formulation="strong", lam=2e-3), pend)
+    # measured: 1/L = 0.19 here, far from the given step
+    assert auto.stages_[0].step > 0.1 and auto.stages_[0].lam == 2e-3
+
+
+@pytest.mark.parametrize("form", ["auto", AutoForm(window=161), "strong", StrongForm()])
+def test_case_II_runs_the_strong_form(form):
+    got = pipeline.formulation_of({"formulation": form}, "acceleration")
+    assert type(got) is StrongForm
+
+
+@pytest.mark.parametrize("form", ["weak", WeakForm()])
+def test_case_II_refuses_the_weak_form(form):
+    with pytest.raises(ValueError, match="needs the strong form"):
+        pipeline.formulation_of({"formulation": form}, "acceleration")

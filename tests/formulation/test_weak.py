@@ -332,6 +332,26 @@ def test_reuse_weak_columns_per_segment_with_extra_columns(reused_grams):
     assert not torch.allclose(first[0][..., -1], fresh[0][..., -1])
 
 
+def test_a_build_at_another_sampling_interval_is_not_kept(reused_grams):
+    """Inside a reuse block a lazy build asked for at another sampling interval than
+    its call's keeps nothing: a later call at the call's interval computes afresh."""
+    op, X, tau, cov = _cart_weak_case(3, 8)
+    segs = [torch.arange(0, 500), torch.arange(500, 1000), torch.arange(1000, 1500)]
+    kw = dict(
+        strides={61: 15}, dt=0.01, noise_cov=cov, return_noise=True, per_segment=True
+    )
+    shifted = torch.roll(tau, 4, dims=0)
+    fresh = op.weak_grams(X, shifted, {61: segs}, **kw)[61]
+    reused = reused_grams
+    with weak_integrals.reuse_weak_columns():
+        lazy = op.weak_grams(X, tau, {61: segs}, lazy=True, **kw)
+        lazy[61](dt=0.0102)
+        again = op.weak_grams(X, shifted, {61: segs}, **kw)[61]
+        assert not reused
+    for a, b in zip(again, fresh):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_reuse_weak_columns_keeps_its_own_copy():
     """A caller changing the matrices a kept call returned does not change what a
     later call gathers."""
