@@ -143,7 +143,10 @@ def _call(values: dict) -> str:
 
 def warn_deprecated(params: dict, *, stacklevel: int = 2) -> None:
     """Warn (``FutureWarning``) about the flat parameters ``params`` sets, naming
-    the settings object that replaces them."""
+    the settings object that replaces them (an object and its flat parameters both
+    set: the error first)."""
+    solver_settings(params)
+    formulation_settings(params)
     solver = _flat(params, SOLVER_PARAMS)
     if solver:
         warnings.warn(
