@@ -55,6 +55,7 @@ def _cell(task):
 
     torch.set_num_threads(1)
     from lagsindy import LagrangianSINDy
+    from lagsindy.formulation import make_formulation
     from lagsindy.systems import SYSTEMS as REGISTRY
     from lagsindy.systems import make_dataset
 
@@ -79,7 +80,10 @@ def _cell(task):
             else {}
         )
         est = LagrangianSINDy(
-            library, formulation=formulation, dt=0.01, random_state=0, **kw
+            library,
+            formulation=make_formulation(formulation, dt=0.01),
+            random_state=0,
+            **kw,
         )
         start = time.perf_counter()
         error = None

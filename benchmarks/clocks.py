@@ -468,6 +468,7 @@ def _inner(groups, edge):
 def triple_study(quick):
     from lagsindy import CandidateLibrary, LagrangianSINDy
     from lagsindy.differentiation import derivatives, resample
+    from lagsindy.formulation import AutoForm
     from lagsindy.io import load_multiarm_pendulum
 
     frame = load_multiarm_pendulum(which="triple", split="id")
@@ -501,9 +502,13 @@ def triple_study(quick):
                     X, seg = derivatives(
                         q, t, groups=g, angles="all", return_groups=True
                     )
-                    return LagrangianSINDy(library, dt=0.01).fit(X, groups=seg)
+                    return LagrangianSINDy(library, formulation=AutoForm(dt=0.01)).fit(
+                        X, groups=seg
+                    )
                 r = resample(q, t, 0.01, groups=g, angles="all")
-                return LagrangianSINDy(library, dt=0.01).fit(r.X, groups=r.groups)
+                return LagrangianSINDy(library, formulation=AutoForm(dt=0.01)).fit(
+                    r.X, groups=r.groups
+                )
 
             (est, caught), wall = _timed(lambda run=run: _quiet(run))
             fits[(name, route)] = coefficients(est, True, pivot)

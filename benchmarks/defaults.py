@@ -122,11 +122,12 @@ def _verdict(rows, target):
 def _window_rows(name, protocol, sigma, n_traj, duration, windows):
     """Coefficient error of the defaults against the test-function window."""
     from lagsindy import LagrangianSINDy
+    from lagsindy.formulation import AutoForm
 
     system, data = _data(name, protocol, sigma, 0, n_traj, duration)
     cells = []
     for w in windows:
-        est = LagrangianSINDy(system.paper_library(), window=w)
+        est = LagrangianSINDy(system.paper_library(), formulation=AutoForm(window=w))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             est.fit(data.X, data.tau, groups=data.groups)

@@ -328,9 +328,13 @@ def _is_effect(term: str) -> bool:
 
 def fit(which, formulation, X, groups, step, **kw):
     from lagsindy import LagrangianSINDy
+    from lagsindy.formulation import make_formulation
 
     est = LagrangianSINDy(
-        library(which)[0], formulation=formulation, dt=step / 1000, random_state=0, **kw
+        library(which)[0],
+        formulation=make_formulation(formulation, dt=step / 1000),
+        random_state=0,
+        **kw,
     )
     return _timed(lambda: est.fit(X, groups=groups))
 

@@ -40,7 +40,7 @@ def measure(spec):
 
     from benchmarks import measured
     from lagsindy import LagrangianSINDy, diagnose
-    from lagsindy.formulation import EulerLagrangeOperator, window_stride
+    from lagsindy.formulation import AutoForm, EulerLagrangeOperator, window_stride
 
     torch.set_num_threads(1)
     warnings.simplefilter("ignore")
@@ -52,7 +52,7 @@ def measure(spec):
     lib = measured.library(which)[0]
 
     def fit():
-        est = LagrangianSINDy(lib, dt=STEP / 1000, random_state=0)
+        est = LagrangianSINDy(lib, random_state=0, formulation=AutoForm(dt=STEP / 1000))
         return est.fit(X, groups=groups)
 
     est = fit()  # warm-up; its window and noise covariance set the Gram's

@@ -581,8 +581,8 @@ def diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
         labels[seg] = k
     groups = labels if len(segments) >= 2 else None
     # the formulation est's fit used, with the window it chose
-    base = clone(est).set_params(
-        verbose=0, formulation=pipeline.fitted_formulation(est)
+    base = pipeline.copy_with(
+        est, verbose=0, formulation=pipeline.fitted_formulation(est)
     )
     try:
         # Its refits differ only in the shifted input: with the weak form they

@@ -1,69 +1,28 @@
-"""The :class:`LagrangianSINDy` estimator (scikit-learn API), a facade over the pipeline.
+"""The :class:`LagrangianSINDy` estimator (scikit-learn API), a facade.
 
-``fit`` reads as the data flow: validate the data (:mod:`lagsindy._validation`),
-build the library and the dissipation candidates, compute the Gram statistics in the
-chosen formulation (:mod:`lagsindy.formulation`), balance them, solve the case
-(:mod:`lagsindy.cases`) and keep the result as a
-:class:`~lagsindy.model.FittedLagrangian`, whose fields become the fitted attributes.
-Prediction, scoring and simulation delegate to that state.
+``fit`` reads as the data flow of :mod:`lagsindy.pipeline` (data validated, library
+and dissipation built, Gram statistics of the formulation, the case solved, a
+:class:`~lagsindy.model.FittedLagrangian` kept, whose fields become the fitted
+attributes); its parameters are checked against :mod:`lagsindy.settings`. Prediction,
+scoring and simulation delegate to the fitted state.
 """
 
 from __future__ import annotations
 
-from numbers import Integral, Real
-
 import numpy as np
-import sympy as sp
-import torch
 from sklearn.base import BaseEstimator, RegressorMixin, _fit_context, clone
 from sklearn.metrics import r2_score
-from sklearn.utils._param_validation import HasMethods, Interval, StrOptions
 from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
-from . import partitioned, pipeline
+from . import partitioned, pipeline, settings
 from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
-from .dissipation import library_of
 from .export import export_model, linearize, to_casadi
 from .formulation.clocked import rows_on_even_clock
 from .formulation.scaling import IdentifiabilityWarning  # noqa: F401 - 0.1 path
 from .io.model_file import read_model_file, write_model_file
-from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 path
-    FittedLagrangian,
-    MassCheck,
-    mass_matrix_check,
-)
-
-_CASES = {"auto", "forces", "fixed", "acceleration"}
-
-_PARAMETER_CONSTRAINTS = {
-    "library": [HasMethods(["build", "get_feature_names_out"]), None],
-    "dissipation": [HasMethods(["build"]), None],
-    "lam": [Interval(Real, 0, None, closed="left")],
-    "alpha": [Interval(Real, 0, None, closed="neither"), None],
-    "threshold": [Interval(Real, 0, 1, closed="left")],
-    "dissipation_threshold": [Interval(Real, 0, 1, closed="left")],
-    "lam_decay": [Interval(Real, 1, None, closed="left")],
-    "step_growth": [Interval(Real, 0, None, closed="neither")],
-    "max_stages": [Interval(Integral, 1, None, closed="left")],
-    "max_iter": [Interval(Integral, 1, None, closed="left")],
-    "tol": [Interval(Real, 0, None, closed="left")],
-    "solver_tol": [Interval(Real, 0, None, closed="neither")],
-    "fixed_term": [str, sp.Basic, None],
-    "unpenalized": ["array-like", None],
-    "case": [StrOptions(_CASES)],
-    "formulation": [StrOptions({"auto", "strong", "weak"}), HasMethods(["statistics"])],
-    "window": [Interval(Integral, 5, None, closed="left"), StrOptions({"auto"})],
-    "dt": [Interval(Real, 0, None, closed="neither"), None],
-    "noise_cov": [StrOptions({"auto"}), "array-like", None],
-    "normalize": ["boolean"],
-    "debias": ["boolean"],
-    "device": [str, torch.device],
-    "dtype": [StrOptions({"float64", "float32"})],
-    "random_state": ["random_state"],
-    "verbose": ["verbose"],
-}
+from .model import FittedLagrangian, MassCheck, mass_matrix_check  # noqa: F401
 
 
 class LagrangianSINDy(RegressorMixin, BaseEstimator):
@@ -78,10 +37,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
         \frac{1}{2n}\|y - \Theta w\|_2^2 + \lambda \|w\|_1
 
-    by FISTA in stages: after each stage terms below a relative ``threshold`` are
-    removed, :math:`\lambda` is divided by ``lam_decay`` and the step raised, until
-    the relative residual is below ``tol`` or ``max_stages`` have run; the final
-    support is refitted without penalty (``debias``).
+    by FISTA in stages: after each stage the terms below a relative threshold are
+    removed and :math:`\lambda` lowered, and the final support is refitted without
+    penalty (the schedule's settings: ``solver``, a
+    :class:`~lagsindy.solvers.StagedFISTA`).
 
     Three cases, as in the paper:
 
@@ -114,133 +73,83 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         current stage (the largest safe step; it rises by itself as terms leave).
         A given ``alpha`` is multiplied by ``step_growth`` at each stage, as in the
         paper; a step that makes FISTA diverge is halved automatically.
-    threshold : float, default=0.05
-        Hard threshold between stages, relative to the largest scaled coefficient: a
-        term contributing less than ``threshold`` times the dominant term is dropped;
-        a link 100 times lighter than the rest needs e.g. 1e-3 (a fit with forces
-        warns when a coordinate's accelerations are then predicted poorly).
-    dissipation_threshold : float, default=1e-3
-        The hard threshold for dissipation terms. Friction and damping forces are
-        usually a few percent of the conservative ones, so they get a lower threshold;
-        with noisy data prefer :func:`lagsindy.diagnose`, which adds an effect only when
-        it improves held-out predictions.
-    lam_decay : float, default=10.0
-        Division of ``lam`` between stages.
-    step_growth : float, default=2.0
-        Multiplication of a given ``alpha`` between stages.
-    max_stages : int, default=5
-    max_iter : int, default=20000
-        FISTA iterations per stage.
-    tol : float, default=1e-3
-        Stop the stages when the relative residual
-        :math:`\|y - \Theta w\|^2 / \|y\|^2` is at most ``tol``.
-    solver_tol : float, default=1e-7
-        KKT tolerance of each FISTA stage (scaled problem).
+    solver : StagedFISTA, default=None
+        Settings of the staged sparse solve: hard thresholds of Lagrangian and
+        dissipation terms, stages, iterations, tolerances, debiasing; see
+        :class:`lagsindy.solvers.StagedFISTA`. ``None``: its defaults. Grid searches
+        reach them as ``solver__threshold`` and so on.
     fixed_term : str, sympy.Expr, "mass" or None, default=None
-        How passive data (case III) fix the Lagrangian's arbitrary scale. A term
-        known to be in the Lagrangian (e.g. ``"theta_dot**2"``): its coefficient is
-        fixed to 1, as in the paper. ``"mass"``: the data mean of the trace of the
-        learned mass matrix is fixed instead (one convex problem, no prior
-        knowledge; it cannot collapse to a Lagrangian that vanishes where the data
-        lie, which fixing one coefficient can). ``None``: try the mass normalization
-        and every candidate term, keep the model that best predicts the measured
-        accelerations (``fixed_term_``, ``normalization_``).
+        How passive data (case III) fix the Lagrangian's arbitrary scale: a term known
+        to be in the Lagrangian (e.g. ``"theta_dot**2"``) gets coefficient 1, as in
+        the paper; ``"mass"`` fixes the data mean of the trace of the learned mass
+        matrix (no prior knowledge; it cannot collapse to a Lagrangian that vanishes
+        where the data lie); ``None`` tries both and keeps the model that best
+        predicts the measured accelerations (``fixed_term_``, ``normalization_``).
     unpenalized : list of str, default=None
         Terms known to be present (Lagrangian terms, or dissipation names such as
         ``"viscous(theta)"``): they are not shrunk and never thresholded.
     case : {"auto", "forces", "fixed", "acceleration"}, default="auto"
         ``"auto"``: case I when ``tau`` is given, else case III.
-    formulation : {"auto", "strong", "weak"}, default="auto"
-        ``"strong"``: the paper's pointwise Euler-Lagrange residual (needs
-        accelerations). ``"weak"``: the equations integrated against smooth test
-        functions over windows of ``window`` samples (no accelerations; noise is
-        averaged and its bias corrected); rows must be time-ordered trajectories
-        (pass ``groups`` to ``fit``; without it, one record split where the positions
-        jump). Cases I and III. ``"auto"``: the weak form whenever the rows are
-        time-ordered trajectories long enough, else the strong form with a warning
-        saying why (``formulation_``); case II always uses the strong form.
-    window : int or "auto", default="auto"
-        Samples per test function of the weak form (windows start every
-        ``window // 4``). ``"auto"``: 81, or 161, 321, 641 when the longer window
-        changes the coefficients by over 3 % and the next one confirms it (smoothed
-        derivatives bias short windows); else 81 with a :class:`WindowWarning`.
-    dt : float, default=None
-        Sampling interval for the weak formulation; ``None`` estimates it from
-        ``q[s+1] - q[s] = dt (qd[s] + qd[s+1]) / 2`` (``dt_``).
-    noise_cov : "auto", array-like of shape (2 * n_dof, 2 * n_dof) or None, default="auto"
-        Weak formulation only: covariance of white noise on ``[q, qd]`` whose effect on
-        the Gram matrix is subtracted (errors-in-variables correction of the
-        attenuation bias). ``"auto"`` estimates it from fourth-order differences of the
-        data (``noise_cov_``); ``None`` applies no correction.
+    formulation : {"auto", "strong", "weak"} or formulation object, default="auto"
+        ``"strong"``: the paper's pointwise residual (needs accelerations);
+        ``"weak"``: the equations integrated against test functions over windows of
+        each time-ordered trajectory (no accelerations; noise averaged, its bias
+        corrected); ``"auto"``: weak where it can run, else strong with a warning.
+        Case II always uses the strong form. Objects and their settings (``window``,
+        ``dt``, ``noise_cov``): :mod:`lagsindy.formulation` (``WeakForm``).
     normalize : bool, default=True
         Balance row (per coordinate) and column scales; see
         :class:`lagsindy.formulation.BalancedGram`.
-    debias : bool, default=True
-        Refit the final support without penalty (removes L1 shrinkage).
     device : str, default="cpu"
         Torch device for the Euler-Lagrange tensors (``"cuda"`` where available).
     dtype : {"float64", "float32"}, default="float64"
     random_state : int, RandomState instance or None, default=None
-        Seeds the row subsamples drawn when the data are large: the rows used to
-        rank candidate fixed terms in case III (above 4000 rows) and the rows of
-        case II (above 20000 rows). ``None``: evenly spaced rows, so the fit is
-        deterministic and never uses numpy's global random state. Fits are
-        otherwise deterministic.
+        Seeds the row subsamples of large data (case III's ranking of fixed terms
+        above 4000 rows, case II above 20000); ``None``: evenly spaced rows, so fits
+        are deterministic and never use numpy's global random state.
     verbose : int, default=0
         Print stage progress when positive.
+    threshold, dissipation_threshold, lam_decay, step_growth : deprecated
+    max_stages, max_iter, tol, solver_tol, debias : deprecated
+        Use ``solver=StagedFISTA(...)``; set, they warn (``FutureWarning``) and work.
+    window, dt, noise_cov : deprecated
+        Use ``formulation=WeakForm(...)`` (or ``AutoForm``); set, they warn.
 
     Attributes
     ----------
-    coef_ : ndarray of shape (n_terms,)
-        Coefficients over ``library_``'s terms (zero where pruned).
-    dissipation_coef_ : ndarray of shape (n_dissipation_terms,)
-        Coefficients of ``dissipation_terms_`` (empty without ``dissipation``).
-    dissipation_terms_ : list of lagsindy.dissipation.ForceTerm
-        The dissipation candidates (after removing those that duplicate a
-        Lagrangian column, listed in ``dissipation_removed_``).
-    dissipation_ : dict
-        The learned non-conservative part: ``{"D": Rayleigh function (sympy),
-        "forces": [direct generalized force per coordinate (sympy)]}``.
-    support_ : ndarray of bool, shape (n_terms,)
+    coef_, support_ : ndarray of shape (n_terms,)
+        Coefficients over ``library_``'s terms (zero where pruned); the kept ones.
     lagrangian_ : sympy.Expr
-        The learned Lagrangian with numeric coefficients.
-    model_ : MechanicalModel
-        The learned model (equations of motion, simulation).
-    library_ : CandidateLibrary
-        The fitted copy of the library.
-    coordinates_ : list of str
-    n_dof_ : int
-    term_names_ : ndarray of str
-    fixed_term_ : str or None
-        The term whose coefficient is 1 in the reported scale (passive data).
-    normalization_ : {"term", "mass"} or None
-        How the scale was fixed in case III.
-    case_ : str
-        ``"forces"`` (I), ``"fixed"`` (III) or ``"acceleration"`` (II).
-    n_iter_ : int
-        FISTA iterations over all stages.
-    stages_ : list of lagsindy.solvers.Stage
-        The sparsification path.
-    residual_ : float
-        Relative residual of the final fit (with forces: warns above 0.5).
-    formulation_ : {"strong", "weak"}
-        The formulation used (the choice of ``formulation="auto"``).
-    window_ : int
-        The weak form's window (the choice of ``window="auto"``).
+        The learned Lagrangian with numeric coefficients; ``model_``, a
+        :class:`MechanicalModel`, gives its equations of motion and simulation.
+    dissipation_coef_, dissipation_terms_, dissipation_removed_ : ndarray, list
+        The coefficients of the dissipation candidates
+        (:class:`~lagsindy.dissipation.ForceTerm`), the candidates, and those
+        removed as duplicates of a Lagrangian column. ``dissipation_``: the learned
+        part, ``{"D": Rayleigh function, "forces": [force per coordinate]}``.
+    library_, coordinates_, n_dof_, term_names_
+        The fitted copy of the library, its coordinates, their number, term names.
+    case_, fixed_term_, normalization_
+        ``"forces"`` (I), ``"fixed"`` (III) or ``"acceleration"`` (II); in case III
+        the term whose coefficient is 1 and how the scale was fixed (``"term"``,
+        ``"mass"``).
+    formulation_, window_, dt_, noise_cov_
+        The formulation used (``"strong"`` or ``"weak"``: the choice of ``"auto"``),
+        the weak form's window (the choice of ``window="auto"``), sampling interval
+        and subtracted noise covariance (``None``: none or negligible).
+    n_iter_, stages_, residual_
+        FISTA iterations over all stages, the sparsification path (a list of
+        :class:`lagsindy.solvers.Stage`), the final relative residual (with forces:
+        warns above 0.5).
     mass_check_ : MassCheck
         The learned mass matrix checked on (up to 500 of) the fitted samples:
         ``mass_check_.fraction`` of them have it singular or indefinite, along
         ``mass_check_.coordinates``; ``mass_check_.ok`` is False (and the fit warns)
         above 1 %; with forces, also where it is negative definite (``.negative``).
-    dt_ : float or None
-        Sampling interval used by the weak formulation.
-    noise_cov_ : ndarray or None
-        Noise covariance subtracted by the weak form (``None``: none or negligible).
     fitted_ : lagsindy.model.FittedLagrangian
         The fitted state these attributes come from (what a model file stores).
-    n_features_in_ : int
-    feature_names_in_ : ndarray of str
-        Only when X was a DataFrame.
+    n_features_in_, feature_names_in_
+        The number of columns of X; their names when X was a DataFrame.
 
     See Also
     --------
@@ -254,8 +163,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
 
     Examples
     --------
-    >>> import numpy as np
-    >>> from lagsindy import LagrangianSINDy, CandidateLibrary
+    >>> from lagsindy import LagrangianSINDy
     >>> from lagsindy.systems import single_pendulum, make_dataset
     >>> data = make_dataset(single_pendulum(), n_trajectories=5, duration=2.0,
     ...                     excitation="paper", random_state=0)
@@ -264,7 +172,7 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
     L = 0.5*theta_dot**2 + 9.81*cos(theta)
     """
 
-    _parameter_constraints: dict = _PARAMETER_CONSTRAINTS
+    _parameter_constraints: dict = settings.PARAMETER_CONSTRAINTS
 
     def __init__(
         self,
@@ -273,32 +181,43 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         dissipation=None,
         lam=1e-3,
         alpha=None,
-        threshold=0.05,
-        dissipation_threshold=1e-3,
-        lam_decay=10.0,
-        step_growth=2.0,
-        max_stages=5,
-        max_iter=20_000,
-        tol=1e-3,
-        solver_tol=1e-7,
+        solver=None,
         fixed_term=None,
         unpenalized=None,
         case="auto",
         formulation="auto",
-        window="auto",
-        dt=None,
-        noise_cov="auto",
         normalize=True,
-        debias=True,
         device="cpu",
         dtype="float64",
         random_state=None,
         verbose=0,
+        threshold=settings.DEPRECATED,
+        dissipation_threshold=settings.DEPRECATED,
+        lam_decay=settings.DEPRECATED,
+        step_growth=settings.DEPRECATED,
+        max_stages=settings.DEPRECATED,
+        max_iter=settings.DEPRECATED,
+        tol=settings.DEPRECATED,
+        solver_tol=settings.DEPRECATED,
+        debias=settings.DEPRECATED,
+        window=settings.DEPRECATED,
+        dt=settings.DEPRECATED,
+        noise_cov=settings.DEPRECATED,
     ):
         self.library = library
         self.dissipation = dissipation
         self.lam = lam
         self.alpha = alpha
+        self.solver = solver
+        self.fixed_term = fixed_term
+        self.unpenalized = unpenalized
+        self.case = case
+        self.formulation = formulation
+        self.normalize = normalize
+        self.device = device
+        self.dtype = dtype
+        self.random_state = random_state
+        self.verbose = verbose
         self.threshold = threshold
         self.dissipation_threshold = dissipation_threshold
         self.lam_decay = lam_decay
@@ -307,19 +226,10 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         self.max_iter = max_iter
         self.tol = tol
         self.solver_tol = solver_tol
-        self.fixed_term = fixed_term
-        self.unpenalized = unpenalized
-        self.case = case
-        self.formulation = formulation
+        self.debias = debias
         self.window = window
         self.dt = dt
         self.noise_cov = noise_cov
-        self.normalize = normalize
-        self.debias = debias
-        self.device = device
-        self.dtype = dtype
-        self.random_state = random_state
-        self.verbose = verbose
 
     def __sklearn_is_fitted__(self):
         # model_ is set last in fit: a fit that raised leaves the estimator unfitted.
@@ -368,34 +278,29 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         # A refit starts from scratch: a failed fit leaves the estimator unfitted.
         for name in [k for k in vars(self) if k.endswith("_") and not k.endswith("__")]:
             delattr(self, name)
+        params = self.get_params(deep=False)
+        settings.warn_deprecated(params, stacklevel=3)  # the caller of fit
         if partitioned.is_partitioned(X):  # Dask, Parquet, chunks: map-reduce
-            fitted, names = partitioned.fit_state(self.get_params(False), X, y, groups)
+            fitted, names = partitioned.fit_state(params, X, y, groups)
             self.n_features_in_ = 3 * fitted.n_dof
             if names is not None:
                 self.feature_names_in_ = np.asarray(names, dtype=object)
             return self._publish(fitted)
         device, dtype = resolve_device(self.device), resolve_dtype(self.dtype)
-        Xa, tau, setup = self._setup(X, y)
-        formulation = pipeline.formulation_of(self.get_params(deep=False), setup.case)
+        Xa, tau, setup = self._setup(X, y, params)
+        formulation = pipeline.formulation_of(params, setup.case)
         if t is not None:
             Xa, tau, groups, formulation = rows_on_even_clock(
                 formulation, Xa, tau, groups, t
             )
         Xt = to_tensor(Xa, dtype=dtype, device=device)
-        tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
-        ladder = pipeline.fit_statistics(formulation, setup, Xt, tau_t, groups)
-        stats, solution = pipeline.solve_ladder(
-            ladder, setup, Xt, tau, verbose=self.verbose
-        )
         tau_1d = tau is not None and np.asarray(y).ndim == 1
-        fitted = pipeline.fitted_state(setup, stats, solution, tau_1d=tau_1d)
-        solution, fitted = pipeline.judge_each_equation(
-            setup, stats, solution, fitted, Xt, tau, tau_1d=tau_1d
+        fitted = pipeline.fit_data(
+            setup, formulation, Xt, tau, groups, tau_1d=tau_1d, verbose=self.verbose
         )
-        pipeline.check_fit(fitted, setup, stats, solution, Xt, tau)
         return self._publish(fitted)
 
-    def _setup(self, X, y):
+    def _setup(self, X, y, params):
         """Validated data and the :class:`~lagsindy.pipeline.FitSetup` of a fit."""
         coordinates = None if self.library is None else self.library.coordinates
         if isinstance(coordinates, str):
@@ -407,7 +312,6 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         library = pipeline.build_library(self.library, coordinates, Xa.shape[0])
         case = pipeline.resolve_case(self.case, tau)
         dissipation = pipeline.build_dissipation(self.dissipation, library)
-        params = self.get_params(deep=False)
         return Xa, tau, pipeline.make_setup(params, library, dissipation, case)
 
     @classmethod
@@ -425,7 +329,8 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             Hyperparameters (``lam``, ``fixed_term``, ...; ``get_params()`` of
             another estimator works); the library is the fitted state's, the
             dissipation library (unless given) the one its terms come from;
-            ``feature_names_in`` sets ``feature_names_in_``.
+            ``feature_names_in`` sets ``feature_names_in_``. Flat settings (a
+            file's ``threshold``, ``window``) become ``solver``/``formulation``.
 
         Returns
         -------
@@ -435,14 +340,12 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         feature_names_in = params.pop("feature_names_in", None)
         params.pop("library", None)  # the fitted state's
         dissipation = params.pop("dissipation", None)
-        est = _with_params(cls, fitted.library, params)
+        if dissipation is None:
+            dissipation = fitted.candidates()
+        est = cls(clone(fitted.library), **settings.checked_params(params))
         est.n_features_in_ = 3 * fitted.n_dof
         if feature_names_in is not None:
             est.feature_names_in_ = np.asarray(feature_names_in, dtype=object)
-        if dissipation is None and fitted.dissipation_terms:
-            dissipation = fitted.dissipation_library or library_of(
-                fitted.dissipation_terms, fitted.coordinates
-            )
         if dissipation is not None:
             est.set_params(dissipation=clone(dissipation))
         return est._publish(fitted)
@@ -618,26 +521,6 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             return cls.from_fitted(fitted, feature_names_in=names, **params)
         except ValueError as exc:
             raise ValueError(f"{path}: {exc}") from None
-
-
-def _with_params(cls, library, params):
-    """``cls(library, **params)``, the parameters checked (they may come from a
-    file written by another version)."""
-    from sklearn.utils._param_validation import InvalidParameterError
-
-    known = set(cls().get_params(deep=False)) - {"library", "dissipation"}
-    unknown = sorted(set(params) - known)
-    if unknown:
-        raise ValueError(
-            f"unknown hyperparameters {unknown[:5]} (a model file from a newer "
-            "lagsindy version?)"
-        )
-    try:
-        est = cls(clone(library), **params)
-        est._validate_params()
-    except (InvalidParameterError, TypeError) as exc:
-        raise ValueError(f"the hyperparameters are not valid: {exc}") from None
-    return est
 
 
 # (set outside the class body: one line, not a step of the fit)

@@ -29,6 +29,7 @@ from .angle_units import (  # noqa: F401  (re-exported: the fit's checks use the
     read_as_degrees,
 )
 from .cases.fixed import SCORING_ROWS, r2_scores
+from .dissipation import library_of
 from .dynamics import MechanicalModel
 from .evaluator import is_term_function, library_terms
 from .formulation import feature_operator
@@ -230,6 +231,13 @@ class FittedLagrangian:
         return np.asarray(
             names + [t.name for t in self.dissipation_terms], dtype=object
         )
+
+    def candidates(self):
+        """The dissipation library of the candidates (rebuilt from their terms when
+        the state does not hold it, as after loading a file); ``None`` without any."""
+        if self.dissipation_library is not None or not self.dissipation_terms:
+            return self.dissipation_library
+        return library_of(self.dissipation_terms, self.coordinates)
 
     def all_coef(self) -> np.ndarray:
         """Coefficients of the Lagrangian terms followed by the dissipation terms."""

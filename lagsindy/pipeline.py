@@ -27,12 +27,12 @@ import torch
 from sklearn.base import clone
 
 from . import _validation as val
-from ._torch import to_numpy
+from ._torch import to_numpy, to_tensor
 from .cases import Problem, SparseSolve, solve_case
 from .dissipation import DissipationLibrary, reduce_forces
 from .evaluator import library_terms
 from .formulation import feature_operator
-from .formulation.forms import StrongForm, WeakForm, make_formulation, with_window
+from .formulation.forms import StrongForm, WeakForm, with_window
 from .formulation.probes import (
     PROBE_KINDS,
     PROBED_CASES,
@@ -45,6 +45,7 @@ from .formulation.probes import (
 from .formulation.scaling import BalancedGram, warn_if_not_identifiable
 from .formulation.weak import choose_window
 from .model import POOR_ACCELERATIONS, FittedLagrangian, feature_index
+from .settings import as_objects, formulation_settings, solver_settings
 from .solvers import warn_not_converged
 
 __all__ = [
@@ -52,6 +53,8 @@ __all__ = [
     "FitSetup",
     "build_dissipation",
     "check_fit",
+    "copy_with",
+    "fit_data",
     "fit_operator",
     "fit_statistics",
     "fitted_state",
@@ -339,6 +342,40 @@ def fitted_state(setup: FitSetup, stats, solution, *, tau_1d=False):
     )
 
 
+def fit_data(setup: FitSetup, formulation, Xt, tau, groups, *, tau_1d=False, verbose=0):
+    """An in-memory fit, from the data to a checked fitted state.
+
+    The statistics of ``formulation`` (the weak form's window chosen on its
+    ladder), the solve, the fitted state, a solve again with each equation judged
+    on its own when a coordinate is predicted poorly
+    (:func:`judge_each_equation`), and the fit's checks (:func:`check_fit`).
+
+    Parameters
+    ----------
+    setup : FitSetup
+    formulation : StrongForm, WeakForm or AutoForm
+    Xt : Tensor of shape (n_samples, 3 * n_dof)
+    tau : ndarray of shape (n_samples, n_dof) or None
+    groups : array-like or None
+    tau_1d : bool, default=False
+        Whether the user gave tau as a 1-D array (predictions are then 1-D).
+    verbose : int, default=0
+
+    Returns
+    -------
+    FittedLagrangian
+    """
+    tau_t = None if tau is None else to_tensor(tau, dtype=Xt.dtype, device=Xt.device)
+    ladder = fit_statistics(formulation, setup, Xt, tau_t, groups)
+    stats, solution = solve_ladder(ladder, setup, Xt, tau, verbose=verbose)
+    fitted = fitted_state(setup, stats, solution, tau_1d=tau_1d)
+    solution, fitted = judge_each_equation(
+        setup, stats, solution, fitted, Xt, tau, tau_1d=tau_1d, stacklevel=4
+    )
+    check_fit(fitted, setup, stats, solution, Xt, tau, stacklevel=5)
+    return fitted
+
+
 def judge_each_equation(
     setup: FitSetup, stats, solution, fitted, Xt, tau, *, tau_1d=False, stacklevel=4
 ):
@@ -532,15 +569,25 @@ def check_known_terms(setup: FitSetup):
 
 
 def make_setup(params: dict, library, dissipation: Dissipation, case: str) -> FitSetup:
-    """The :class:`FitSetup` of an estimator's parameters (``get_params()``), its
-    built library and dissipation, and the case."""
+    """The :class:`FitSetup` of an estimator's parameters (``get_params()``; the
+    solver settings: :func:`~lagsindy.settings.solver_settings`), its built library
+    and dissipation, and the case."""
     n_terms = len(library.terms_)
     dissipative = [False] * n_terms + [t.dissipative for t in dissipation.terms]
+    solver = SparseSolve.from_settings(
+        solver_settings(params),
+        lam=params.get("lam", 1e-3),
+        alpha=params.get("alpha"),
+        n_terms=n_terms,
+        dissipative=dissipative,
+        random_state=params.get("random_state"),
+        verbose=params.get("verbose", 0),
+    )
     setup = FitSetup(
         library=library,
         dissipation=dissipation,
         case=case,
-        solver=SparseSolve.from_params(params, n_terms, dissipative),
+        solver=solver,
         unpenalized=_as_list(params.get("unpenalized"))
         + list(getattr(library, "unpenalized_", ())),
         fixed_term=params.get("fixed_term"),
@@ -551,23 +598,26 @@ def make_setup(params: dict, library, dissipation: Dissipation, case: str) -> Fi
 
 
 def formulation_of(params: dict, case: str = "forces"):
-    """The formulation object of an estimator's parameters (``get_params()``):
-    ``formulation`` (a name or an object) with the weak form's ``window``, ``dt`` and
-    ``noise_cov``; case II always the strong form."""
-    formulation = params.get("formulation", "auto")
+    """The formulation object of an estimator's parameters (``get_params()``; see
+    :func:`~lagsindy.settings.formulation_settings`); case II always the strong
+    form."""
+    formulation = formulation_settings(params)
     if case == "acceleration":
-        if formulation == "weak" or isinstance(formulation, WeakForm):
+        if type(formulation) is WeakForm:
             raise ValueError(
                 "formulation='weak' is for cases I and III; case='acceleration' "
                 "needs the strong form"
             )
         return StrongForm()
-    return make_formulation(
-        formulation,
-        window=params.get("window", "auto"),
-        dt=params.get("dt"),
-        noise_cov=params.get("noise_cov", "auto"),
-    )
+    return formulation
+
+
+def copy_with(est, **params):
+    """An unfitted copy of ``est`` with its settings as objects (its deprecated flat
+    parameters folded into ``solver`` and ``formulation``, so refits do not warn
+    again and accept a formulation object), then ``params`` set."""
+    copy = clone(est).set_params(**as_objects(est.get_params(deep=False)))
+    return copy.set_params(**params) if params else copy
 
 
 def fitted_formulation(est):

@@ -18,6 +18,7 @@ import torch
 import lagsindy.cases.acceleration as case_ii
 import lagsindy.cases.fixed as case_iii
 from lagsindy import CandidateLibrary, LagrangianSINDy
+from lagsindy.solvers import StagedFISTA
 from lagsindy.systems import make_dataset, single_pendulum
 
 TERMS = [
@@ -62,7 +63,10 @@ FITS = {
     "forces": (dict(), True),
     "fixed": (dict(fixed_term="theta_dot**2"), False),
     "search": (dict(), False),  # case III, every candidate tried, ranked on a subsample
-    "acceleration": (dict(case="acceleration", max_iter=2000), False),
+    "acceleration": (
+        dict(case="acceleration", solver=StagedFISTA(max_iter=2000)),
+        False,
+    ),
 }
 
 
@@ -159,6 +163,7 @@ def test_same_coefficients_in_a_fresh_interpreter(active):
         f"""
         import numpy as np
         from lagsindy import CandidateLibrary, LagrangianSINDy
+from lagsindy.solvers import StagedFISTA
         from lagsindy.systems import make_dataset, single_pendulum
         np.random.seed(99)
         data = make_dataset(single_pendulum(), n_trajectories=4, duration=1.5,

@@ -4,6 +4,7 @@ import sympy as sp
 
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy
 from lagsindy.dissipation import make_term, reduce_forces
+from lagsindy.formulation import WeakForm
 from lagsindy.systems import (
     cart_pendulum,
     double_pendulum,
@@ -133,8 +134,7 @@ def test_no_dissipation_found_in_undamped_data():
     )
     est = LagrangianSINDy(
         system.paper_library(),
-        formulation="weak",
-        dt=0.01,
+        formulation=WeakForm(dt=0.01),
         dissipation=DissipationLibrary(["viscous", "coulomb", "drag"]),
     )
     est.fit(data.X, data.tau, groups=data.groups)

@@ -24,6 +24,7 @@ from hypothesis import strategies as st
 
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy._expr import symbols_for
+from lagsindy.solvers import StagedFISTA
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
 # 200 examples per property with LAGSINDY_FULL_PROPERTIES=1 (the thorough run, about
@@ -87,7 +88,7 @@ def fit(lib, X, tau=None, **params):
 @functools.cache
 def reference(system, case, noise=0.0, lam=1e-3, threshold=0.05):
     data = dataset(system, case == "forces", noise)
-    params = dict(lam=lam, threshold=threshold)
+    params = dict(lam=lam, solver=StagedFISTA(threshold=threshold))
     if case == "fixed":
         params["fixed_term"] = "theta_dot**2"
     return fit(
@@ -136,12 +137,14 @@ def test_valid_input_never_crashes_and_gives_finite_coefficients(data):
     )
     params = dict(
         lam=data.draw(st.floats(0.0, 2.0), label="lam"),
-        threshold=data.draw(st.floats(0.0, 0.5), label="threshold"),
         alpha=data.draw(st.none() | log_scale(-3, 3), label="alpha"),
-        max_stages=data.draw(st.integers(1, 4), label="max_stages"),
-        debias=data.draw(st.booleans(), label="debias"),
+        solver=StagedFISTA(
+            threshold=data.draw(st.floats(0.0, 0.5), label="threshold"),
+            max_stages=data.draw(st.integers(1, 4), label="max_stages"),
+            debias=data.draw(st.booleans(), label="debias"),
+            max_iter=500,
+        ),
         normalize=data.draw(st.booleans(), label="normalize"),
-        max_iter=500,
     )
     if not active:
         params["fixed_term"] = data.draw(

@@ -12,6 +12,7 @@ from lagsindy.euler_lagrange import (
     estimate_sampling_interval,
     trajectory_segments,
 )
+from lagsindy.formulation import AutoForm, WeakForm
 from lagsindy.systems import (
     cart_pendulum,
     double_pendulum,
@@ -46,7 +47,7 @@ def test_noise_covariance_estimate():
 
 def test_weak_form_is_exact_on_noise_free_data(cart_active):
     lib = cart_pendulum().paper_library()
-    est = LagrangianSINDy(lib, formulation="weak", dt=0.01).fit(
+    est = LagrangianSINDy(lib, formulation=WeakForm(dt=0.01)).fit(
         cart_active.X, cart_active.tau, groups=cart_active.groups
     )
     truth = cart_pendulum().true_coefficients(lib)
@@ -72,9 +73,10 @@ def test_weak_form_with_noise_correction_beats_strong_form():
         warnings.simplefilter("ignore")
         strong = LagrangianSINDy(lib, formulation="strong").fit(data.X, data.tau)
         weak_raw = LagrangianSINDy(
-            lib, formulation="weak", dt=0.01, noise_cov=None
+            lib,
+            formulation=WeakForm(dt=0.01, noise_cov=None),
         ).fit(data.X, data.tau, groups=data.groups)
-        weak = LagrangianSINDy(lib, formulation="weak", dt=0.01).fit(
+        weak = LagrangianSINDy(lib, formulation=WeakForm(dt=0.01)).fit(
             data.X, data.tau, groups=data.groups
         )
     # measured: strong 0.56, weak without correction 0.08, weak corrected 0.010
@@ -105,7 +107,8 @@ def test_overestimated_noise_covariance_is_projected_not_propagated():
         random_state=3,
     )
     est = LagrangianSINDy(
-        lib, formulation="weak", dt=0.01, noise_cov=np.eye(2) * 0.1**2
+        lib,
+        formulation=WeakForm(dt=0.01, noise_cov=np.eye(2) * 0.1**2),
     ).fit(data.X, data.tau, groups=data.groups)
     np.testing.assert_array_equal(est.coef_ != 0, truth != 0)
     assert _rel_err(est, truth) < 0.004
@@ -124,8 +127,7 @@ def test_weak_form_case_III_passive():
     )
     est = LagrangianSINDy(
         lib,
-        formulation="weak",
-        dt=0.01,
+        formulation=WeakForm(dt=0.01),
         fixed_term=system.fixed_term,
         unpenalized=system.prior_terms,
     ).fit(data.X, groups=data.groups)
@@ -151,7 +153,7 @@ def test_segments_and_dt_without_groups():
     segs = trajectory_segments(X, 1, None, dt=0.01)
     assert [int(s[0]) for s in segs] == [0, 200, 400, 600, 800]
     est = LagrangianSINDy(
-        single_pendulum().paper_library(), formulation="weak", window=41
+        single_pendulum().paper_library(), formulation=WeakForm(window=41)
     )
     est.fit(data.X, data.tau)  # no groups, no dt: both inferred
     assert est.dt_ == pytest.approx(0.01, rel=0.02)
@@ -161,19 +163,19 @@ def test_segments_and_dt_without_groups():
 def test_weak_form_errors(single_active):
     lib = single_pendulum().paper_library()
     with pytest.raises(ValueError, match="window"):
-        LagrangianSINDy(lib, formulation="weak", dt=0.01, window=1001).fit(
+        LagrangianSINDy(lib, formulation=WeakForm(dt=0.01, window=1001)).fit(
             single_active.X, single_active.tau, groups=single_active.groups
         )
     with pytest.raises(ValueError, match="noise_cov must have shape"):
-        LagrangianSINDy(lib, formulation="weak", dt=0.01, noise_cov=np.eye(3)).fit(
+        LagrangianSINDy(lib, formulation=WeakForm(dt=0.01, noise_cov=np.eye(3))).fit(
             single_active.X, single_active.tau, groups=single_active.groups
         )
     with pytest.raises(ValueError, match="groups"):
-        LagrangianSINDy(lib, formulation="weak", dt=0.01).fit(
+        LagrangianSINDy(lib, formulation=WeakForm(dt=0.01)).fit(
             single_active.X, single_active.tau, groups=single_active.groups[:10]
         )
     with pytest.raises(ValueError, match="weak"):
-        LagrangianSINDy(lib, formulation="weak", case="acceleration", dt=0.01).fit(
+        LagrangianSINDy(lib, formulation=WeakForm(dt=0.01), case="acceleration").fit(
             single_active.X
         )
 
@@ -223,9 +225,9 @@ def test_window_auto_lengthens_the_window_for_smoothed_derivatives(
     assert est.window_ == 161
     assert np.array_equal(est.coef_ != 0, truth != 0)
     assert _rel_err(est, truth) < 0.012  # measured 0.0078
-    short = LagrangianSINDy(system.paper_library(), window=81).fit(
-        data.X, data.tau, groups=data.groups
-    )
+    short = LagrangianSINDy(
+        system.paper_library(), formulation=AutoForm(window=81)
+    ).fit(data.X, data.tau, groups=data.groups)
     assert short.window_ == 81 and _rel_err(short, truth) > 0.05  # measured 0.069
 
 

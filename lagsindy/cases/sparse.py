@@ -129,31 +129,6 @@ class SparseSolve:
             verbose,
         )
 
-    @classmethod
-    def from_params(cls, params: dict, n_terms: int, dissipative, **kwargs):
-        """From an estimator's ``get_params()`` (extra keys are ignored).
-
-        The settings are ``params["solver"]`` when it is a :class:`StagedFISTA`
-        (checked, as :meth:`from_settings` does), else its parameters taken from
-        ``params`` (an estimator's, checked when it was fitted); ``kwargs`` override
-        ``lam``, ``alpha``, ``random_state`` or ``verbose``.
-        """
-        values = {k: params.get(k) for k in ("lam", "alpha", "random_state")}
-        values["verbose"] = params.get("verbose", 0)
-        values.update(kwargs)
-        settings = params.get("solver")
-        if isinstance(settings, StagedFISTA):
-            return cls.from_settings(
-                settings, n_terms=n_terms, dissipative=dissipative, **values
-            )
-        settings = StagedFISTA(**{k: params[k] for k in _SETTINGS if k in params})
-        return cls(
-            settings=settings,
-            n_terms=n_terms,
-            dissipative=np.asarray(dissipative, dtype=bool),
-            **values,
-        )
-
     def thresholds(self, features) -> np.ndarray:
         """The hard thresholds of ``features`` (library indices)."""
         return self.settings.thresholds(np.asarray(features) >= self.n_terms)

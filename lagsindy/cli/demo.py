@@ -31,6 +31,7 @@ def _demo(args) -> int:
     )
     from ..dynamics import rollout_error
     from ..estimator import LagrangianSINDy
+    from ..formulation import make_formulation
     from ..systems import get_system, make_dataset
 
     system = get_system(name)
@@ -50,8 +51,7 @@ def _demo(args) -> int:
         unpenalized=None if active else system.prior_terms,
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
-        formulation=args.formulation,
-        dt=0.01,
+        formulation=make_formulation(args.formulation, dt=0.01),
     )
     _say(
         args,

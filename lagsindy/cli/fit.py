@@ -243,6 +243,8 @@ def _fit_csv(args):
 
     from .._expr import check_coordinate_names
     from ..estimator import LagrangianSINDy
+    from ..formulation import make_formulation
+    from ..solvers import StagedFISTA
 
     check_coordinate_names(coords)  # the names the library's parser reserves
     library = _library(args, coords, angles)
@@ -266,12 +268,13 @@ def _fit_csv(args):
     est = LagrangianSINDy(
         library,
         lam=args.lam,
-        threshold=args.threshold,
+        solver=StagedFISTA(threshold=args.threshold),
         fixed_term=args.fixed_term,
         unpenalized=split(args.unpenalized) or None,
         case=args.case,
-        formulation=getattr(args, "formulation", "auto"),
-        window=getattr(args, "window", "auto"),
+        formulation=make_formulation(
+            getattr(args, "formulation", "auto"), window=getattr(args, "window", "auto")
+        ),
         random_state=args.seed,
         verbose=0 if args.quiet else 1,
     )

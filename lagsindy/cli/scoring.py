@@ -89,11 +89,15 @@ def score(est, X, tau, groups):
 def refit_like(est, **params):
     """An unfitted, quiet copy of ``est`` that repeats its fitted choices
     (formulation, case, fixed term) instead of searching again, with ``params``."""
-    from sklearn.base import clone
+    from .. import pipeline
+    from ..formulation import StrongForm, WeakForm
 
-    sub = clone(est).set_params(verbose=0, formulation=est.formulation_, case=est.case_)
-    if getattr(est, "window_", None) is not None:
-        sub.set_params(window=est.window_)
+    form = pipeline.fitted_formulation(est)  # with the window est's fit chose
+    if est.formulation_ == "weak":
+        form = WeakForm(**form.get_params())  # "auto" chose the weak form
+    else:
+        form = StrongForm()
+    sub = pipeline.copy_with(est, verbose=0, formulation=form, case=est.case_)
     sub.set_params(**params)
     if est.case_ == "fixed":
         sub.set_params(fixed_term=est.fixed_term_ or "mass")

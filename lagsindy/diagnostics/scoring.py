@@ -145,7 +145,8 @@ def _time_folds(est, Xt, groups, n_splits, window):
     cannot be estimated, and ``window`` is odd and at most half the shortest block.
     """
     d = est.n_dof_
-    dt = getattr(est, "dt_", None) or est.dt
+    own_form = pipeline.formulation_of(est.get_params(deep=False))
+    dt = getattr(est, "dt_", None) or getattr(own_form, "dt", None)
     if dt is None:
         rough = _segments(Xt, d, groups, 0.0) if groups is not None else None
         rough = (
@@ -161,7 +162,8 @@ def _time_folds(est, Xt, groups, n_splits, window):
     folds, fold_kind = _make_folds(segments, n_splits)
     shortest_block = min(max(len(b) for b in blocks) for blocks in folds)
     chosen = getattr(est, "window_", None)  # the fit's (window="auto" chose it)
-    own = est.window if isinstance(est.window, Integral) else None
+    own = getattr(own_form, "window", None)
+    own = own if isinstance(own, Integral) else None
     win = int(window or chosen or own or WINDOW_FIRST)
     win = min(win, shortest_block // 2)
     if win % 2 == 0:
@@ -410,7 +412,7 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=T
     ``effects`` enter as known (unpenalized) terms, ``penalized`` as candidates.
     ``fit=False`` returns the configured (unfitted, quiet) estimator.
     """
-    new = clone(est)
+    new = pipeline.copy_with(est)
     unpenalized = list(est.unpenalized or [])
     library = clone(est.library_)
     cons = [c for c in list(effects) + list(penalized) if c.kind == "conservative"]

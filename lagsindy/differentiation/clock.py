@@ -64,6 +64,7 @@ from .records import (
     _gap_text,
     _is_uniform,
     _segments,
+    raise_backwards,
 )
 
 # Rows flagged at each end of a segment. Measured (benchmarks/results/clocks.md):
@@ -575,22 +576,16 @@ def _regular(steps, unit) -> bool:
 
 
 def _raise_backwards(key, row, previous, stamps):
-    where = "" if key is None else f" (trajectory {key!r})"
-    hint = (
-        " If several trajectories are stacked, pass groups= (their labels)."
-        if key is None
-        else ""
-    )
-    raise ValueError(
-        "t must be strictly increasing within each trajectory, but row "
-        f"{row}{where} has t = {float(stamps[row])!r} after "
-        f"t = {float(stamps[previous])!r} at row {previous}. Rows of one trajectory "
-        f"must be contiguous and in time order.{hint} (Equal or nearly equal stamps "
-        "are merged; a stamp that goes back further is refused unless a regular "
-        "cycle under the stamps explains it, and none could be counted from the "
-        "stamps and the positions: if the recorder logged velocities, pass them, "
-        "clock = clean_clock(t, q, groups, velocities=v), then derivatives(q, t, "
-        "groups=groups, clean=clock).)"
+    raise_backwards(
+        key,
+        row,
+        previous,
+        stamps,
+        " (Equal or nearly equal stamps are merged; a stamp that goes back further "
+        "is refused unless a regular cycle under the stamps explains it, and none "
+        "could be counted from the stamps and the positions: if the recorder logged "
+        "velocities, pass them, clock = clean_clock(t, q, groups, velocities=v), "
+        "then derivatives(q, t, groups=groups, clean=clock).)",
     )
 
 

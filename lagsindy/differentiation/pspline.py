@@ -113,11 +113,7 @@ class _PSpline:
         else:
             lam = np.full(n_cols, float(smoothing))
             score = np.full(n_cols, np.nan)
-        coef = np.empty_like(Bty)
-        for value in np.unique(lam):
-            cols = lam == value
-            ab = self.G_banded + value * self.P_banded
-            coef[:, cols] = solveh_banded(ab, Bty[:, cols], check_finite=False)
+        coef = _penalized_solve(self.G_banded, self.P_banded, lam, Bty)
         return self.B @ coef, self.B1 @ coef, self.B2 @ coef, lam, score
 
 
@@ -161,6 +157,17 @@ class _BandedBasis:
         self.G_banded = Gb
         self.n = n
         self.nb = nb
+
+
+def _penalized_solve(g_banded, p_banded, lam, bty) -> np.ndarray:
+    """Spline coefficients ``(G + lam_j P)^{-1} B^T q_j`` per column ``j``, one banded
+    Cholesky solve per distinct ``lam``."""
+    coef = np.empty_like(bty)
+    for value in np.unique(lam):
+        cols = lam == value
+        ab = g_banded + value * p_banded
+        coef[:, cols] = solveh_banded(ab, bty[:, cols], check_finite=False)
+    return coef
 
 
 def _penalty_band(order: int, nb: int) -> np.ndarray:
@@ -399,12 +406,7 @@ class _BandedPSpline:
         else:
             lam = np.full(n_cols, float(smoothing))
             score = np.full(n_cols, np.nan)
-        coef = np.empty_like(Bty)
-        for value in np.unique(lam):
-            cols = lam == value
-            ab = self.G_banded + value * self.P_banded
-            coef[:, cols] = solveh_banded(ab, Bty[:, cols], check_finite=False)
-        return coef, lam, score
+        return _penalized_solve(self.G_banded, self.P_banded, lam, Bty), lam, score
 
     def evaluate(self, coef: np.ndarray):
         """The spline of the given coefficients and its first two derivatives."""

@@ -138,18 +138,25 @@ def _check_order(times, segments, allowed=None) -> None:
         wrong = np.flatnonzero(bad)
         if wrong.size:
             r = sl.start + wrong[0]
-            where = "" if key is None else f" (trajectory {key!r})"
-            hint = (
-                " If several trajectories are stacked, pass groups= (their labels)."
-                if key is None
-                else ""
-            )
-            raise ValueError(
-                "t must be strictly increasing within each trajectory, but row "
-                f"{r + 1}{where} has t = {float(times[r + 1])!r} after "
-                f"t = {float(times[r])!r} at row {r}. Rows of one trajectory must be "
-                f"contiguous and in time order.{hint}"
-            )
+            raise_backwards(key, r + 1, r, times)
+
+
+def raise_backwards(key, row, previous, stamps, advice=""):
+    """Raise the error of a time stamp (``stamps[row]``) not after the one at
+    ``previous`` in trajectory ``key`` (``None``: no groups given), with
+    ``advice`` appended."""
+    where = "" if key is None else f" (trajectory {key!r})"
+    hint = (
+        " If several trajectories are stacked, pass groups= (their labels)."
+        if key is None
+        else ""
+    )
+    raise ValueError(
+        "t must be strictly increasing within each trajectory, but row "
+        f"{row}{where} has t = {float(stamps[row])!r} after "
+        f"t = {float(stamps[previous])!r} at row {previous}. Rows of one trajectory "
+        f"must be contiguous and in time order.{hint}{advice}"
+    )
 
 
 def _is_uniform(t: np.ndarray) -> bool:

@@ -59,46 +59,10 @@ def simulate(
     atol: float = 1e-9,
     max_step: float = np.inf,
 ) -> np.ndarray:
-    """Integrate the equations of motion from ``x0`` over the times ``t``.
+    """Integrate ``model``'s equations of motion from ``x0`` over the times ``t``.
 
-    Parameters
-    ----------
-    model : MechanicalModel
-    x0 : array-like of shape (2 * n_dof,) or (n_trajectories, 2 * n_dof)
-        Initial state ``[q..., qdot...]``; a 2-D array integrates a batch of
-        trajectories together (vectorised, one shared step size).
-    t : array-like of shape (n_times,)
-        Increasing output times; integration starts at ``t[0]``.
-    tau : None, array-like or callable, optional
-        Inputs ``u`` (``n_inputs`` per time; generalized force ``B u``): ``None``
-        (unforced), an array sampled at ``t`` (shape (n_times, n_inputs), or
-        (n_trajectories, n_times, n_inputs) for a batch; linearly interpolated),
-        or a callable ``tau(t, state)`` returning (n_inputs,) or
-        (n_trajectories, n_inputs).
-    method : str, default="DOP853"
-        Any :func:`scipy.integrate.solve_ivp` method.
-    rtol, atol : float, default=1e-9
-    max_step : float, default=inf
-
-    Notes
-    -----
-    With a sampled ``tau``, every step ends at a sample (the interpolated input
-    has a kink there). For one trajectory of a 1- or 2-dof model with an explicit
-    method (RK23, RK45, DOP853), the step is the method's tableau unrolled on
-    Python floats, with scipy's error norm and step-size control: the same
-    result as scipy's solver to rounding, several times faster.
-
-    Returns
-    -------
-    ndarray of shape (n_times, 2 * n_dof) or (n_trajectories, n_times, 2 * n_dof)
-
-    Raises
-    ------
-    SingularMassMatrixError
-        When the mass matrix becomes singular or indefinite along the way (the
-        message names the time and the state).
-    RuntimeError
-        When the integrator fails for another reason.
+    What :meth:`MechanicalModel.simulate` runs; its parameters, notes, return
+    value and errors are documented there.
     """
     x0 = np.asarray(x0, dtype=float)
     t = np.asarray(t, dtype=float).ravel()

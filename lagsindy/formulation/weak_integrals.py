@@ -206,15 +206,29 @@ def weak_grams(
     order = torch.cat(base)
     q, qd = X[order, :d], X[order, d : 2 * d]
     store = _WEAK_REUSE.get()
-    key = None
-    if store is not None and extra is None and not per_segment:
+    key, dt_kept = None, float(dt)
+    if store is not None:
+        rows = order.shape[0] if per_segment else noise_rows
         key = _reuse_key(
-            ev, X, order, segments_by_window, strides, dt, noise_cov, noise_rows
+            ev, X, order, segments_by_window, strides, dt, noise_cov, rows, per_segment
         )
         found = _kept_block(ev, store.get(key, ()), windows)
         if found is not None:
+
+            def fresh():  # at another sampling interval the kept columns do not apply
+                token = _WEAK_REUSE.set(None)
+                try:
+                    return weak_grams(
+                        ev, X, y, segments_by_window, strides=strides, dt=dt,
+                        noise_cov=noise_cov, noise_rows=noise_rows, extra=extra,
+                        return_noise=return_noise, lazy=True, per_segment=per_segment,
+                    )  # fmt: skip
+                finally:
+                    _WEAK_REUSE.reset(token)
+
+            inputs = _input_integrands(X, y, extra, order)
             return _reused_grams(
-                ev, *found, X, y, order, windows, dt, return_noise, lazy
+                ev, *found, inputs, order, windows, dt, return_noise, lazy, fresh
             )
     lengths = [int(s.shape[0]) for s in base]
     chunks, owner = _integrand_chunks(ev, q, qd, order, y, extra, lengths)
@@ -235,6 +249,7 @@ def weak_grams(
         stride = int(strides[window])
         psi, dpsi = (k.to(X) for k in bump_function(window, dt))
         grams, counts, slices, feats = [], [], [], []
+        keep = key is not None and float(dt) == dt_kept  # the key's sampling interval
         weights = [X.new_zeros(order.shape[0]) for _ in range(3)]
         bands = {}  # per segment length: the windows' banded matrices
         for seg in segments_by_window[window]:
@@ -253,7 +268,7 @@ def weak_grams(
             counts.append(cols.shape[0])
             by_dof = cols.transpose(0, 1)  # (dof, windows, columns)
             grams.append(torch.bmm(by_dof.transpose(1, 2), by_dof))
-            if key is not None:
+            if keep:
                 feats.append((sl, cols[:, :, : ev.n_columns]))
             if sens is not None:
                 for acc, w in zip(
@@ -273,7 +288,7 @@ def weak_grams(
             noise = _noise_block(
                 d, sens, weights, noise_cov, width, slices if per_segment else None
             )
-        if key is not None:  # the features' part, for fits with other forces
+        if keep:  # the features' part, for fits with other forces
             ids = _feature_ids(ev)
             entries = store.setdefault(key, [])
             kept = next((e[1] for e in entries if e[0] == ids), None)
@@ -283,8 +298,8 @@ def weak_grams(
             pf = ev.n_columns
             # copies: the caller owns the returned matrices (and may change them)
             kept[window] = (
-                gram[:, :pf, :pf].clone(),
-                noise[:, :pf, :pf].clone(),
+                gram[..., :pf, :pf].clone(),
+                noise[..., :pf, :pf].clone(),
                 n_windows,
                 stride,
                 feats,
@@ -376,10 +391,13 @@ def _weak_integrands(ev, q, qd, order, y, extra):
     return a_int, b_int
 
 
-def _reuse_key(ev, X, order, segments_by_window, strides, dt, noise_cov, rows):
+def _reuse_key(
+    ev, X, order, segments_by_window, strides, dt, noise_cov, rows, per_segment
+):
     """What the feature part of :func:`weak_grams` depends on besides the
-    features themselves (labelled by :func:`_feature_ids`) and ``y``: the
-    samples, the windows, the sampling interval and the noise correction."""
+    features themselves (labelled by :func:`_feature_ids`), ``y`` and ``extra``:
+    the samples, the windows, the sampling interval, the noise correction and
+    whether the segments are kept apart."""
     d = ev.n_dof
     digest = hashlib.blake2b(
         X[order, : 2 * d].detach().cpu().contiguous().numpy().tobytes(),
@@ -399,6 +417,7 @@ def _reuse_key(ev, X, order, segments_by_window, strides, dt, noise_cov, rows):
         float(dt),
         cov,
         int(rows),
+        bool(per_segment),
     )
 
 
@@ -421,35 +440,63 @@ def _kept_block(ev, entries, windows):
     return None
 
 
-def _reused_grams(ev, kept, index, X, y, order, windows, dt, return_noise, lazy):
-    """:func:`weak_grams` from a reuse block's kept feature columns and new ``y``.
+def _input_integrands(X, y, extra, order):
+    """The b-integrands of the columns that are not features (``-extra``, ``-y``:
+    see :func:`_weak_integrands`), of shape (n, n_dof, e); ``None`` without any."""
+    parts = []
+    if extra is not None:
+        parts.append(-extra[order])
+    if y is not None:
+        parts.append(-y[order].unsqueeze(2))
+    if not parts:
+        return None
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=2)
 
-    The feature block of each Gram matrix (and of its noise part) is gathered
-    from the kept one at ``index``; the force row and column are sums of the kept
-    feature columns times the new force's window integrals.
+
+def _reused_grams(
+    ev, kept, index, inputs, order, windows, dt, return_noise, lazy, fresh
+):
+    """:func:`weak_grams` from a reuse block's kept feature columns and new inputs.
+
+    The feature block of each Gram matrix (and of its noise part; per segment when
+    the kept ones are) is gathered from the kept one at ``index``; the rows and
+    columns of the inputs (``extra`` and ``y``, :func:`_input_integrands`) are sums
+    of the kept feature columns times the inputs' window integrals. At another
+    sampling interval than the kept one (``lazy`` builds take ``dt=``) the
+    statistics are computed afresh (``fresh``).
     """
-    tau = None if y is None else y[order]
-    index = torch.as_tensor(index, dtype=torch.long, device=X.device)
+    device = order.device
+    index = torch.as_tensor(index, dtype=torch.long, device=device)
     pf = len(index)
-    width = pf + (0 if y is None else 1)
+    n_in = 0 if inputs is None else inputs.shape[2]
+    width = pf + n_in
+    again = []  # the fresh statistics, computed once when asked for
+    dt_kept = float(dt)
 
-    def build(window):
+    def build(window, dt=dt):
+        if float(dt) != dt_kept:
+            if not again:
+                again.append(fresh())
+            return again[0][window](dt=dt)
         kept_gram, kept_noise, n_windows, stride, feats = kept[window]
-        gram = kept_gram.new_zeros((ev.n_dof, width, width))
+        lead = kept_gram.shape[:-3]  # (segments,) when kept apart, else ()
+        gram = kept_gram.new_zeros((*lead, ev.n_dof, width, width))
         noise = torch.zeros_like(gram)
-        gram[:, :pf, :pf] = kept_gram[:, index][:, :, index]
-        noise[:, :pf, :pf] = kept_noise[:, index][:, :, index]
-        if tau is not None:
-            psi, _ = (k.to(X) for k in bump_function(window, dt))
-            cross = gram.new_zeros((ev.n_dof, pf))
-            square = gram.new_zeros(ev.n_dof)
-            for sl, cols in feats:
-                ycols = -dt * _correlate(-tau[sl], psi, stride)
-                cross += torch.einsum("wip,wi->ip", cols[:, :, index], ycols)
-                square += (ycols * ycols).sum(0)
-            gram[:, :pf, pf] = cross
-            gram[:, pf, :pf] = cross
-            gram[:, pf, pf] = square
+        gram[..., :pf, :pf] = kept_gram[..., index][..., index, :]
+        noise[..., :pf, :pf] = kept_noise[..., index][..., index, :]
+        if inputs is not None:
+            psi, _ = (k.to(inputs) for k in bump_function(window, dt))
+            cross = gram.new_zeros((len(feats), ev.n_dof, pf, n_in))
+            square = gram.new_zeros((len(feats), ev.n_dof, n_in, n_in))
+            for k, (sl, cols) in enumerate(feats):
+                icols = -dt * _correlate(inputs[sl], psi, stride)  # (w, dof, e)
+                cross[k] = torch.einsum("wip,wie->ipe", cols[:, :, index], icols)
+                square[k] = torch.einsum("wie,wif->ief", icols, icols)
+            if not lead:  # summed over the segments
+                cross, square = cross.sum(0), square.sum(0)
+            gram[..., :pf, pf:] = cross
+            gram[..., pf:, :pf] = cross.transpose(-1, -2)
+            gram[..., pf:, pf:] = square
         return (gram, noise, n_windows) if return_noise else (gram - noise, n_windows)
 
     if lazy:

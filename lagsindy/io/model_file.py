@@ -68,6 +68,7 @@ from .._expr import (
     parse_expression,
     state_names,
 )
+from ..settings import flat_settings
 
 FORMAT = "lagsindy-model"
 SCHEMA_VERSION = 1
@@ -163,21 +164,6 @@ def _plain(value):
 
 
 # ----------------------------------------------------------------------------- save
-def flat_hyperparameters(params: dict) -> dict:
-    """Hyperparameters with the settings objects written out as flat values.
-
-    A formulation object (``WeakForm(window=161)``) becomes its name and its own
-    parameters, which is how files store it (files stay readable by every version:
-    :meth:`LagrangianSINDy.from_fitted` turns them back into the object).
-    """
-    params = dict(params)
-    form = params.get("formulation")
-    if form is not None and not isinstance(form, str):
-        params["formulation"] = form.name
-        params.update(form.get_params(deep=False))
-    return params
-
-
 def model_to_dict(est) -> dict:
     """The JSON document of a fitted estimator (see the module docstring).
 
@@ -197,7 +183,9 @@ def model_to_dict(est) -> dict:
     coef = np.asarray(fitted.coef, dtype=float)
     if not np.all(np.isfinite(coef)):
         raise ValueError("the model has non-finite coefficients; it cannot be saved")
-    params = flat_hyperparameters(est.get_params(deep=False))
+    # the settings objects as flat values, which every version reads (loading turns
+    # them back into the objects: LagrangianSINDy.from_fitted)
+    params = flat_settings(est.get_params(deep=False))
     params.pop("library", None)
     params.pop("dissipation", None)  # its terms are stored under "dissipation"
     params.pop("verbose", None)  # how chatty a session was is not part of the model
@@ -530,7 +518,7 @@ def model_from_dict(doc: dict):
         # The weak form's sampling interval and noise covariance are not saved:
         # refits (e.g. by diagnose) estimate them again from their data (dt from
         # the `dt` hyperparameter when it was given).
-        dt=None if hyper.get("dt") is None else float(hyper["dt"]),
+        dt=float(hyper["dt"]) if _is_number(hyper.get("dt")) else None,
         n_iter=int(values["n_iter"]),
         residual=None if residual is None else float(residual),
         tau_1d=bool(values["tau_1d"]),

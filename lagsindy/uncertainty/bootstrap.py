@@ -353,7 +353,7 @@ def bootstrap(
         params["formulation"] = type(form)(
             window=int(full.window_), dt=form.dt, noise_cov=full.noise_cov_
         )
-    base = clone(est).set_params(**params)
+    base = pipeline.copy_with(est, **params)
 
     traj = np.zeros(n, dtype=np.int64) if groups is None else np.asarray(groups)
     if traj.shape != (n,):

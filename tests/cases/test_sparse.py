@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from lagsindy import LagrangianSINDy
+from lagsindy import CandidateLibrary, LagrangianSINDy, pipeline
 from lagsindy.cases import SparseSolve, sparse
 from lagsindy.formulation.scaling import BalancedGram
 from lagsindy.solvers import StagedFISTA, staged_fista_batch
@@ -44,10 +44,12 @@ def _resamples(count=12, seed=1):
 
 
 # ----------------------------------------------------------------- settings
-def test_from_params_and_from_settings():
-    params = LagrangianSINDy(threshold=0.2, lam=0.05, verbose=2).get_params()
-    solver = SparseSolve.from_params(params, 3, [False, False, False, True])
-    assert solver.settings.get_params() == StagedFISTA(threshold=0.2).get_params()
+def test_from_settings_and_the_estimators_setup():
+    settings = StagedFISTA(threshold=0.2)
+    solver = SparseSolve.from_settings(
+        settings, lam=0.05, alpha=None, n_terms=3, dissipative=[0, 0, 0, 1], verbose=2
+    )
+    assert solver.settings is settings
     assert (solver.lam, solver.alpha, solver.verbose) == (0.05, None, 2)
     # the settings' parameters read through; replace keeps them
     assert solver.max_iter == solver.settings.max_iter == 20_000
@@ -58,13 +60,21 @@ def test_from_params_and_from_settings():
     np.testing.assert_array_equal(solver.thresholds([0, 2, 3]), [0.2, 0.2, 1e-3])
     assert solver.nonneg([0, 1], "cpu") is None
     assert solver.nonneg([1, 3], "cpu").tolist() == [False, True]
-    # a settings object given as ``solver`` wins, and is checked
-    own = SparseSolve.from_params({**params, "solver": StagedFISTA(max_stages=2)}, 3,
-                                  [False] * 4, verbose=0)  # fmt: skip
-    assert own.max_stages == 2 and own.verbose == 0
+    # the settings are checked
     with pytest.raises(ValueError, match="max_stages"):
-        SparseSolve.from_params({**params, "solver": StagedFISTA(max_stages=0)}, 3,
-                                [False] * 4)  # fmt: skip
+        SparseSolve.from_settings(StagedFISTA(max_stages=0), lam=0.1, alpha=None,
+                                  n_terms=3, dissipative=[False] * 3)  # fmt: skip
+    # an estimator's setup: its solver object, or the deprecated flat parameters
+    library = CandidateLibrary.polynomial(["x"], degree=2).build()
+    for est in (
+        LagrangianSINDy(lam=0.05, solver=StagedFISTA(max_stages=2)),
+        LagrangianSINDy(lam=0.05, max_stages=2),
+    ):
+        setup = pipeline.make_setup(est.get_params(), library, pipeline.Dissipation(),
+                                    "forces")  # fmt: skip
+        assert setup.solver.max_stages == 2 and setup.solver.lam == 0.05
+        expected = StagedFISTA(max_stages=2).get_params()
+        assert setup.solver.settings.get_params() == expected
 
 
 @pytest.mark.parametrize(

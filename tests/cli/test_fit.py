@@ -308,7 +308,7 @@ def test_fit_chooses_the_window_and_says_which(capsys, tmp_path):
     code, out, err = run(capsys, *fit, "--window", "81", "--out", tmp_path / "b.json")
     assert code == 0, err
     assert "(weak form, test window 81 samples)" in out + err
-    assert LagrangianSINDy.load(tmp_path / "b.json").window == 81
+    assert LagrangianSINDy.load(tmp_path / "b.json").formulation.window == 81
     code, _, err = run(capsys, *fit, "--window", "3", "--out", tmp_path / "c.json")
     assert code == 2 and "--window must be at least 5" in err
     # the README's "auto" is accepted, as the default it is

@@ -8,6 +8,7 @@ import pytest
 import sympy as sp
 
 from lagsindy import CandidateLibrary, LagrangianSINDy
+from lagsindy.solvers import StagedFISTA
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
 
@@ -85,9 +86,9 @@ def test_verbose_prints_stages(single_active, capsys):
 
 
 def test_stages_record_the_path(cart_active):
-    est = LagrangianSINDy(cart_pendulum().paper_library(), tol=0.0, max_stages=3).fit(
-        cart_active.X, cart_active.tau
-    )
+    est = LagrangianSINDy(
+        cart_pendulum().paper_library(), solver=StagedFISTA(tol=0.0, max_stages=3)
+    ).fit(cart_active.X, cart_active.tau)
     assert len(est.stages_) == 3
     lams = [st.lam for st in est.stages_]
     assert lams[1] == pytest.approx(lams[0] / 10) and lams[2] == pytest.approx(

@@ -14,6 +14,7 @@ from sklearn.exceptions import ConvergenceWarning
 
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy.estimator import IdentifiabilityWarning
+from lagsindy.solvers import StagedFISTA
 from lagsindy.systems import single_pendulum
 
 # These tests are about the solver's numerics on short, exact data, where the strong
@@ -55,9 +56,9 @@ def test_tiny_step_warns_that_fista_did_not_converge(pend, library):
     # max_iter below the first active-set search (iteration 50), which would end
     # the run at the minimiser whatever the step
     with pytest.warns(ConvergenceWarning, match="max_iter=40"):
-        LagrangianSINDy(library, formulation=STRONG, alpha=1e-9, max_iter=40).fit(
-            pend.X, pend.tau
-        )
+        LagrangianSINDy(
+            library, formulation=STRONG, alpha=1e-9, solver=StagedFISTA(max_iter=40)
+        ).fit(pend.X, pend.tau)
 
 
 def test_tiny_step_is_rescued_by_the_active_set_search(pend, library, reference):
@@ -74,9 +75,9 @@ def test_tiny_step_is_rescued_by_the_active_set_search(pend, library, reference)
 # ----------------------------------------------------------------- iterations
 def test_max_iter_reached_warns(pend, library):
     with pytest.warns(ConvergenceWarning, match=r"max_iter=3 .*stage\(s\) \[1"):
-        est = LagrangianSINDy(library, formulation=STRONG, max_iter=3).fit(
-            pend.X, pend.tau
-        )
+        est = LagrangianSINDy(
+            library, formulation=STRONG, solver=StagedFISTA(max_iter=3)
+        ).fit(pend.X, pend.tau)
     assert est.n_iter_ <= 3 * len(est.stages_)
     assert not all(st.converged for st in est.stages_)
 
@@ -92,7 +93,10 @@ def test_converged_fit_does_not_warn(pend, library):
 def empty(pend, library):
     with pytest.warns(UserWarning, match="every Lagrangian term was thresholded away"):
         return LagrangianSINDy(
-            library, formulation=STRONG, lam=10.0, max_stages=1, debias=False
+            library,
+            formulation=STRONG,
+            lam=10.0,
+            solver=StagedFISTA(max_stages=1, debias=False),
         ).fit(pend.X, pend.tau)
 
 
@@ -120,9 +124,9 @@ def test_empty_support_cannot_be_simulated_and_pickles(empty, pend):
 
 def test_threshold_near_one_keeps_the_dominant_term(pend, library):
     with pytest.warns(UserWarning, match="mass matrix"):
-        est = LagrangianSINDy(library, formulation=STRONG, threshold=0.999).fit(
-            pend.X, pend.tau
-        )
+        est = LagrangianSINDy(
+            library, formulation=STRONG, solver=StagedFISTA(threshold=0.999)
+        ).fit(pend.X, pend.tau)
     assert est.support_.sum() == 1
     assert np.all(np.isfinite(est.predict(pend.X)))
     # a potential alone has no mass matrix: forward dynamics give zero, not NaN
@@ -203,6 +207,9 @@ def test_case_II_singular_mass_matrix_is_a_clear_error(pend):
         ["theta"], ["cos(theta)", "sin(theta)**2", "theta**2"]
     )
     with pytest.raises(ValueError, match=r"case='acceleration' failed.*velocity term"):
-        LagrangianSINDy(lib, formulation=STRONG, case="acceleration", max_iter=300).fit(
-            pend.X[:300]
-        )
+        LagrangianSINDy(
+            lib,
+            formulation=STRONG,
+            case="acceleration",
+            solver=StagedFISTA(max_iter=300),
+        ).fit(pend.X[:300])

@@ -10,6 +10,7 @@ import pytest
 
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy
 from lagsindy.estimator import IdentifiabilityWarning
+from lagsindy.formulation import make_formulation
 from lagsindy.systems import (
     cart_pendulum,
     double_pendulum,
@@ -217,8 +218,7 @@ def test_fitted_dissipation_is_never_negative():
         est = LagrangianSINDy(
             single_pendulum().paper_library(),
             dissipation=dlib,
-            formulation=form,
-            dt=0.01,
+            formulation=make_formulation(form, dt=0.01),
         ).fit(data.X, data.tau, groups=data.groups)
         assert np.all(est.dissipation_coef_ >= 0), (form, est.dissipation_coef_)
 

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from lagsindy import LagrangianSINDy
+from lagsindy.formulation import WeakForm
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
 
@@ -32,7 +33,7 @@ def test_shuffled_rows_fall_back_to_the_strong_form_and_say_so(pendulum):
         est = LagrangianSINDy(lib).fit(X, tau)
     assert est.formulation_ == "strong"
     with pytest.raises(ValueError, match="time-ordered|positive sampling interval"):
-        LagrangianSINDy(lib, formulation="weak", dt=0.01).fit(X, tau)
+        LagrangianSINDy(lib, formulation=WeakForm(dt=0.01)).fit(X, tau)
 
 
 @pytest.mark.parametrize("sigma", [0.1, 0.2])

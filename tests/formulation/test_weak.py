@@ -11,7 +11,7 @@ from _sympy_reference import random_states
 from lagsindy import CandidateLibrary, LagrangianSINDy
 from lagsindy._expr import compile_torch, symbols_for
 from lagsindy.evaluator import TorchTerms
-from lagsindy.formulation import testfunctions, weak_integrals
+from lagsindy.formulation import AutoForm, testfunctions, weak_integrals
 from lagsindy.formulation.operator import EulerLagrangeOperator
 from lagsindy.formulation.testfunctions import _band, _correlate, bump_function
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
@@ -292,6 +292,66 @@ def test_reuse_weak_columns_serves_a_subset_of_the_kept_features(reused_grams):
     assert float(fresh[tau][1].abs().max()) > 0  # the noise part is there to compare
 
 
+def test_reuse_weak_columns_per_segment_with_extra_columns(reused_grams):
+    """Statistics kept per segment (what diagnose's folds and the bootstrap sum) are
+    reused too, with other forces and other extra columns: equal to a fresh call to
+    rounding; a build at another sampling interval is computed afresh."""
+    op, X, tau, cov = _cart_weak_case(3, 7)
+    segs = [torch.arange(0, 500), torch.arange(500, 1000), torch.arange(1000, 1500)]
+    kw = dict(
+        strides={61: 15}, dt=0.01, noise_cov=cov, return_noise=True, per_segment=True
+    )
+    shifted = torch.roll(tau, 5, dims=0) * 1.3
+    extra = -tau[:, :, None].repeat(1, 1, 2) * torch.tensor([1.0, 0.5])
+    extra_sh = -shifted[:, :, None].repeat(1, 1, 2) * torch.tensor([1.0, 0.5])
+    fresh = op.weak_grams(X, shifted, {61: segs}, extra=extra_sh, **kw)[61]
+    later = op.weak_grams(X, shifted, {61: segs}, extra=extra_sh, lazy=True, **kw)
+    reused = reused_grams
+    with weak_integrals.reuse_weak_columns():
+        op.weak_grams(X, tau, {61: segs}, extra=extra, **kw)
+        assert not reused
+        again = op.weak_grams(X, shifted, {61: segs}, extra=extra_sh, **kw)[61]
+        assert len(reused) == 1
+        lazy = op.weak_grams(X, shifted, {61: segs}, extra=extra_sh, lazy=True, **kw)
+        other_dt = lazy[61](dt=0.0101)  # not the kept interval: afresh
+        kw_whole = {k: v for k, v in kw.items() if k != "per_segment"}
+        op.weak_grams(X, shifted, {61: segs}, **kw_whole)  # summed: another key
+        assert len(reused) == 2
+    for a, b in zip(again[:2], fresh[:2]):  # Gram and noise part, per segment
+        a, b = a.numpy(), b.numpy()
+        assert a.shape == b.shape == (3, 2, op.n_columns + 3, op.n_columns + 3)
+        # measured: equal bit for bit (a gathered block; the inputs' rows from the
+        # kept columns); another BLAS may round the sums differently
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-13 * np.abs(b).max())
+    np.testing.assert_array_equal(again[2], fresh[2])  # windows per segment
+    assert float(fresh[1].abs().max()) > 0  # the noise part is there to compare
+    for a, b in zip(other_dt, later[61](dt=0.0101)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # the comparison can fail: the inputs' rows differ from the first call's
+    first = op.weak_grams(X, tau, {61: segs}, extra=extra, **kw)[61]
+    assert not torch.allclose(first[0][..., -1], fresh[0][..., -1])
+
+
+def test_a_build_at_another_sampling_interval_is_not_kept(reused_grams):
+    """Inside a reuse block a lazy build asked for at another sampling interval than
+    its call's keeps nothing: a later call at the call's interval computes afresh."""
+    op, X, tau, cov = _cart_weak_case(3, 8)
+    segs = [torch.arange(0, 500), torch.arange(500, 1000), torch.arange(1000, 1500)]
+    kw = dict(
+        strides={61: 15}, dt=0.01, noise_cov=cov, return_noise=True, per_segment=True
+    )
+    shifted = torch.roll(tau, 4, dims=0)
+    fresh = op.weak_grams(X, shifted, {61: segs}, **kw)[61]
+    reused = reused_grams
+    with weak_integrals.reuse_weak_columns():
+        lazy = op.weak_grams(X, tau, {61: segs}, lazy=True, **kw)
+        lazy[61](dt=0.0102)
+        again = op.weak_grams(X, shifted, {61: segs}, **kw)[61]
+        assert not reused
+    for a, b in zip(again, fresh):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
 def test_reuse_weak_columns_keeps_its_own_copy():
     """A caller changing the matrices a kept call returned does not change what a
     later call gathers."""
@@ -403,10 +463,14 @@ def test_long_record_fits_as_with_the_whole_band(monkeypatch):
         random_state=0,
     )  # fmt: skip
     library = cart_pendulum().paper_library()
-    whole = LagrangianSINDy(library, window=81).fit(data.X, data.tau)
+    whole = LagrangianSINDy(library, formulation=AutoForm(window=81)).fit(
+        data.X, data.tau
+    )
     monkeypatch.setattr(testfunctions, "BAND_ENTRIES", 1000)
     monkeypatch.setattr(testfunctions, "BAND_BLOCK", 8)
-    blocks = LagrangianSINDy(library, window=81).fit(data.X, data.tau)
+    blocks = LagrangianSINDy(library, formulation=AutoForm(window=81)).fit(
+        data.X, data.tau
+    )
     # measured: 3.1e-13 relative at most
     np.testing.assert_allclose(blocks.coef_, whole.coef_, rtol=1e-12, atol=0)
     assert np.array_equal(blocks.coef_ != 0, whole.coef_ != 0)

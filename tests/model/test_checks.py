@@ -18,6 +18,7 @@ from lagsindy.model import (
     degree_reading_gain,
     degrees_hint,
 )
+from lagsindy.solvers import StagedFISTA
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
 
