@@ -28,6 +28,7 @@ from .dissipation import library_of
 from .export import export_model, linearize, to_casadi
 from .formulation.scaling import IdentifiabilityWarning  # noqa: F401 - 0.1 path
 from .io.model_file import read_model_file, write_model_file
+from .joint import JointDissipation
 from .model import (  # noqa: F401 - MassCheck, mass_matrix_check: their 0.1 path
     FittedLagrangian,
     MassCheck,
@@ -362,13 +363,20 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_t = None if tau is None else to_tensor(tau, dtype=dtype, device=device)
         formulation = pipeline.formulation_of(self.get_params(deep=False), setup.case)
-        ladder = pipeline.fit_statistics(formulation, setup, Xt, tau_t, groups)
-        stats, solution = pipeline.solve_ladder(
-            ladder, setup, Xt, tau, verbose=self.verbose
-        )
         tau_1d = tau is not None and np.asarray(y).ndim == 1
-        fitted = pipeline.fitted_state(setup, stats, solution, tau_1d=tau_1d)
-        pipeline.check_fit(fitted, setup, stats, solution, Xt, tau)
+        # dissipation dominating the conservative fit: refit jointly (lagsindy.joint)
+        joint = JointDissipation(setup, self.get_params(deep=False))
+        with joint.watch():
+            ladder = pipeline.fit_statistics(formulation, setup, Xt, tau_t, groups)
+            stats, solution = pipeline.solve_ladder(
+                ladder, setup, Xt, tau, verbose=self.verbose
+            )
+            fitted = pipeline.fitted_state(setup, stats, solution, tau_1d=tau_1d)
+            pipeline.check_fit(fitted, setup, stats, solution, Xt, tau)
+        fitted = joint.result(
+            fitted, stats, solution, formulation, Xt, tau_t, tau, groups,
+            verbose=self.verbose, tau_1d=tau_1d,
+        )  # fmt: skip
         return self._publish(fitted)
 
     def _setup(self, X, y):

@@ -190,6 +190,11 @@ class FittedLagrangian:
     tau_1d : bool
         The forces were given as a 1-D array (predictions are then 1-D).
     mass_check : MassCheck or None
+    joint_dissipation : dict or None
+        Set when the fit found friction or damping dominating what a conservative
+        fit left and fitted it jointly with the Lagrangian
+        (:func:`lagsindy.pipeline.fit_model`): ``kinds``, the probes' ``share`` and
+        ``named`` forces, the conservative fit's ``residual``.
     """
 
     library: object
@@ -210,6 +215,7 @@ class FittedLagrangian:
     residual: float | None = None
     tau_1d: bool = False
     mass_check: MassCheck | None = None
+    joint_dissipation: dict | None = None
 
     def __post_init__(self):
         from .dissipation import assemble
@@ -291,6 +297,7 @@ class FittedLagrangian:
             "formulation_": self.formulation,
             "window_": self.window,
             "mass_check_": self.mass_check,
+            "joint_dissipation_": self.joint_dissipation,
         }
         out.update({k: v for k, v in optional.items() if v is not None})
         return out

@@ -56,6 +56,7 @@ __all__ = [
     "fitted_formulation",
     "formulation_of",
     "problem",
+    "probes_of",
     "solve",
     "solve_ladder",
 ]
@@ -343,20 +344,31 @@ def check_fit(fitted, setup: FitSetup, stats, solution, Xt, tau, *, stacklevel=4
     fitted.mass_check = fitted.checked_mass(Xt, stacklevel=stacklevel)
     norms = stats.gram.diagonal(dim1=1, dim2=2).sum(0).clamp(min=0).sqrt()
     fitted.warn_angle_polynomials(Xt, to_numpy(norms)[:n_terms], stacklevel=stacklevel)
-    probed = probe_forces(
-        stats,
-        coef,
-        setup.normalize,
-        probe_term(setup.case, coef[:n_terms], solution.fixed),
-        solution.row_scale,
-    )
-    sign = -1.0 if fitted.mass_check.negative > 0.5 else 1.0
+    probed, sign = probes_of(fitted, setup, stats, solution)
     if not warn_unmodelled(probed, sign, stacklevel=stacklevel):
         fitted.warn_unexplained(stacklevel=stacklevel, Xt=Xt)
         fitted.warn_poor_accelerations(
             Xt, solution.score, stacklevel=stacklevel, tau=tau
         )
     return fitted
+
+
+def probes_of(fitted, setup: FitSetup, stats, solution):
+    """``(ProbeResult or None, kinetic_sign)``: what the probe forces explain of the
+    fit's residual (see :func:`~lagsindy.formulation.probes.probe_forces`), and the
+    sign of the learned kinetic energy (-1 when ``fitted.mass_check`` finds the mass
+    matrix mostly negative)."""
+    coef = solution.coef
+    probed = probe_forces(
+        stats,
+        coef,
+        setup.normalize,
+        probe_term(setup.case, coef[: setup.n_terms], solution.fixed),
+        solution.row_scale,
+    )
+    check = fitted.mass_check
+    sign = -1.0 if check is not None and check.negative > 0.5 else 1.0
+    return probed, sign
 
 
 # ------------------------------------------------------------------------- setups

@@ -28,7 +28,7 @@ LAYERS = [
     ("cases", ["cases"]),
     ("fitted state", ["model", "io.model_file"]),
     ("what a model is used for", ["export"]),
-    ("pipeline", ["pipeline"]),
+    ("pipeline", ["pipeline", "joint"]),
     ("estimator", ["estimator"]),
     (
         "consumers",

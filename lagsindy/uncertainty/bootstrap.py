@@ -61,6 +61,7 @@ from .._validation import validate_state
 from ..formulation.forms import group_rows
 from ..formulation.operator import NOISE_ROWS
 from ..formulation.probes import without_probes
+from ..joint import refit_config
 from ._resampling import (
     batch_supported,
     batched_resamples,
@@ -333,7 +334,8 @@ def bootstrap(
         params["formulation"] = type(form)(
             window=int(full.window_), dt=form.dt, noise_cov=full.noise_cov_
         )
-    base = clone(est).set_params(**params)
+    # a fit redone jointly with dissipation: the resamples' refits fit it too
+    base = clone(refit_config(full)).set_params(**params)
 
     traj = np.zeros(n, dtype=np.int64) if groups is None else np.asarray(groups)
     if traj.shape != (n,):
