@@ -137,6 +137,11 @@ def _library(args, coords, angles):
         if not extra:
             raise CLIError("--library terms needs --terms 'a,b,...'")
         return CandidateLibrary.from_terms(coords, extra)
+    if kind == "chain":
+        chain = CandidateLibrary.chain(coords, angles=list(angles or []))
+        if extra:
+            chain = chain + CandidateLibrary.from_terms(coords, extra)
+        return chain
     builder = (
         CandidateLibrary.polynomial if kind == "poly" else CandidateLibrary.separated
     )

@@ -91,7 +91,10 @@ def refit_like(est, **params):
     (formulation, case, fixed term) instead of searching again, with ``params``."""
     from sklearn.base import clone
 
-    sub = clone(est).set_params(verbose=0, formulation=est.formulation_, case=est.case_)
+    from ..joint import refit_config
+
+    sub = clone(refit_config(est))  # a joint fit's dissipation, too
+    sub.set_params(verbose=0, formulation=est.formulation_, case=est.case_)
     if getattr(est, "window_", None) is not None:
         sub.set_params(window=est.window_)
     sub.set_params(**params)
