@@ -195,6 +195,10 @@ class FittedLagrangian:
         fit left and fitted it jointly with the Lagrangian
         (:func:`lagsindy.pipeline.fit_model`): ``kinds``, the probes' ``share`` and
         ``named`` forces, the conservative fit's ``residual``.
+    unmodelled : dict or None
+        Set when the fit warned that friction or damping it lacks explains much of
+        its residual (:class:`~lagsindy.formulation.probes.UnmodelledForceWarning`):
+        ``share`` and the ``named`` forces; :func:`lagsindy.diagnose` reports on it.
     """
 
     library: object
@@ -216,6 +220,7 @@ class FittedLagrangian:
     tau_1d: bool = False
     mass_check: MassCheck | None = None
     joint_dissipation: dict | None = None
+    unmodelled: dict | None = None
 
     def __post_init__(self):
         from .dissipation import assemble

@@ -345,7 +345,9 @@ def check_fit(fitted, setup: FitSetup, stats, solution, Xt, tau, *, stacklevel=4
     norms = stats.gram.diagonal(dim1=1, dim2=2).sum(0).clamp(min=0).sqrt()
     fitted.warn_angle_polynomials(Xt, to_numpy(norms)[:n_terms], stacklevel=stacklevel)
     probed, sign = probes_of(fitted, setup, stats, solution)
-    if not warn_unmodelled(probed, sign, stacklevel=stacklevel):
+    if warn_unmodelled(probed, sign, stacklevel=stacklevel):
+        fitted.unmodelled = {"share": float(probed.share), "named": dict(probed.named)}
+    else:
         fitted.warn_unexplained(stacklevel=stacklevel, Xt=Xt)
         fitted.warn_poor_accelerations(
             Xt, solution.score, stacklevel=stacklevel, tau=tau
