@@ -304,7 +304,7 @@ def _apply_delay(args, df, X, tau, groups, est):
             "--delay shifts the input columns, but the data have none (passive data); "
             "drop --delay or give the input with --input"
         )
-    from ..delay import estimate_delay, shift_input
+    from ..delay import estimate_delay, shift_input, worth_trying
 
     if "t" in df.columns:
         t = _numeric(df, ["t"], args.data)[:, 0]
@@ -320,6 +320,22 @@ def _apply_delay(args, df, X, tau, groups, est):
             )
         _say(args, "estimating the input delay (held-out fits over sample shifts) ...")
         result = estimate_delay(est, X, tau, t, groups=groups)
+        steps = np.diff(t)
+        dt = float(np.median(steps[steps > 0])) if np.any(steps > 0) else 0.0
+        if not worth_trying(result, dt):
+            import warnings
+
+            # an estimate within twice its spread (or under a tenth of a sample)
+            # is not told from no delay: reported, not applied
+            warnings.warn(
+                f"--delay auto: {result}, which is not significant (it must exceed "
+                "twice its standard error and a tenth of the sampling interval "
+                f"{1e3 * dt:.3g} ms): the inputs are NOT shifted; give --delay "
+                "SECONDS to apply a delay anyway",
+                UserWarning,
+                stacklevel=2,
+            )
+            return tau
         _say(args, f"{result}; the inputs are shifted by it")
         delay = result.delay
     else:

@@ -91,19 +91,24 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
                 how=how,
             )
         )
-    boot = None
+    boot, boot_error = None, None
     if bootstrap is not None:
-        boot = _bootstrap_final(
-            final,
-            Xf,
-            tau_final,
-            search.groups,
-            search.segments,
-            search.Xa.shape[0],
-            int(bootstrap),
-            random_state,
-            search.verbose,
-        )
+        try:
+            boot = _bootstrap_final(
+                final,
+                Xf,
+                tau_final,
+                search.groups,
+                search.segments,
+                search.Xa.shape[0],
+                int(bootstrap),
+                random_state,
+                search.verbose,
+            )
+        except (ValueError, FloatingPointError, RuntimeError) as exc:
+            # the report is not lost for it (np.linalg.LinAlgError is a ValueError)
+            boot_error = f"{type(exc).__name__}: {exc}"
+    if boot is not None:
         by_term = {t: k for k, t in enumerate(boot.terms)}
         for s in steps:
             k = by_term.get(
@@ -146,7 +151,12 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
             "window": search.win if search.stats_w is not None else None,
             "start_valid": search.start_valid,
             "final_degenerate": [int(k) for k in final_bad],
-            "notes": _notes(est, search, steps),
+            "notes": _notes(est, search, steps)
+            + (
+                [f"the bootstrap failed ({boot_error}); no intervals"]
+                if boot_error
+                else []
+            ),
             "swaps": search.swaps,
         },
         _data={

@@ -432,8 +432,13 @@ def bootstrap(
         both = np.concatenate(
             [np.ones((1, n_groups), dtype=all_mults.dtype), all_mults]
         )
-        solved = batched_resamples(setup, stats, both, start)
-        if reproduces(solved[0], seam, _BATCH_RTOL, scale):
+        try:
+            solved = batched_resamples(setup, stats, both, start)
+        except (ValueError, FloatingPointError, RuntimeError):
+            # one unsolvable resample (a motionless stretch drawn many times:
+            # "Eigenvalues did not converge") fails the batch: one at a time instead
+            solved = None
+        if solved is not None and reproduces(solved[0], seam, _BATCH_RTOL, scale):
             batched = solved[1:]
     if batched is not None:
         missing = [i for i, c in enumerate(batched) if c is None]

@@ -250,7 +250,7 @@ def test_probes_weight_the_equations_as_the_fit_did(damped):
     import lagsindy.pipeline as estimator_module
 
     system, data = damped
-    with pytest.MonkeyPatch.context() as mp:
+    with pytest.MonkeyPatch.context() as mp, conservative_fits():
         mp.setattr(estimator_module, "probe_forces", spy)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
