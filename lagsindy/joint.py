@@ -235,9 +235,9 @@ class JointDissipation:
         warnings.warn(
             f"friction or damping explains {probed.share:.0%} of what a conservative "
             f"fit leaves ({named}), so the Lagrangian was fitted jointly with "
-            f"DissipationLibrary({kinds}) (penalized; kept: {which}); "
-            "est.joint_dissipation_ records it. Pass "
-            "dissipation=DissipationLibrary([]) to keep the conservative fit.",
+            f"DissipationLibrary({kinds}) (penalized; kept: {which}). "
+            "est.joint_dissipation_ records it. To keep the conservative fit, pass "
+            "dissipation=DissipationLibrary([]).",
             JointDissipationWarning,
             stacklevel=3,
         )

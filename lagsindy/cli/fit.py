@@ -286,7 +286,13 @@ def _fit_csv(args):
         + f", library {args.library} ({n_terms} terms) ...",
     )
     start = time.perf_counter()
-    est.fit(X, tau, groups=groups)
+    if getattr(args, "conservative", False):
+        from ..joint import conservative_fits
+
+        with conservative_fits():  # no joint refit: the probes' warning instead
+            est.fit(X, tau, groups=groups)
+    else:
+        est.fit(X, tau, groups=groups)
     elapsed = time.perf_counter() - start
     if _derivatives_estimated(df, coords, args):
         _warn_strong_form(est, args)
@@ -319,12 +325,21 @@ def _apply_delay(args, df, X, tau, groups, est):
                 "delay in seconds (e.g. the one `lagsindy fit --delay auto` printed)"
             )
         _say(args, "estimating the input delay (held-out fits over sample shifts) ...")
-        result = estimate_delay(est, X, tau, t, groups=groups)
+        import warnings
+
+        from sklearn.base import clone
+
+        # the configuration the fit will use: with the dissipation a joint fit adds
+        # (lagsindy.joint), which the delay search's refits (without probes) keep
+        start_fit = clone(est).set_params(verbose=0)
+        if not getattr(args, "conservative", False):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                start_fit.fit(X, tau, groups=groups)
+        result = estimate_delay(start_fit, X, tau, t, groups=groups)
         steps = np.diff(t)
         dt = float(np.median(steps[steps > 0])) if np.any(steps > 0) else 0.0
         if not worth_trying(result, dt):
-            import warnings
-
             # an estimate within twice its spread (or under a tenth of a sample)
             # is not told from no delay: reported, not applied
             warnings.warn(

@@ -127,9 +127,17 @@ def _add_fit_options(p, *, required):
         "--input",
         default=None,
         help="generalized-force columns, one per coordinate, e.g. tau_x,tau_theta; "
-        "'-' for an undriven coordinate (zero force), e.g. force,- for a cart-pole "
-        "driven on the cart only (default: tau_<coordinate> when the CSV has all of "
-        "them, else passive data)",
+        "'-' or 0 for an undriven coordinate (zero force), e.g. force,- for a "
+        "cart-pole driven on the cart only (an undriven first coordinate: "
+        "--input=-,force or 0,force) (default: tau_<coordinate> when the CSV has all "
+        "of them, else passive data)",
+    )
+    p.add_argument(
+        "--conservative",
+        action="store_true",
+        help="keep the conservative fit even when friction or damping explains most "
+        "of what it leaves (default: the Lagrangian is then fitted jointly with "
+        "viscous and Coulomb friction candidates, and a warning says so)",
     )
     p.add_argument(
         "--undriven",
