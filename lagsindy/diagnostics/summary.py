@@ -221,7 +221,11 @@ def _notes(est, search, steps) -> list:
     ]  # fmt: skip
     if unmodelled and not dissipative:
         named = ", ".join(f"{k} = {v:.3g}" for k, v in unmodelled["named"].items())
-        why = search.stop_reason or "no refit with it predicted held-out data better"
+        why = (
+            (search.stop_reason or "no refit with it predicted held-out data better")
+            if search.diss
+            else "the catalogue holds no friction or damping kind"
+        )
         notes.append(
             f"the fit warned that friction or damping ({named}) explains "
             f"{unmodelled['share']:.0%} of what it leaves; the diagnosis adds none: "
