@@ -53,6 +53,7 @@ def test_a_degenerate_starting_model_is_revised_jointly(collapsed):
     # measured: ratio 0.99996 of l / 2g, viscous(x) 2.9995
     assert pole_ratio(report.final) == pytest.approx(TRUE_POLE_RATIO, rel=2e-4)
     assert found_damping(report.final) == pytest.approx(3.0, rel=1e-3)
+    assert [s.how for s in report.steps] == ["joint"]  # step 1, not an addition
     text = str(report)
     assert "note: the starting model cannot predict accelerations" in text
     assert "revised jointly" in text
