@@ -120,6 +120,17 @@ def dominates(result, kinetic_sign: float = 1.0) -> bool:
     return all(kinetic_sign * c > 0 for c in result.named.values())
 
 
+# Registries of the warnings shown again, per file: as warnings.warn's per-module
+# registry, a "default" filter shows a warning from one place once, not at every fit.
+_REGISTRIES: dict = {}
+
+
+def _show(w):
+    """Show a recorded warning again, from its original place."""
+    registry = _REGISTRIES.setdefault(w.filename, {})
+    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, None, registry)
+
+
 class JointDissipation:
     """Redo a fit jointly with dissipation when its probes find damping dominating.
 
@@ -166,7 +177,7 @@ class JointDissipation:
     def replay(self):
         """Show the held warnings (with their original place)."""
         for w in self.caught:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            _show(w)
         self.caught = []
 
     def result(
@@ -242,7 +253,7 @@ class JointDissipation:
             stacklevel=3,
         )
         for w in caught:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+            _show(w)
         return joint
 
 
