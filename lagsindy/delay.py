@@ -31,6 +31,7 @@ from sklearn.model_selection import GroupKFold
 from . import pipeline
 from ._torch import resolve_device, resolve_dtype, to_tensor
 from ._validation import validate_state
+from .joint import refit_config
 
 __all__ = ["DelayEstimate", "estimate_delay", "shift_input"]
 
@@ -259,7 +260,7 @@ def estimate_delay(
     >>> est.fit(X, shift_input(tau, t, d.delay, groups), groups=groups)  # doctest: +SKIP
     """
     return _estimate_delay(
-        estimator,
+        refit_config(estimator),  # a jointly refitted model: its dissipation
         X,
         tau,
         t,
@@ -582,7 +583,7 @@ def diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
     groups = labels if len(segments) >= 2 else None
     # the formulation est's fit used, with the window it chose
     base = pipeline.copy_with(
-        est, verbose=0, formulation=pipeline.fitted_formulation(est)
+        refit_config(est), verbose=0, formulation=pipeline.fitted_formulation(est)
     )
     try:
         # Its refits differ only in the shifted input: with the weak form they

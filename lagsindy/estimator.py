@@ -22,6 +22,7 @@ from .export import export_model, linearize, to_casadi
 from .formulation.clocked import rows_on_even_clock
 from .formulation.scaling import IdentifiabilityWarning  # noqa: F401 - 0.1 path
 from .io.model_file import read_model_file, write_model_file
+from . import joint
 from .model import FittedLagrangian, MassCheck, mass_matrix_check  # noqa: F401
 
 
@@ -295,8 +296,15 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
             )
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_1d = tau is not None and np.asarray(y).ndim == 1
-        fitted = pipeline.fit_data(
-            setup, formulation, Xt, tau, groups, tau_1d=tau_1d, verbose=self.verbose
+        fitted = joint.fit(
+            setup,
+            params,
+            formulation,
+            Xt,
+            tau,
+            groups,
+            tau_1d=tau_1d,
+            verbose=self.verbose,
         )
         return self._publish(fitted)
 

@@ -158,6 +158,15 @@ class FittedLagrangian:
     tau_1d : bool
         The forces were given as a 1-D array (predictions are then 1-D).
     mass_check : MassCheck or None
+    joint_dissipation : dict or None
+        Set when the fit found friction or damping dominating what a conservative
+        fit left and fitted it jointly with the Lagrangian
+        (:func:`lagsindy.pipeline.fit_model`): ``kinds``, the probes' ``share`` and
+        ``named`` forces, the conservative fit's ``residual``.
+    unmodelled : dict or None
+        Set when the fit warned that friction or damping it lacks explains much of
+        its residual (:class:`~lagsindy.formulation.probes.UnmodelledForceWarning`):
+        ``share`` and the ``named`` forces; :func:`lagsindy.diagnose` reports on it.
     """
 
     library: object
@@ -178,6 +187,8 @@ class FittedLagrangian:
     residual: float | None = None
     tau_1d: bool = False
     mass_check: MassCheck | None = None
+    joint_dissipation: dict | None = None
+    unmodelled: dict | None = None
 
     def __post_init__(self):
         from .dissipation import assemble
@@ -279,6 +290,7 @@ class FittedLagrangian:
             "formulation_": self.formulation,
             "window_": self.window,
             "mass_check_": self.mass_check,
+            "joint_dissipation_": self.joint_dissipation,
         }
         out.update({k: v for k, v in optional.items() if v is not None})
         return out

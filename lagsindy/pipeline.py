@@ -61,6 +61,7 @@ __all__ = [
     "fitted_formulation",
     "formulation_of",
     "problem",
+    "probes_of",
     "solve",
     "solve_ladder",
 ]
@@ -363,7 +364,10 @@ def fit_data(setup: FitSetup, formulation, Xt, tau, groups, *, tau_1d=False, ver
 
     Returns
     -------
-    FittedLagrangian
+    fitted : FittedLagrangian
+    stats : GramStatistics
+        The statistics solved (of the chosen window).
+    solution : Solution
     """
     tau_t = None if tau is None else to_tensor(tau, dtype=Xt.dtype, device=Xt.device)
     ladder = fit_statistics(formulation, setup, Xt, tau_t, groups)
@@ -373,7 +377,7 @@ def fit_data(setup: FitSetup, formulation, Xt, tau, groups, *, tau_1d=False, ver
         setup, stats, solution, fitted, Xt, tau, tau_1d=tau_1d, stacklevel=4
     )
     check_fit(fitted, setup, stats, solution, Xt, tau, stacklevel=5)
-    return fitted
+    return fitted, stats, solution
 
 
 def judge_each_equation(
@@ -456,20 +460,33 @@ def check_fit(fitted, setup: FitSetup, stats, solution, Xt, tau, *, stacklevel=4
     fitted.mass_check = fitted.checked_mass(Xt, stacklevel=stacklevel)
     norms = stats.gram.diagonal(dim1=1, dim2=2).sum(0).clamp(min=0).sqrt()
     fitted.warn_angle_polynomials(Xt, to_numpy(norms)[:n_terms], stacklevel=stacklevel)
-    probed = probe_forces(
-        stats,
-        coef,
-        setup.normalize,
-        probe_term(setup.case, coef[:n_terms], solution.fixed),
-        solution.row_scale,
-    )
-    sign = -1.0 if fitted.mass_check.negative > 0.5 else 1.0
-    if not warn_unmodelled(probed, sign, stacklevel=stacklevel):
+    probed, sign = probes_of(fitted, setup, stats, solution)
+    if warn_unmodelled(probed, sign, stacklevel=stacklevel):
+        fitted.unmodelled = {"share": float(probed.share), "named": dict(probed.named)}
+    else:
         fitted.warn_unexplained(stacklevel=stacklevel, Xt=Xt)
         fitted.warn_poor_accelerations(
             Xt, solution.score, stacklevel=stacklevel, tau=tau
         )
     return fitted
+
+
+def probes_of(fitted, setup: FitSetup, stats, solution):
+    """``(ProbeResult or None, kinetic_sign)``: what the probe forces explain of the
+    fit's residual (see :func:`~lagsindy.formulation.probes.probe_forces`), and the
+    sign of the learned kinetic energy (-1 when ``fitted.mass_check`` finds the mass
+    matrix mostly negative)."""
+    coef = solution.coef
+    probed = probe_forces(
+        stats,
+        coef,
+        setup.normalize,
+        probe_term(setup.case, coef[: setup.n_terms], solution.fixed),
+        solution.row_scale,
+    )
+    check = fitted.mass_check
+    sign = -1.0 if check is not None and check.negative > 0.5 else 1.0
+    return probed, sign
 
 
 # ------------------------------------------------------------------------- setups

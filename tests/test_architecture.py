@@ -37,7 +37,7 @@ LAYERS = [
     ("cases", ["cases"]),
     ("fitted state", ["angle_units", "model", "io.model_file", "settings"]),
     ("what a model is used for", ["export"]),
-    ("pipeline", ["pipeline", "partitioned"]),
+    ("pipeline", ["pipeline", "partitioned", "joint"]),
     ("estimator", ["estimator"]),
     (
         "consumers",

@@ -56,6 +56,11 @@ _CLI_WORDING = (
         "lagsindy.diagnose,",
         "Run `lagsindy diagnose` on the same data,",
     ),
+    (
+        "est.joint_dissipation_ records it. To keep the conservative fit, pass "
+        "dissipation=DissipationLibrary([]).",
+        "To keep the conservative fit, pass --conservative.",
+    ),
     ("(lagsindy.estimate_delay)", "(`lagsindy fit --delay auto`)"),
     ("see lagsindy.diagnose", "see `lagsindy diagnose`"),
     ("run lagsindy.diagnose", "run `lagsindy diagnose`"),

@@ -198,14 +198,15 @@ def library_spec(text):
     """``(kind, degree)`` of ``--library``: ``("poly", 3)``, ``("separated", 2)``,
     ``("terms", None)``."""
     spec = text.strip().lower()
-    if spec == "terms":
-        return "terms", None
+    if spec in ("terms", "chain"):
+        return spec, None
     m = _LIBRARY_RE.match(spec)
     if not m:
         raise CLIError(
             f"--library {text!r} is not known: use polyN (all monomials of "
             "degree 1..N over q, q_dot, sin/cos of angles), separatedN (the paper's "
-            "trigonometric x non-trigonometric construction) or terms (only --terms)"
+            "trigonometric x non-trigonometric construction), chain (a chain of "
+            "links: CandidateLibrary.chain) or terms (only --terms)"
         )
     degree = int(m.group(2))
     if not 1 <= degree <= MAX_LIBRARY_DEGREE:
@@ -292,26 +293,66 @@ def system_name(name):
 
 
 # ----------------------------------------------------------------------------- columns
+# ``--input`` entries that mark an undriven coordinate (its generalized force is 0).
+UNDRIVEN = ("-", "0")
+
+
 def input_columns(columns, coords, args):
     """Names of the generalized-force columns, or None for passive data.
 
-    ``columns``: the CSV's column names.
+    ``columns``: the CSV's column names. One entry per coordinate; ``"-"`` marks an
+    undriven coordinate (a column of zeros: ``--input force,-`` or ``--undriven
+    theta``).
     """
+    undriven = split(getattr(args, "undriven", None) or "")
+    for name in undriven:
+        if name not in coords:
+            raise CLIError(
+                f"--undriven names {name!r}, which is not a coordinate {coords}"
+            )
     if getattr(args, "passive", False):
+        if undriven:
+            raise CLIError(
+                "--undriven marks coordinates with zero force in forced data; "
+                "--passive says no coordinate is driven: drop one of them"
+            )
         return None
     if args.input:
-        cols = split(args.input)
+        cols = ["-" if c in UNDRIVEN else c for c in split(args.input)]
+        driven = [c for c in coords if c not in undriven]
+        if undriven and len(cols) == len(driven) and len(cols) < len(coords):
+            given = iter(cols)  # the driven coordinates' columns, in order
+            cols = ["-" if c in undriven else next(given) for c in coords]
         if len(cols) != len(coords):
             raise CLIError(
                 f"--input names {len(cols)} column(s) but there are {len(coords)} "
                 f"coordinate(s) {coords}: give one generalized-force column per "
-                "coordinate"
+                "coordinate, '-' for an undriven one (e.g. --input force,-), or "
+                "name the undriven ones with --undriven"
             )
-        return cols
-    named = [f"tau_{c}" for c in coords]
-    if all(c in columns for c in named):
-        return named
-    return None
+        for c, col in zip(coords, cols):
+            if c in undriven and col != "-":
+                raise CLIError(
+                    f"--undriven {c} but --input gives it the column {col!r}: write "
+                    f"'-' for {c} in --input, or drop it from --undriven"
+                )
+    else:
+        named = [f"tau_{c}" for c in coords]
+        cols = ["-" if c in undriven else n for c, n in zip(coords, named)]
+        if not all(c == "-" or c in columns for c in cols):
+            if undriven:
+                lacking = [c for c in cols if c != "-" and c not in columns]
+                raise CLIError(
+                    f"--undriven {','.join(undriven)}: the driven coordinates' force "
+                    f"column(s) {lacking} are not in the data; name them with --input"
+                )
+            return None
+    if all(c == "-" for c in cols):
+        raise CLIError(
+            "every coordinate is marked undriven: that is passive data; use "
+            "--passive (or drop --input/--undriven)"
+        )
+    return cols
 
 
 def clock_options(args):
@@ -345,7 +386,7 @@ def data_columns(columns, coords, args, source):
     if columns is None:
         return None
     inputs = input_columns(columns, coords, args)
-    for name in [*coords, *(inputs or [])]:
+    for name in [*coords, *(c for c in inputs or [] if c != "-")]:
         if name not in columns:
             raise missing_column(source, name, columns)
     time = time_column(args)

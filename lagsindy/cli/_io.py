@@ -68,12 +68,17 @@ def _line(i):
 
 
 def _numeric(df, columns, source):
-    """The named columns as a float array; names the column and line of bad values."""
-    missing = [c for c in columns if c not in df.columns]
+    """The named columns as a float array; names the column and line of bad values.
+
+    ``"-"`` (an undriven coordinate's input) is a column of zeros."""
+    missing = [c for c in columns if c != "-" and c not in df.columns]
     if missing:
         raise missing_column(source, missing[0], df.columns)
     out = np.empty((len(df), len(columns)))
     for j, c in enumerate(columns):
+        if c == "-":
+            out[:, j] = 0.0
+            continue
         values = df[c]
         try:
             out[:, j] = values.to_numpy(dtype=float)

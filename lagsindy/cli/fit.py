@@ -140,6 +140,11 @@ def _library(args, coords, angles):
         if not extra:
             raise CLIError("--library terms needs --terms 'a,b,...'")
         return CandidateLibrary.from_terms(coords, extra)
+    if kind == "chain":
+        chain = CandidateLibrary.chain(coords, angles=list(angles or []))
+        if extra:
+            chain = chain + CandidateLibrary.from_terms(coords, extra)
+        return chain
     builder = (
         CandidateLibrary.polynomial if kind == "poly" else CandidateLibrary.separated
     )
@@ -290,7 +295,13 @@ def _fit_csv(args):
         + f", library {args.library} ({n_terms} terms) ...",
     )
     start = time.perf_counter()
-    est.fit(X, tau, groups=groups)
+    if getattr(args, "conservative", False):
+        from ..joint import conservative_fits
+
+        with conservative_fits():  # no joint refit: the probes' warning instead
+            est.fit(X, tau, groups=groups)
+    else:
+        est.fit(X, tau, groups=groups)
     elapsed = time.perf_counter() - start
     if _derivatives_estimated(df, coords, args):
         _warn_strong_form(est, args)
@@ -308,7 +319,7 @@ def _apply_delay(args, df, X, tau, groups, est):
             "--delay shifts the input columns, but the data have none (passive data); "
             "drop --delay or give the input with --input"
         )
-    from ..delay import estimate_delay, shift_input
+    from ..delay import estimate_delay, shift_input, worth_trying
 
     time = _checks.time_column(args)
     if getattr(args, "_t", None) is not None:
@@ -328,7 +339,32 @@ def _apply_delay(args, df, X, tau, groups, est):
                 "delay in seconds (e.g. the one `lagsindy fit --delay auto` printed)"
             )
         _say(args, "estimating the input delay (held-out fits over sample shifts) ...")
-        result = estimate_delay(est, X, tau, t, groups=groups)
+        import warnings
+
+        from sklearn.base import clone
+
+        # the configuration the fit will use: with the dissipation a joint fit adds
+        # (lagsindy.joint), which the delay search's refits (without probes) keep
+        start_fit = clone(est).set_params(verbose=0)
+        if not getattr(args, "conservative", False):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                start_fit.fit(X, tau, groups=groups)
+        result = estimate_delay(start_fit, X, tau, t, groups=groups)
+        steps = np.diff(t)
+        dt = float(np.median(steps[steps > 0])) if np.any(steps > 0) else 0.0
+        if not worth_trying(result, dt):
+            # an estimate within twice its spread (or under a tenth of a sample)
+            # is not told from no delay: reported, not applied
+            warnings.warn(
+                f"--delay auto: {result}, which is not significant (it must exceed "
+                "twice its standard error and a tenth of the sampling interval "
+                f"{1e3 * dt:.3g} ms): the inputs are NOT shifted; give --delay "
+                "SECONDS to apply a delay anyway",
+                UserWarning,
+                stacklevel=2,
+            )
+            return tau
         _say(args, f"{result}; the inputs are shifted by it")
         delay = result.delay
     else:

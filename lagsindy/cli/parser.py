@@ -143,8 +143,24 @@ def _add_fit_options(p, *, required):
     p.add_argument(
         "--input",
         default=None,
-        help="generalized-force columns, one per coordinate, e.g. tau_x,tau_theta "
-        "(default: tau_<coordinate> when the CSV has all of them, else passive data)",
+        help="generalized-force columns, one per coordinate, e.g. tau_x,tau_theta; "
+        "'-' or 0 for an undriven coordinate (zero force), e.g. force,- for a "
+        "cart-pole driven on the cart only (an undriven first coordinate: "
+        "--input=-,force or 0,force) (default: tau_<coordinate> when the CSV has all "
+        "of them, else passive data)",
+    )
+    p.add_argument(
+        "--conservative",
+        action="store_true",
+        help="keep the conservative fit even when friction or damping explains most "
+        "of what it leaves (default: the Lagrangian is then fitted jointly with "
+        "viscous and Coulomb friction candidates, and a warning says so)",
+    )
+    p.add_argument(
+        "--undriven",
+        default=None,
+        help="coordinates that nothing drives (their force is zero), e.g. theta; "
+        "--input then names the driven coordinates' columns (default tau_<q>)",
     )
     p.add_argument(
         "--passive", action="store_true", help="ignore input columns (case III)"
@@ -154,7 +170,10 @@ def _add_fit_options(p, *, required):
         default="poly3",
         help="candidate terms: polyN (all monomials of degree 1..N over q, q_dot and "
         "sin/cos of the angles), separatedN (the paper's trigonometric x "
-        "non-trigonometric products) or terms (only --terms). poly3 holds a "
+        "non-trigonometric products), chain (a chain of links: each coordinate's "
+        "kinetic and potential terms and their couplings, "
+        "CandidateLibrary.chain(coordinates, angles=--angles); a cart-pole's four "
+        "terms in 8) or terms (only --terms). poly3 holds a "
         "cart-pendulum's x_dot*theta_dot*cos(theta); two coupled angles (a double "
         "pendulum's cos(theta1 - theta2)) need poly4; a warning says when the "
         "library cannot couple the coordinates (default: poly3)",
@@ -524,7 +543,13 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("model", help="saved model (JSON)")
     pred.add_argument("data", help="CSV file with the model's coordinates")
     pred.add_argument(
-        "--input", default=None, help="generalized-force columns (default tau_<q>)"
+        "--input",
+        default=None,
+        help="generalized-force columns (default tau_<q>); '-' for an undriven "
+        "coordinate",
+    )
+    pred.add_argument(
+        "--undriven", default=None, help="coordinates with zero force, e.g. theta"
     )
     pred.add_argument("--passive", action="store_true", help="ignore input columns")
     pred.add_argument("--out", required=True, help="output CSV")

@@ -91,13 +91,16 @@ def refit_like(est, **params):
     (formulation, case, fixed term) instead of searching again, with ``params``."""
     from .. import pipeline
     from ..formulation import StrongForm, WeakForm
+    from ..joint import refit_config
 
     form = pipeline.fitted_formulation(est)  # with the window est's fit chose
     if est.formulation_ == "weak":
         form = WeakForm(**form.get_params())  # "auto" chose the weak form
     else:
         form = StrongForm()
-    sub = pipeline.copy_with(est, verbose=0, formulation=form, case=est.case_)
+    sub = pipeline.copy_with(
+        refit_config(est), verbose=0, formulation=form, case=est.case_
+    )
     sub.set_params(**params)
     if est.case_ == "fixed":
         sub.set_params(fixed_term=est.fixed_term_ or "mass")

@@ -95,8 +95,31 @@ def velocity_eps(X, n_dof, coordinates) -> dict:
     }
 
 
-def _catalogue(est, kinds, extra_terms, angles, tau, eps):
-    """Candidate effects not already in the model's candidate set."""
+def same_kind(pair, angles, units=None) -> bool:
+    """Whether the coordinates of ``pair`` are of one kind, so that a force on their
+    relative velocity (``relative(a,b)``) is physical: both angles or both not, and,
+    with ``units`` (``{coordinate: (position unit, force unit)}``), in one position
+    unit (a cart in pixels and an angle in radians never are)."""
+    if len(pair) < 2:
+        return True
+    if len({c in angles for c in pair}) > 1:
+        return False
+    if units:
+        found = {
+            units[c][0] if isinstance(units[c], (tuple, list)) else units[c]
+            for c in pair
+            if c in units
+        }
+        if len(found) > 1:
+            return False
+    return True
+
+
+def _catalogue(est, kinds, extra_terms, angles, tau, eps, units=None):
+    """Candidate effects not already in the model's candidate set.
+
+    Kinds of two coordinates (``relative``) are proposed only for pairs of the same
+    kind (:func:`same_kind`)."""
     coords = est.coordinates_
     present_forces = {t.name for t in est.dissipation_terms_}
     present_terms = set(est.library_.get_feature_names_out())
@@ -109,6 +132,8 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps):
         if kind in kind_names():
             record = get_kind(kind)
             for tgt in record.targets(coords):
+                if not same_kind(tuple(tgt), angles, units):
+                    continue  # a relative velocity of an angle and a length
                 params = source.parameters_for(kind, tgt[0])
                 params.pop("eps", None)
                 term = make_term(

@@ -55,6 +55,7 @@ class DiagnosisSettings:
     min_explained: float = 0.05
     min_improvement: float = 0.01
     verbose: int = 0
+    units: tuple = ()
 
 
 class Search:
@@ -87,7 +88,13 @@ class Search:
 
         # -------------------------------------------------------- columns and folds
         candidates = _catalogue(
-            est, catalogue, list(extra_terms), list(angles), tau_a, self.eps
+            est,
+            catalogue,
+            list(extra_terms),
+            list(angles),
+            tau_a,
+            self.eps,
+            dict(st.units),
         )
         self.diss = [c for c in candidates if c.kind in _DISSIPATIVE]
         self.gain = [c for c in candidates if c.kind == "gain"]

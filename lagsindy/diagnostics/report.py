@@ -320,11 +320,17 @@ class DiagnosisReport:
             lines.append(
                 "excluded degenerate folds (refit mass matrix singular or indefinite, "
                 "cannot predict accelerations): " + "; ".join(self.degenerate_folds)
+                + (
+                    " (from other models' scores; the final model's uses every fold)"
+                    if not self.settings.get("final_degenerate", True)
+                    else ""
+                )
             )
         for old, new in self.settings.get("swaps", []):
             lines.append(f"swapped {old} for {new} (better held-out criterion)")
         if self.stop_reason:
             lines.append(f"stopped: {self.stop_reason}")
+        lines.extend(f"note: {n}" for n in self.settings.get("notes", []))
         if self.bootstrap is not None:
             boot = self.bootstrap
             lines.append(

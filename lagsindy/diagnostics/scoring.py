@@ -32,6 +32,7 @@ from ..formulation.weak import (
     negligible_noise,
     trajectory_segments,
 )
+from ..joint import refit_dissipation
 
 # A refit whose mass matrix is singular or indefinite at more than this fraction of
 # the checked samples cannot predict accelerations: the fold (or model) is degenerate.
@@ -420,8 +421,10 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=T
         library.set_params(terms=list(library.terms or []) + [c.term for c in cons])
         unpenalized += [str(c.term) for c in effects if c.kind == "conservative"]
     diss = [c for c in list(effects) + list(penalized) if c.kind in kind_names()]
+    base = refit_dissipation(est)  # a jointly refitted model: its dissipation
+    if base is not None and est.dissipation is None:
+        new.set_params(dissipation=clone(base))
     if diss:
-        base = est.dissipation
         dlib = (
             DissipationLibrary(kinds=(), coordinates=est.coordinates_)
             if base is None

@@ -96,7 +96,8 @@ def diagnose(
     revise : bool, default=True
         First run the Lagrangian's sparse search jointly with the dissipative
         catalogue (step 1), so damping absorbed into wrong Lagrangian terms can be
-        undone.
+        undone. A starting model whose mass matrix is singular or indefinite on the
+        data (a link's terms pruned) is always revised so.
     window : int, default=None
         Samples per test function of the trajectory criterion; ``None``: the
         estimator's ``window`` (at most half the shortest time block).
@@ -188,6 +189,7 @@ def diagnose(
         min_explained=min_explained,
         min_improvement=min_improvement,
         verbose=verbose,
+        units=tuple(sorted((units or {}).items())),
     )
     with reuse_weak_columns():
         search = Search(est, Xa, tau_a, groups, settings)
@@ -196,7 +198,9 @@ def diagnose(
         search.total_ref = float(
             sum(search.scorer.w @ r for r in search.scorer.reference)
         )
-        if revise and search.diss:
+        # A starting model that cannot predict accelerations (singular mass matrix:
+        # a link's terms pruned) is revised jointly whatever ``revise`` says.
+        if (revise or not search.start_valid) and search.diss:
             search.revise()  # step 1
         search.swap_pass()  # step 2b
         search.add_effects(max_effects)  # step 2
@@ -208,7 +212,12 @@ def diagnose(
         warnings.warn(
             "diagnose excluded degenerate folds from some models' held-out scores "
             "(their refits have a singular or indefinite mass matrix): "
-            + ", ".join(report.degenerate_folds),
+            + ", ".join(report.degenerate_folds)
+            + (
+                "; the final model's score uses every fold"
+                if not report.settings.get("final_degenerate")
+                else ""
+            ),
             UserWarning,
             stacklevel=2,
         )

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .catalogue import _effect_coefficient
+from .catalogue import _DISSIPATIVE, _effect_coefficient
 from .report import Candidate, DiagnosisReport, Step, _units
 from .scoring import _adjusted_tau, _force_scale, _kept_terms, _residual
 
@@ -44,7 +44,9 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
     residual_after = _residual(final, Xf, tau_final)
     # The scale a residual is compared with: the measured force, or the model's
     # force contributions where they are larger (an undriven coordinate).
-    force_rms = _force_scale(est, search.Xt)
+    # (the final model's too: an undriven coordinate whose terms the starting model
+    # lacked has neither a measured force nor a starting model's force)
+    force_rms = np.maximum(_force_scale(est, search.Xt), _force_scale(final, search.Xt))
     if not search.passive:
         force_rms = np.maximum(force_rms, np.sqrt(np.mean(tau_recorded**2, axis=0)))
     steps = []
@@ -90,19 +92,24 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
             )
         )
     steps += _model_effects(search, final, support, value, units, residual_after)
-    boot = None
+    boot, boot_error = None, None
     if bootstrap is not None:
-        boot = _bootstrap_final(
-            final,
-            Xf,
-            tau_final,
-            search.groups,
-            search.segments,
-            search.Xa.shape[0],
-            int(bootstrap),
-            random_state,
-            search.verbose,
-        )
+        try:
+            boot = _bootstrap_final(
+                final,
+                Xf,
+                tau_final,
+                search.groups,
+                search.segments,
+                search.Xa.shape[0],
+                int(bootstrap),
+                random_state,
+                search.verbose,
+            )
+        except (ValueError, FloatingPointError, RuntimeError) as exc:
+            # the report is not lost for it (np.linalg.LinAlgError is a ValueError)
+            boot_error = f"{type(exc).__name__}: {exc}"
+    if boot is not None:
         by_term = {t: k for k, t in enumerate(boot.terms)}
         for s in steps:
             k = by_term.get(
@@ -116,6 +123,7 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
         f"fold {k + 1} ({sum(len(b) for b in search.folds[k])} samples)"
         for k in sorted(search.degenerate)
     ]
+    final_bad = search.scorer.score(support)[2]
     return DiagnosisReport(
         initial=est,
         final=final,
@@ -144,6 +152,13 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
             "eps": dict(search.eps),
             "window": search.win if search.stats_w is not None else None,
             "start_valid": search.start_valid,
+            "final_degenerate": [int(k) for k in final_bad],
+            "notes": _notes(est, search, steps)
+            + (
+                [f"the bootstrap failed ({boot_error}); no intervals"]
+                if boot_error
+                else []
+            ),
             "swaps": search.swaps,
         },
         _data={
@@ -218,3 +233,49 @@ def _bootstrap_final(
         random_state=random_state,
         verbose=max(0, verbose - 1),
     )
+
+
+def _notes(est, search, steps) -> list:
+    """Lines that tie the report to what the fit said: a fit redone jointly with
+    dissipation, a fit's warning of missing damping that the diagnosis did not
+    follow (and why), a degenerate starting model revised jointly, folds excluded
+    only from other models' scores."""
+    fitted = getattr(est, "fitted_", None)
+    notes = []
+    joint = getattr(fitted, "joint_dissipation", None)
+    if joint:
+        named = ", ".join(f"{k} = {v:.3g}" for k, v in joint["named"].items())
+        notes.append(
+            f"the starting model was fitted jointly with {joint['kinds']} dissipation "
+            f"(the fit's probes: friction or damping explained {joint['share']:.0%} "
+            f"of what a conservative fit left, {named})"
+        )
+    unmodelled = getattr(fitted, "unmodelled", None)
+    dissipative = [
+        s.candidate.name for s in steps if s.candidate.kind in _DISSIPATIVE
+    ] + [
+        f.name
+        for f, c in zip(search.current.dissipation_terms_,
+                        search.current.dissipation_coef_)
+        if c
+    ]  # fmt: skip
+    if unmodelled and not dissipative:
+        named = ", ".join(f"{k} = {v:.3g}" for k, v in unmodelled["named"].items())
+        why = (
+            (search.stop_reason or "no refit with it predicted held-out data better")
+            if search.diss
+            else "the catalogue holds no friction or damping kind"
+        )
+        notes.append(
+            f"the fit warned that friction or damping ({named}) explains "
+            f"{unmodelled['share']:.0%} of what it leaves; the diagnosis adds none: "
+            f"{why}"
+        )
+    if not search.start_valid:
+        notes.append(
+            "the starting model cannot predict accelerations (singular or indefinite "
+            "mass matrix), so its held-out score is infinite: it was revised jointly "
+            "with the dissipative candidates"
+            + ("" if search.diss else " (none in the catalogue: nothing to revise)")
+        )
+    return notes

@@ -70,6 +70,7 @@ from ..partitioned import (
     stack_trajectories,
     trajectory_pass,
 )
+from ..joint import refit_config
 from ._resampling import (
     DT_NODES,
     GroupStats,
@@ -353,7 +354,8 @@ def bootstrap(
         params["formulation"] = type(form)(
             window=int(full.window_), dt=form.dt, noise_cov=full.noise_cov_
         )
-    base = pipeline.copy_with(est, **params)
+    # a fit redone jointly with dissipation: the resamples' refits fit it too
+    base = pipeline.copy_with(refit_config(full), **params)
 
     traj = np.zeros(n, dtype=np.int64) if groups is None else np.asarray(groups)
     if traj.shape != (n,):
@@ -505,8 +507,13 @@ def _resample(
         both = np.concatenate(
             [np.ones((1, n_groups), dtype=all_mults.dtype), all_mults]
         )
-        solved = batched_resamples(setup, stats, both, start)
-        if reproduces(solved[0], seam, _BATCH_RTOL, scale):
+        try:
+            solved = batched_resamples(setup, stats, both, start)
+        except (ValueError, FloatingPointError, RuntimeError):
+            # one unsolvable resample (a motionless stretch drawn many times:
+            # "Eigenvalues did not converge") fails the batch: one at a time instead
+            solved = None
+        if solved is not None and reproduces(solved[0], seam, _BATCH_RTOL, scale):
             batched = solved[1:]
     if batched is not None:
         missing = [i for i, c in enumerate(batched) if c is None]

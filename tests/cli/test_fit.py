@@ -191,7 +191,7 @@ def test_missing_damping_warning_speaks_in_commands(tmp_path, capsys):
     data.to_frame().to_csv(csv, index=False)
     code, _, err = run(
         capsys, "fit", csv, "--coordinates", "theta", "--angles", "theta",
-        "--raw-angles", "--out", tmp_path / "m.json",
+        "--raw-angles", "--out", tmp_path / "m.json", "--conservative",
     )  # fmt: skip
     assert code == 0
     (line,) = [x for x in err.splitlines() if "friction or damping missing" in x]
