@@ -15,18 +15,17 @@ from sklearn.metrics import r2_score
 from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
-from . import partitioned, pipeline, settings
+from . import joint, partitioned, pipeline, settings
 from ._params import cache_param_names
 from ._torch import resolve_device, resolve_dtype, to_tensor
-from .export import export_model, linearize, to_casadi
+from .export.methods import ModelUseMixin
 from .formulation.clocked import rows_on_even_clock
 from .formulation.scaling import IdentifiabilityWarning  # noqa: F401 - 0.1 path
 from .io.model_file import read_model_file, write_model_file
-from . import joint
 from .model import FittedLagrangian, MassCheck, mass_matrix_check  # noqa: F401
 
 
-class LagrangianSINDy(RegressorMixin, BaseEstimator):
+class LagrangianSINDy(ModelUseMixin, RegressorMixin, BaseEstimator):
     r"""Sparse identification of a Lagrangian from trajectories (xL-SINDy).
 
     The Lagrangian is sought as :math:`L = \sum_k c_k \phi_k(q, \dot q)` over the
@@ -219,18 +218,9 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         self.dtype = dtype
         self.random_state = random_state
         self.verbose = verbose
-        self.threshold = threshold
-        self.dissipation_threshold = dissipation_threshold
-        self.lam_decay = lam_decay
-        self.step_growth = step_growth
-        self.max_stages = max_stages
-        self.max_iter = max_iter
-        self.tol = tol
-        self.solver_tol = solver_tol
-        self.debias = debias
-        self.window = window
-        self.dt = dt
-        self.noise_cov = noise_cov
+        given = locals()  # the deprecated flat settings, stored as given
+        for name in settings.DEPRECATED_FLAT:
+            setattr(self, name, given[name])
 
     def __sklearn_is_fitted__(self):
         # model_ is set last in fit: a fit that raised leaves the estimator unfitted.
@@ -481,33 +471,6 @@ class LagrangianSINDy(RegressorMixin, BaseEstimator):
         """
         check_is_fitted(self)
         return self.fitted_.coef_table()
-
-    # ------------------------------------------------------------------ use
-    def export(self, path, format=None, *, input_matrix=None):
-        """Write the model as standalone Python or C code (no lagsindy needed).
-
-        See :func:`lagsindy.export.export_model`.
-        """
-        return export_model(self, path, format, input_matrix=input_matrix)
-
-    def to_casadi(self, input_matrix=None):
-        """CasADi functions of the model (see :func:`lagsindy.export.to_casadi`)."""
-        return to_casadi(self, input_matrix)
-
-    def linearize(self, x_eq, u_eq=None, dt=None, *, input_matrix=None):
-        """A, B (and the discrete pair given ``dt``) at an equilibrium (see
-        :func:`lagsindy.export.linearize`)."""
-        return linearize(self, x_eq, u_eq, dt, input_matrix=input_matrix)
-
-    def to_urdf(self, path):
-        """Write a model fitted with a URDF library into a copy of its URDF: link
-        parameters (a physically consistent representative of the fitted base
-        parameters) and joint friction. See :func:`lagsindy.robots.fitted_to_urdf`.
-        Returns the :class:`pathlib.Path` written."""
-        check_is_fitted(self)
-        from .robots.report import fitted_to_urdf
-
-        return fitted_to_urdf(self, path)
 
     def save(self, path):
         """Write the fitted model as a JSON file that is safe to share.

@@ -31,6 +31,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import dataclasses
+import os
 import warnings
 
 import numpy as np
@@ -131,7 +132,11 @@ _REGISTRIES: dict = {}
 def _show(w):
     """Show a recorded warning again, from its original place."""
     registry = _REGISTRIES.setdefault(w.filename, {})
-    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, None, registry)
+    # (a module name is needed: with module=None warn_explicit shows nothing)
+    module = os.path.splitext(os.path.basename(w.filename or "<unknown>"))[0]
+    warnings.warn_explicit(
+        w.message, w.category, w.filename, w.lineno, module, registry
+    )
 
 
 class JointDissipation:

@@ -49,6 +49,11 @@ __all__ = [
 
 #: The default of a deprecated flat parameter (not set).
 DEPRECATED = "deprecated"
+# The estimator's flat parameters that default to DEPRECATED, in its signature's order.
+DEPRECATED_FLAT = (
+    "threshold", "dissipation_threshold", "lam_decay", "step_growth", "max_stages",
+    "max_iter", "tol", "solver_tol", "debias", "window", "dt", "noise_cov",
+)  # fmt: skip
 #: The flat parameters that :class:`~lagsindy.solvers.StagedFISTA` holds.
 SOLVER_PARAMS = tuple(StagedFISTA().get_params())
 #: The flat parameters that :class:`~lagsindy.formulation.WeakForm` holds.
