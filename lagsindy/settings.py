@@ -201,7 +201,10 @@ def as_objects(params: dict) -> dict:
         out["formulation"] = make_formulation(name, **form) if changed else name
     for k in SOLVER_PARAMS + FORMULATION_PARAMS:
         if k in out:
-            out[k] = DEPRECATED
+            if k in DEPRECATED_FLAT:
+                out[k] = DEPRECATED
+            else:  # a setting with no flat estimator parameter (equation_threshold)
+                del out[k]
     return out
 
 
@@ -212,7 +215,8 @@ def checked_params(params: dict) -> dict:
     Raises ``ValueError`` naming an unknown name or an invalid value (``library``
     and ``dissipation`` are not hyperparameters here).
     """
-    known = set(PARAMETER_CONSTRAINTS) - {"library", "dissipation"}
+    known = set(PARAMETER_CONSTRAINTS) | set(SOLVER_PARAMS) | set(FORMULATION_PARAMS)
+    known -= {"library", "dissipation"}
     unknown = sorted(set(params) - known)
     if unknown:
         raise ValueError(

@@ -94,7 +94,7 @@ def test_files_with_flat_values_load_into_objects_without_a_warning(name):
         warnings.simplefilter("error", FutureWarning)
         est = LagrangianSINDy.load(_V010 / f"{name}.json")
     params = est.get_params(deep=False)
-    assert all(params[k] == settings.DEPRECATED for k in settings.SOLVER_PARAMS)
+    assert all(params[k] == settings.DEPRECATED for k in settings.DEPRECATED_FLAT)
     assert all(params[k] == settings.DEPRECATED for k in settings.FORMULATION_PARAMS)
     # 0.1 files store the defaults and formulation "strong" with window 81
     assert params["solver"] is None and isinstance(params["formulation"], StrongForm)
