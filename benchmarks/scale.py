@@ -184,6 +184,9 @@ def _run(spec):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="the issue's 1e8 rows")
+    parser.add_argument(
+        "--quick", action="store_true", help="the default size (as without --full)"
+    )
     parser.add_argument("--dir", default=None, help="where the Parquet data go")
     parser.add_argument("--_measure", default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)

@@ -262,7 +262,7 @@ def plot_residuals(
         Time of each sample in seconds (e.g. ``Dataset.t``).
     dt : float, default=None
         Sampling interval in seconds, when ``t`` is not given: the abscissa is then
-        ``dt * sample``. With neither, ``est.dt`` when set, else the sample index.
+        ``dt * sample``. With neither, the fit's ``dt_`` when set, else the sample index.
     units : sequence of str, default=None
         Unit of each coordinate (``"m"``, ``"rad"``, ``"px"``, ...): an
         acceleration residual's axis gets unit/s^2.
@@ -305,7 +305,7 @@ def plot_residuals(
     else:
         runit = [None if u is None else f"{u}/s^2" for u in unit]
     if t is None and dt is None:
-        dt = getattr(est, "dt", None)
+        dt = getattr(est, "dt_", None)  # the fit's sampling interval
     if t is not None:
         x, xlabel = np.asarray(t, dtype=float).ravel(), "t (s)"
     elif dt is not None:

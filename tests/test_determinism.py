@@ -163,7 +163,6 @@ def test_same_coefficients_in_a_fresh_interpreter(active):
         f"""
         import numpy as np
         from lagsindy import CandidateLibrary, LagrangianSINDy
-from lagsindy.solvers import StagedFISTA
         from lagsindy.systems import make_dataset, single_pendulum
         np.random.seed(99)
         data = make_dataset(single_pendulum(), n_trajectories=4, duration=1.5,

@@ -549,7 +549,9 @@ def build_parser() -> argparse.ArgumentParser:
         "coordinate",
     )
     pred.add_argument(
-        "--undriven", default=None, help="coordinates with zero force, e.g. theta"
+        "--undriven",
+        default=None,
+        help="coordinates with zero force, e.g. theta (default: none)",
     )
     pred.add_argument("--passive", action="store_true", help="ignore input columns")
     pred.add_argument("--out", required=True, help="output CSV")

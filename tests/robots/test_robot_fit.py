@@ -89,7 +89,7 @@ def test_penalty_acts_on_friction_only(planar):
     """The L1 weights: 0 on the base parameters, 1 on the dissipation candidates."""
     lib = CandidateLibrary.from_urdf(example_urdf("planar2"))
     est = LagrangianSINDy(lib, dissipation=DissipationLibrary(["viscous", "bias"]))
-    _, _, setup = est._setup(planar.X, planar.tau)
+    _, _, setup = est._setup(planar.X, planar.tau, est.get_params(deep=False))
     np.testing.assert_array_equal(setup.penalty(), [0.0] * 7 + [1.0] * 4)
 
 

@@ -1,7 +1,7 @@
 """Run a benchmark with another hard-threshold rule, to compare before and after.
 
-    python -m benchmarks.threshold_rule None robustness --quick --workers 1
-    python -m benchmarks.threshold_rule 0.25 robustness --quick --workers 1
+    python -m benchmarks._threshold_rule None robustness --quick --workers 1
+    python -m benchmarks._threshold_rule 0.25 robustness --quick --workers 1
 
 The first argument is the default ``StagedFISTA(equation_threshold=...)`` for every
 fit the benchmark makes (``None``: the paper's global rule alone; the library's
