@@ -23,7 +23,7 @@ from ._io import (
     _say,
     _state_and_groups,
 )
-from .fit import _apply_delay, _fit_csv
+from .fit import _apply_delay, _fit_csv, _with_dt
 
 
 def _diagnose(args) -> int:
@@ -110,8 +110,7 @@ def _saved_model_and_data(args):
     X, groups = _state_and_groups(df, coords, args, args.data, angles)
     tau = _apply_delay(args, df, X, tau, groups, None)
     X, tau, groups, dt = _on_even_clock(args, X, tau, groups)
-    if dt is not None:
-        est.set_params(dt=dt)
+    _with_dt(est, dt)
     return est, X, tau, groups
 
 

@@ -285,8 +285,7 @@ def _fit_csv(args):
     )
     tau = _apply_delay(args, df, X, tau, groups, est)
     X, tau, groups, dt = _on_even_clock(args, X, tau, groups)
-    if dt is not None:
-        est.set_params(dt=dt)
+    _with_dt(est, dt)
     n_groups = 1 if groups is None else len(np.unique(groups))
     _say(
         args,
@@ -370,3 +369,17 @@ def _apply_delay(args, df, X, tau, groups, est):
     else:
         delay = float(value)
     return shift_input(tau, t, delay, groups)
+
+
+def _with_dt(est, dt):
+    """Give ``est``'s formulation the even clock's step ``dt`` (when it takes one)."""
+    if dt is None:
+        return
+    from sklearn.base import clone
+
+    from ..formulation.forms import make_formulation
+
+    form = est.formulation
+    form = make_formulation(form) if isinstance(form, str) else clone(form)
+    if "dt" in form.get_params():
+        est.set_params(formulation=form.set_params(dt=dt))
