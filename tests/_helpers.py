@@ -67,3 +67,19 @@ def three_term_estimator(**params):
 def value_error(match):
     """``pytest.raises(ValueError)`` with a literal (not regex) message fragment."""
     return pytest.raises(ValueError, match=re.escape(match))
+
+
+def first_problem(est, X, y=None, groups=None):
+    """The first case Problem ``est.fit(X, y, groups=groups)`` solves (quietly)."""
+    seen = []
+    import lagsindy.pipeline as estimator
+
+    original = estimator.solve_case
+    try:
+        estimator.solve_case = lambda case, p: seen.append(p) or original(case, p)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            est.fit(X, y, groups=groups)
+    finally:
+        estimator.solve_case = original
+    return seen[0]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-import lagsindy.pipeline as estimator
+from _helpers import first_problem  # noqa: F401  (used by fixtures)
 from lagsindy import LagrangianSINDy
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
@@ -144,15 +144,3 @@ def case_iii_problem():
     )
 
 
-def first_problem(est, X, y=None, groups=None):
-    """The first case Problem ``est.fit(X, y, groups=groups)`` solves (quietly)."""
-    seen = []
-    original = estimator.solve_case
-    try:
-        estimator.solve_case = lambda case, p: seen.append(p) or original(case, p)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            est.fit(X, y, groups=groups)
-    finally:
-        estimator.solve_case = original
-    return seen[0]

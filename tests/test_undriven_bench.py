@@ -180,7 +180,7 @@ def test_docs_blocks_run():
     """Every python block of docs/undriven.md runs in a fresh interpreter."""
     text = (ROOT / "docs" / "undriven.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", text, re.S)
-    assert len(blocks) == 2
+    assert len(blocks) == 3
     for block in blocks:
         out = subprocess.run(
             [sys.executable, "-c", block],

@@ -78,7 +78,7 @@ def test_scores_of_singular_mass_matrices_equal_one_operator(case_iii_problem):
 @pytest.mark.parametrize("name", ["single_pendulum", "triple_pendulum"])
 def test_scores_of_one_and_three_dof_models_equal_one_operator(name):
     """Other sizes than two degrees of freedom score through pinv_solve."""
-    from conftest import first_problem
+    from _helpers import first_problem
 
     from lagsindy import CandidateLibrary, LagrangianSINDy
     from lagsindy.systems import get_system, make_dataset
@@ -243,7 +243,7 @@ def test_evenly_spaced_subsample_rows(case_iii_problem):
 def test_search_scores_on_the_scoring_subsample():
     """The search scores its shortlist on SCORING_ROWS rows (2000, as many as the
     fit's own acceleration check), not on the traces' SELECTION_ROWS."""
-    from conftest import first_problem
+    from _helpers import first_problem
 
     from lagsindy import LagrangianSINDy, model
     from lagsindy.cases import fixed
@@ -278,7 +278,7 @@ def _solve_all(p, candidates, traces):
 def clean_search_problems():
     """Case III Problems of noise-free passive cart-pendulum searches, by the
     number of trajectories."""
-    from conftest import first_problem
+    from _helpers import first_problem
 
     from lagsindy import LagrangianSINDy
     from lagsindy.systems import cart_pendulum, make_dataset
