@@ -1,11 +1,10 @@
 import os
-import warnings
 
 import numpy as np
 import pytest
 import torch
-
 from _helpers import first_problem  # noqa: F401  (used by fixtures)
+
 from lagsindy import LagrangianSINDy
 from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 
