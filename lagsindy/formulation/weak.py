@@ -26,6 +26,19 @@ TIME_ORDER_MIN = 0.2
 TIME_ORDER_LAGS = (1, 2, 4, 8, 16, 32)
 
 
+def check_order(order: float) -> None:
+    """Refuse rows whose position steps correlate with the velocities at ``order``
+    below :data:`TIME_ORDER_MIN` (what shuffled, not time-ordered, rows give)."""
+    if order < TIME_ORDER_MIN:
+        raise ValueError(
+            "the rows do not look like time-ordered trajectories (the position "
+            "steps q[s+1] - q[s] correlate with the velocities at only "
+            f"{order:.2f}; shuffled rows give about 0): the weak formulation "
+            "integrates along time, so keep each trajectory's rows in time order "
+            "and pass groups="
+        )
+
+
 # window="auto": the first window tried (samples), at most this many windows (each
 # 2 w - 1 after the previous), each applying to at least this fraction of the
 # samples the first one uses.
@@ -166,14 +179,7 @@ def weak_gram(
             f"{longest}); lower window or record longer trajectories"
         )
     order = check_time_order(Xt, d, usable, enough=TIME_ORDER_MIN)
-    if order < TIME_ORDER_MIN:
-        raise ValueError(
-            "the rows do not look like time-ordered trajectories (the position "
-            "steps q[s+1] - q[s] correlate with the velocities at only "
-            f"{order:.2f}; shuffled rows give about 0): the weak formulation "
-            "integrates along time, so keep each trajectory's rows in time order "
-            "and pass groups="
-        )
+    check_order(order)
     if isinstance(noise_cov, str):
         cov = estimate_noise_covariance(Xt, usable, d)
     elif noise_cov is None:

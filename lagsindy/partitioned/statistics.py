@@ -26,6 +26,7 @@ from ..formulation.weak import (
     TIME_ORDER_MIN,
     WHITE_VELOCITY,
     WINDOW_FIRST,
+    check_order,
     estimate_noise_covariance,
     trajectory_segments,
     weighted_median,
@@ -327,14 +328,7 @@ def weak_decisions(scan, params, n_dof, n_terms, dt):
             order = max(order, ab / den)
             if order >= TIME_ORDER_MIN:
                 break
-    if order < TIME_ORDER_MIN:
-        raise ValueError(
-            "the rows do not look like time-ordered trajectories (the position "
-            "steps q[s+1] - q[s] correlate with the velocities at only "
-            f"{order:.2f}; shuffled rows give about 0): the weak formulation "
-            "integrates along time, so keep each trajectory's rows in time order "
-            "and pass groups="
-        )
+    check_order(order)
     n4 = scan["n4"]
     estimated = scan["z"] / (70.0 * n4) if n4 else np.zeros_like(scan["z"])
     if isinstance(noise_cov, str):
