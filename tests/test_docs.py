@@ -208,5 +208,13 @@ def test_docs_build_without_warnings_and_every_public_name_has_a_page(tmp_path):
 def test_docs_gallery_runs(tmp_path):
     _need_sphinx()
     html = _build(tmp_path, timeout=3600)
+    for path in (ROOT / "examples").glob("*.py"):
+        page = html / "auto_examples" / f"{path.stem}.html"
+        if page.exists():  # (an example whose optional package is missing is left out)
+            assert "sphx-glr-script-out" in page.read_text(), (
+                f"{path.name} printed nothing"
+            )
+    # the real recordings: the fit's ratio and the diagnosis's validation score
     measured = (html / "auto_examples" / "measured_pendulum.html").read_text()
-    assert "ratio cos(phi)/phi_dot**2" in measured  # its printed output is shown
+    assert "ratio cos(phi)/phi_dot**2" in measured
+    assert "validation R^2 after the diagnosis" in measured
