@@ -64,13 +64,27 @@ def test_the_guide_has_runnable_examples():
         assert f"docs/{name}.md" in pages
 
 
+def unrun_blocks(text):
+    """(line, language) of the fenced blocks that are neither run nor shown-only."""
+    return [
+        (line, lang)
+        for lang, line, _ in blocks(text)
+        if lang != "python" and lang not in SHOWN_ONLY
+    ]
+
+
+def test_unrun_blocks_can_fail():
+    text = "```python\nx = 1\n```\n```text\n1\n```\n```py\nx = 2\n```\n"
+    assert unrun_blocks(text) == [(7, "py")]
+
+
 def test_every_code_block_is_run_or_shown_only():
     for path in _pages():
-        for lang, line, _ in blocks(path.read_text(encoding="utf-8"), str(path)):
-            assert lang == "python" or lang in SHOWN_ONLY, (
-                f"{path.relative_to(ROOT)}:{line}: a ```{lang} block is not run by "
-                "this test: write runnable code as ```python"
-            )
+        found = unrun_blocks(path.read_text(encoding="utf-8"))
+        assert found == [], (
+            f"{path.relative_to(ROOT)}: blocks (line, language) {found} are not run "
+            "by this test: write runnable code as ```python"
+        )
 
 
 @pytest.mark.parametrize(
