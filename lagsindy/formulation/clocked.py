@@ -153,3 +153,30 @@ def _on_even_clock(formulation, X, tau, groups, t, period, stacklevel):
     if params.get("dt") is None:
         params["dt"] = even.dt
     return even.X, even.tau, even.groups, type(formulation)(**params), even
+
+
+def frame_on_clock(formulation, X, tau, groups, t):
+    """:func:`rows_on_even_clock` for data as a user gives them: ``X`` an array or
+    a DataFrame of columns ``[q..., q_dot..., q_ddot...]`` (in this order; kept),
+    ``tau`` an array or a DataFrame (columns kept). Returns ``(X, tau, groups,
+    formulation)``."""
+    import pandas as pd
+
+    names = list(X.columns) if isinstance(X, pd.DataFrame) else None
+    Xa = np.asarray(X, dtype=np.float64)
+    if Xa.ndim != 2 or Xa.shape[1] % 3:
+        raise ValueError(f"X must be (n_samples, 3 * n_dof), got shape {Xa.shape}")
+    d = Xa.shape[1] // 3
+    if names is not None and names[d:] != [
+        f"{c}_{k}" for k in ("dot", "ddot") for c in names[:d]
+    ]:
+        raise ValueError(
+            f"X's columns {names} are not [q..., q_dot..., q_ddot...] in this "
+            "order: reorder them to put the rows on the fit's clock"
+        )
+    tau_names = list(tau.columns) if isinstance(tau, pd.DataFrame) else None
+    tau_a = None if tau is None else np.asarray(tau, dtype=np.float64)
+    Xa, tau_a, groups, form, _ = rows_on_even_clock(formulation, Xa, tau_a, groups, t)
+    X = Xa if names is None else pd.DataFrame(Xa, columns=names)
+    tau = tau_a if tau_names is None else pd.DataFrame(tau_a, columns=tau_names)
+    return X, tau, groups, form
