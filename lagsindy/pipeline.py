@@ -673,10 +673,11 @@ def setup_of(est, **changes) -> FitSetup:
     return dataclasses.replace(setup, **changes) if changes else setup
 
 
-def on_fit_clock(est, X, tau=None, groups=None, t=None, *, what="bootstrap"):
+def on_fit_clock(est, X, tau=None, groups=None, t=None, *, what="", even=False):
     """``(est, X, tau, groups)`` as a fit given the time stamps ``t`` used them
     (:func:`~lagsindy.formulation.clocked.frame_on_clock`; ``est`` copied with the
-    clock's ``dt``), for refits of the rows (``what``: bootstrap, diagnose).
+    clock's ``dt``), for refits of the rows (``what``: who refits; ``even``: rows on
+    an even clock whatever the formulation, for a trajectory criterion).
     ``t=None``: as given; a fitted ``est`` whose fit had time stamps is refused."""
     if t is None:
         if getattr(est, "clock_", None) is not None:
@@ -690,11 +691,10 @@ def on_fit_clock(est, X, tau=None, groups=None, t=None, *, what="bootstrap"):
     fitted = getattr(est, "fitted_", None)
     case = resolve_case(est.case, tau) if fitted is None else fitted.case
     form = formulation_of(est.get_params(deep=False), case)
-    X, tau, groups, form = frame_on_clock(form, X, tau, groups, t)
+    X, tau, groups, form = frame_on_clock(form, X, tau, groups, t, even=even)
     if fitted is None:
         return copy_with(est, formulation=form), X, tau, groups
     params = {**copy_with(est).get_params(deep=False), "formulation": form}
-    names = getattr(est, "feature_names_in_", None)
-    fitted = dataclasses.replace(fitted, clock=None)
-    est = type(est).from_fitted(fitted, feature_names_in=names, **params)
+    params["feature_names_in"] = getattr(est, "feature_names_in_", None)
+    est = type(est).from_fitted(dataclasses.replace(fitted, clock=None), **params)
     return est, X, tau, groups

@@ -143,7 +143,9 @@ def diagnose(
     if is_partitioned(X):  # its folds integrate whole trajectories: in memory
         X, tau, groups = collect(X, groups=groups, y=tau)
     # the rows a fit given t= used (t=None: as given)
-    est, X, tau, groups = on_fit_clock(est, X, tau, groups, t, what="diagnose")
+    est, X, tau, groups = on_fit_clock(
+        est, X, tau, groups, t, what="diagnose", even=True
+    )
     Xa, _, _ = validate_state(est, X, reset=False, coordinates=est.coordinates_)
     tau_a = (
         None

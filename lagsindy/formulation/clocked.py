@@ -155,10 +155,12 @@ def _on_even_clock(formulation, X, tau, groups, t, period, stacklevel):
     return even.X, even.tau, even.groups, type(formulation)(**params), even
 
 
-def frame_on_clock(formulation, X, tau, groups, t):
+def frame_on_clock(formulation, X, tau, groups, t, *, even=False):
     """:func:`rows_on_even_clock` for data as a user gives them: ``X`` an array or
     a DataFrame of columns ``[q..., q_dot..., q_ddot...]`` (in this order; kept),
-    ``tau`` an array or a DataFrame (columns kept). Returns ``(X, tau, groups,
+    ``tau`` an array or a DataFrame (columns kept). ``even``: the rows on an even
+    clock also for the strong form (a diagnosis integrates along trajectories; the
+    formulation returned is then the one given). Returns ``(X, tau, groups,
     formulation)``."""
     import pandas as pd
 
@@ -176,7 +178,9 @@ def frame_on_clock(formulation, X, tau, groups, t):
         )
     tau_names = list(tau.columns) if isinstance(tau, pd.DataFrame) else None
     tau_a = None if tau is None else np.asarray(tau, dtype=np.float64)
-    Xa, tau_a, groups, form, _ = rows_on_even_clock(formulation, Xa, tau_a, groups, t)
+    use = WeakForm() if even and not isinstance(formulation, WeakForm) else formulation
+    Xa, tau_a, groups, form, _ = rows_on_even_clock(use, Xa, tau_a, groups, t)
+    form = form if use is formulation else formulation
     X = Xa if names is None else pd.DataFrame(Xa, columns=names)
     tau = tau_a if tau_names is None else pd.DataFrame(tau_a, columns=tau_names)
     return X, tau, groups, form

@@ -342,7 +342,9 @@ def bootstrap(
     if not (isinstance(level, Real) and 0 < level < 1):
         raise ValueError(f"level must be in (0, 1), got {level!r}")
     if not is_partitioned(X):  # the rows a fit given t= uses (t=None: as given)
-        est, X, tau, groups = pipeline.on_fit_clock(est, X, tau, groups, t)
+        est, X, tau, groups = pipeline.on_fit_clock(
+            est, X, tau, groups, t, what="bootstrap"
+        )
     elif t is not None:
         raise ValueError("t= is for in-memory data; partitioned rows take no t=")
     full = clone(est).fit(X, tau, groups=groups)
