@@ -167,6 +167,14 @@ class FittedLagrangian:
         Set when the fit warned that friction or damping it lacks explains much of
         its residual (:class:`~lagsindy.formulation.probes.UnmodelledForceWarning`):
         ``share`` and the ``named`` forces; :func:`lagsindy.diagnose` reports on it.
+    clock : dict or None
+        Set when the fit was given time stamps (``fit(X, tau, t=...)``): the
+        ``rows`` given, the ``edge_rows`` left out (near a segment's end), the
+        ``fit_rows`` fitted, the even clock's ``dt`` (None: rows fitted as given)
+        and a one-line ``report``
+        (:func:`~lagsindy.formulation.clocked.rows_on_even_clock`). Refits of the
+        same rows (:func:`lagsindy.bootstrap`, :func:`lagsindy.diagnose`) need the
+        same ``t=``.
     """
 
     library: object
@@ -189,6 +197,7 @@ class FittedLagrangian:
     mass_check: MassCheck | None = None
     joint_dissipation: dict | None = None
     unmodelled: dict | None = None
+    clock: dict | None = None
 
     def __post_init__(self):
         from .dissipation import assemble
@@ -291,6 +300,7 @@ class FittedLagrangian:
             "window_": self.window,
             "mass_check_": self.mass_check,
             "joint_dissipation_": self.joint_dissipation,
+            "clock_": self.clock,
         }
         out.update({k: v for k, v in optional.items() if v is not None})
         return out

@@ -32,6 +32,7 @@ from .cases import Problem, SparseSolve, solve_case
 from .dissipation import DissipationLibrary, reduce_forces
 from .evaluator import library_terms
 from .formulation import feature_operator
+from .formulation.clocked import frame_on_clock
 from .formulation.forms import StrongForm, WeakForm, with_window
 from .formulation.probes import (
     PROBE_KINDS,
@@ -60,6 +61,7 @@ __all__ = [
     "fitted_state",
     "fitted_formulation",
     "formulation_of",
+    "on_fit_clock",
     "problem",
     "probes_of",
     "solve",
@@ -669,3 +671,30 @@ def setup_of(est, **changes) -> FitSetup:
         setup = dataclasses.replace(setup, fixed_term=scale)
     setup.solver = dataclasses.replace(setup.solver, verbose=0)
     return dataclasses.replace(setup, **changes) if changes else setup
+
+
+def on_fit_clock(est, X, tau=None, groups=None, t=None, *, what="", even=False):
+    """``(est, X, tau, groups)`` as a fit given the time stamps ``t`` used them
+    (:func:`~lagsindy.formulation.clocked.frame_on_clock`; ``est`` copied with the
+    clock's ``dt``), for refits of the rows (``what``: who refits; ``even``: rows on
+    an even clock whatever the formulation, for a trajectory criterion).
+    ``t=None``: as given; a fitted ``est`` whose fit had time stamps is refused."""
+    if t is None:
+        if getattr(est, "clock_", None) is not None:
+            raise ValueError(
+                f"est was fitted with time stamps, fit(X, tau, t=...) ("
+                f"{est.clock_['report'] or 'an even clock'}), and {what} would take "
+                "the rows as evenly spaced, edge rows included: pass the same t= to "
+                f"{what}(est, X, tau, ..., t=...)"
+            )
+        return est, X, tau, groups
+    fitted = getattr(est, "fitted_", None)
+    case = resolve_case(est.case, tau) if fitted is None else fitted.case
+    form = formulation_of(est.get_params(deep=False), case)
+    X, tau, groups, form = frame_on_clock(form, X, tau, groups, t, even=even)
+    if fitted is None:
+        return copy_with(est, formulation=form), X, tau, groups
+    params = {**copy_with(est).get_params(deep=False), "formulation": form}
+    params["feature_names_in"] = getattr(est, "feature_names_in_", None)
+    est = type(est).from_fitted(dataclasses.replace(fitted, clock=None), **params)
+    return est, X, tau, groups

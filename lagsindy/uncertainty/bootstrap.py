@@ -261,6 +261,7 @@ def bootstrap(
     random_state=None,
     n_jobs=None,
     verbose=0,
+    t=None,
 ):
     r"""Bootstrap intervals and inclusion probabilities of every term.
 
@@ -307,6 +308,10 @@ def bootstrap(
     n_jobs : int, default=None
         Parallel resamples (joblib).
     verbose : int, default=0
+    t : array-like of shape (n_samples,) or CleanedClock, default=None
+        The time stamps to fit with, as ``est.fit(X, tau, t=t)`` takes them (edge
+        rows left out, the weak form's rows put on an even clock; resamples are
+        drawn from those rows). Required when ``est`` was fitted with ``t=``.
 
     Returns
     -------
@@ -336,6 +341,12 @@ def bootstrap(
         raise ValueError(f"n_resamples must be an integer >= 2, got {n_resamples!r}")
     if not (isinstance(level, Real) and 0 < level < 1):
         raise ValueError(f"level must be in (0, 1), got {level!r}")
+    if not is_partitioned(X):  # the rows a fit given t= uses (t=None: as given)
+        est, X, tau, groups = pipeline.on_fit_clock(
+            est, X, tau, groups, t, what="bootstrap"
+        )
+    elif t is not None:
+        raise ValueError("t= is for in-memory data; partitioned rows take no t=")
     full = clone(est).fit(X, tau, groups=groups)
     if is_partitioned(X):
         return _bootstrap_partitioned(
