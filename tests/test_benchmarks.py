@@ -35,6 +35,7 @@ def _check_header(text):
     assert "- machine: " in text and "torch threads" in text
 
 
+@pytest.mark.slow  # a benchmark script end to end (the methods it measures have their own tests)
 def test_long_record_tiny(tiny_results):
     from benchmarks import long_record
 
@@ -214,6 +215,7 @@ def test_sindy_pi_structure_criterion():
 
 
 @needs_pysindy
+@pytest.mark.slow  # a benchmark script end to end (the methods it measures have their own tests)
 def test_sindy_pi_tiny(tiny_results):
     from benchmarks import sindy_pi
 
@@ -310,6 +312,7 @@ def test_measured_tiny(tiny_results):
     assert (tiny_results / "measured_single_diagnosis_quick.png").stat().st_size > 1000
 
 
+@pytest.mark.slow  # a benchmark script end to end (the methods it measures have their own tests)
 def test_case2_tiny(tiny_results):
     from benchmarks import case2
 
@@ -367,6 +370,7 @@ def test_defaults_tiny(tiny_results):
     assert "## 3. The test-function window" in text
 
 
+@pytest.mark.slow  # a benchmark script end to end (the methods it measures have their own tests)
 def test_bootstrap_cost_tiny(tiny_results):
     from benchmarks import bootstrap_cost
 
@@ -379,6 +383,7 @@ def test_bootstrap_cost_tiny(tiny_results):
     assert all(float(r.split("**")[1].rstrip("x")) > 0 for r in rows)
 
 
+@pytest.mark.slow  # a benchmark script end to end (the methods it measures have their own tests)
 def test_noise_correction_tiny(tiny_results):
     from benchmarks import noise_correction
 

@@ -435,28 +435,6 @@ def test_the_examples_in_the_docstrings_run(name):
     assert result.failed == 0 and result.attempted > 0
 
 
-def test_the_python_blocks_of_docs_clocks_run_on_their_own():
-    # each block in its own namespace (none leans on another), all in one fresh
-    # interpreter (a fresh one per block costs the imports four times)
-    import os
-    import re
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    root = Path(__file__).resolve().parents[1]
-    text = (root / "docs" / "clocks.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
-    assert len(blocks) == 6
-    runner = (
-        "import sys\nfor code in sys.argv[1:]:\n    exec(code, {'__name__': 'doc'})"
-    )
-    env = {**os.environ, "PYTHONPATH": str(root)}
-    done = subprocess.run(
-        [sys.executable, "-c", runner, *blocks], capture_output=True, text=True, env=env
-    )
-    assert done.returncode == 0, done.stderr[-2000:]
-
 
 def test_the_most_likely_counts_increase_and_follow_the_motion():
     from lagsindy.differentiation.cycle import _most_likely_counts

@@ -9,8 +9,6 @@ keeps: that is what the benchmark measures, before and after the fit changes.
 
 import inspect
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import _undriven
@@ -174,19 +172,3 @@ def test_acceptance_counts_ten_percent(ratio, damping, ok):
     assert _undriven_report._ok_light(row) is ok
     assert not _undriven_report._ok_light({**row, "pole_kept": 2})
     assert not _undriven_report._ok_light({**row, "b_error": None})
-
-
-def test_docs_blocks_run():
-    """Every python block of docs/undriven.md runs in a fresh interpreter."""
-    text = (ROOT / "docs" / "undriven.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", text, re.S)
-    assert len(blocks) == 3
-    for block in blocks:
-        out = subprocess.run(
-            [sys.executable, "-c", block],
-            capture_output=True,
-            text=True,
-            cwd=ROOT,
-            timeout=300,
-        )
-        assert out.returncode == 0, out.stderr[-2000:]

@@ -66,6 +66,7 @@ def test_demo_weak_form_removes_the_noise_bias(capsys):
     assert float(weak.group(1)) == pytest.approx(largest["weak"], abs=0.06)
 
 
+@pytest.mark.slow  # the README demo at full size; test_demo_prints_true_and_recovered_lagrangians runs it in process
 def test_readme_demo_command_as_a_subprocess(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "lagsindy", "demo", "--trajectories", "20", "--quiet"],

@@ -14,6 +14,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
+# the control examples at quick size still take ~30 s of CPU (the gallery runs them too)
+pytestmark = pytest.mark.slow
 SCRIPTS = ("control_lqr_cartpole.py", "control_mpc_cartpole.py")
 
 

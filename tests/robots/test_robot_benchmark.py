@@ -8,6 +8,7 @@ import benchmarks._common as common
 pytest.importorskip("pinocchio")
 
 
+@pytest.mark.slow  # the 7-joint benchmark end to end (~30 s); the robot fits are tested in tests/robots
 def test_robots_benchmark_tiny(tmp_path, monkeypatch):
     from benchmarks import robots
 
