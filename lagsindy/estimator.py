@@ -146,6 +146,8 @@ class LagrangianSINDy(ModelUseMixin, RegressorMixin, BaseEstimator):
         ``mass_check_.fraction`` of them have it singular or indefinite, along
         ``mass_check_.coordinates``; ``mass_check_.ok`` is False (and the fit warns)
         above 1 %; with forces, also where it is negative definite (``.negative``).
+    equation_threshold_ : float
+        Set when the fit judged each equation on its own (it warns; refits use it).
     fitted_ : lagsindy.model.FittedLagrangian
         The fitted state these attributes come from (what a model file stores).
     n_features_in_, feature_names_in_

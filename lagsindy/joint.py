@@ -43,6 +43,7 @@ from .formulation.probes import PROBE_KINDS, UnmodelledForceWarning, probing
 from .pipeline import (
     build_dissipation,
     check_fit,
+    copy_with,
     fit_data,
     fit_statistics,
     fitted_state,
@@ -50,6 +51,7 @@ from .pipeline import (
     probes_of,
     solve_ladder,
 )
+from .settings import solver_settings
 
 __all__ = [
     "conservative_fits",
@@ -280,15 +282,30 @@ def refit_dissipation(est):
 
 
 def refit_config(est):
-    """``est``, or, when its fit was redone jointly (:class:`JointDissipation`), an
-    unfitted clone configured with that dissipation library: what refits of its
-    configuration (which run without probes) should fit."""
-    if getattr(est, "dissipation", None) is not None:
+    """What refits of ``est``'s configuration (which run without probes) should
+    fit: ``est`` itself, or an unfitted copy configured as its fit ended, with
+
+    - the dissipation library a joint fit added (:class:`JointDissipation`), and
+    - the ``equation_threshold`` of a fit that solved again with every term judged
+      within each coordinate's equation
+      (:func:`~lagsindy.pipeline.judge_each_equation`; ``est.equation_threshold_``):
+      otherwise each refit would start from the default rule and decide on its own
+      whether to judge each equation, and a bootstrap's resamples would not be
+      resamples of the fit.
+    """
+    changes = {}
+    if getattr(est, "dissipation", None) is None:
+        library = refit_dissipation(est)
+        if library is not None:
+            changes["dissipation"] = library
+    judged = getattr(getattr(est, "fitted_", None), "equation_threshold", None)
+    if not changes and judged is None:
         return est
-    library = refit_dissipation(est)
-    if library is None:
-        return est
-    return clone(est).set_params(dissipation=library)
+    copy = copy_with(est)
+    if judged is not None:
+        solver = clone(solver_settings(copy.get_params(deep=False)))
+        changes["solver"] = solver.set_params(equation_threshold=judged)
+    return copy.set_params(**changes)
 
 
 def fit(setup, params, formulation, Xt, tau, groups, *, tau_1d=False, verbose=0):

@@ -167,6 +167,12 @@ class FittedLagrangian:
         Set when the fit warned that friction or damping it lacks explains much of
         its residual (:class:`~lagsindy.formulation.probes.UnmodelledForceWarning`):
         ``share`` and the ``named`` forces; :func:`lagsindy.diagnose` reports on it.
+    equation_threshold : float or None
+        Set when the fit solved again with every term judged within each
+        coordinate's equation (:func:`lagsindy.pipeline.judge_each_equation`): the
+        ``equation_threshold`` that solve used, which refits of the configuration
+        (bootstrap, diagnosis, delay search) use too. ``None``: the solver settings'
+        own rule.
     """
 
     library: object
@@ -189,6 +195,7 @@ class FittedLagrangian:
     mass_check: MassCheck | None = None
     joint_dissipation: dict | None = None
     unmodelled: dict | None = None
+    equation_threshold: float | None = None
 
     def __post_init__(self):
         from .dissipation import assemble
@@ -291,6 +298,7 @@ class FittedLagrangian:
             "window_": self.window,
             "mass_check_": self.mass_check,
             "joint_dissipation_": self.joint_dissipation,
+            "equation_threshold_": self.equation_threshold,
         }
         out.update({k: v for k, v in optional.items() if v is not None})
         return out

@@ -417,15 +417,12 @@ def judge_each_equation(
     poor = {k: r2 for k, r2 in scores.items() if r2 < POOR_ACCELERATIONS}
     if not poor:
         return solution, fitted
-    solver = dataclasses.replace(
-        setup.solver,
-        settings=clone(settings).set_params(equation_threshold=per_equation),
-    )
-    use = dataclasses.replace(setup, solver=solver)
+    use = with_equation_threshold(setup, per_equation)
     again = solve(stats, use, Xt, tau)
     if not np.all(np.isfinite(again.coef)):
         return solution, fitted
     refitted = fitted_state(use, stats, again, tau_1d=tau_1d)
+    refitted.equation_threshold = per_equation  # refits use the same rule
     new_scores = refitted.coordinate_acceleration_r2(Xt, tau)
     if not new_scores or min(new_scores.values()) < POOR_ACCELERATIONS:
         return solution, fitted
@@ -441,6 +438,14 @@ def judge_each_equation(
         stacklevel=stacklevel,
     )
     return again, refitted
+
+
+def with_equation_threshold(setup: FitSetup, value) -> FitSetup:
+    """``setup`` with its solver's ``equation_threshold`` set to ``value``."""
+    settings = clone(setup.solver.settings).set_params(equation_threshold=value)
+    return dataclasses.replace(
+        setup, solver=dataclasses.replace(setup.solver, settings=settings)
+    )
 
 
 def check_fit(fitted, setup: FitSetup, stats, solution, Xt, tau, *, stacklevel=4):
@@ -655,7 +660,8 @@ def _as_list(terms) -> list:
 def setup_of(est, **changes) -> FitSetup:
     """The :class:`FitSetup` of a fitted estimator (its built library, dissipation
     terms, case and settings; in case III the scale its fit chose), as its fit
-    used it; ``changes`` replace fields (e.g. ``fixed_term=None``)."""
+    used it (with the ``equation_threshold`` its fit ended with); ``changes``
+    replace fields (e.g. ``fixed_term=None``)."""
     fitted = est.fitted_
     dissipation = Dissipation(
         list(fitted.dissipation_terms),
@@ -668,4 +674,6 @@ def setup_of(est, **changes) -> FitSetup:
         scale = "mass" if fitted.normalization == "mass" else fitted.fixed_term
         setup = dataclasses.replace(setup, fixed_term=scale)
     setup.solver = dataclasses.replace(setup.solver, verbose=0)
+    if fitted.equation_threshold is not None:  # judge_each_equation's rule
+        setup = with_equation_threshold(setup, fitted.equation_threshold)
     return dataclasses.replace(setup, **changes) if changes else setup
