@@ -45,6 +45,7 @@ What the same records give on ugly clocks against an even clock (issue #40):
     python -m benchmarks.clocks            # results/clocks.md
     python -m benchmarks.clocks --quick    # fewer, shorter records: clocks_quick.md
     python -m benchmarks.clocks --stamp    # time-stamp weak form: clocks_stamp.md
+    python -m benchmarks.clocks --edges    # edge rows in fits: clocks_edges.md
 """
 
 from __future__ import annotations
@@ -687,8 +688,18 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--stamp", action="store_true", help="see the docstring")
+    parser.add_argument("--edges", action="store_true", help="see the docstring")
     args = parser.parse_args(argv)
     cmd = _common.command("clocks", argv)
+    if args.edges:
+        from ._clock_edges import edge_fit_study, edge_table
+
+        sizes = (2, 4.0) if _tiny() else (6, 6.0)
+        body = edge_table(
+            edge_fit_study(sizes, (10,) if _tiny() else (2, 6, 10)), sizes
+        )
+        write("clocks_edges.md", header("Edge rows (issue #40)", cmd) + body)
+        return 0
     if args.stamp:
         from ._stampweak import stamp_report
 

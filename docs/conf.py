@@ -171,6 +171,30 @@ def _skip_member(app, what, name, obj, skip, options):
     return skip
 
 
+# Examples that need an optional package stop with ``sys.exit(0)`` without it, which
+# would end the whole build when the gallery runs: left out of a run without it.
+NEEDS = {"control_mpc_cartpole.py": "casadi"}
+FALSE = {"0", "False", "false", "no", ""}  # -D plot_gallery=0 and the like
+
+
+def _leave_out_unrunnable_examples(app):
+    import importlib.util
+
+    value = app.config.plot_gallery
+    runs = value if isinstance(value, bool) else str(value).strip() not in FALSE
+    missing = [
+        name
+        for name, module in NEEDS.items()
+        if importlib.util.find_spec(module) is None
+    ]
+    if runs and missing:
+        conf = app.config.sphinx_gallery_conf
+        names = "|".join(n.replace(".", r"\.") for n in missing)
+        conf["ignore_pattern"] = rf"{conf['ignore_pattern']}|(^|/)({names})$"
+
+
 def setup(app):
     app.connect("source-read", _optional_pages)
     app.connect("autodoc-skip-member", _skip_member)
+    # before sphinx-gallery's own builder-inited handlers (priority 10)
+    app.connect("builder-inited", _leave_out_unrunnable_examples, priority=5)

@@ -1,4 +1,6 @@
-"""Balance a cart-pendulum with an LQR designed on a model identified from noisy data.
+"""
+Balance a cart-pendulum with an LQR designed on a model identified from noisy data
+==================================================================================
 
 1. Simulate the cart-pendulum driven on the cart and record positions with sensor
    noise (sigma = 0.01; velocities and accelerations are estimated from them).

@@ -1,4 +1,6 @@
-"""Model predictive control of a cart-pendulum on a model identified from noisy data.
+"""
+Model predictive control of a cart-pendulum on a model identified from noisy data
+=================================================================================
 
 The model is identified as in control_lqr_cartpole.py; lagsindy.export.to_casadi turns
 it into CasADi functions, on which a short-horizon MPC (multiple shooting, RK4,

@@ -17,8 +17,14 @@ from collections.abc import Callable, Iterable, Sequence
 import sympy as sp
 import torch
 
-VELOCITY_SUFFIX = "_dot"
-ACCELERATION_SUFFIX = "_ddot"
+from ._names import (
+    ACCELERATION_SUFFIX,
+    CONSTANT_NAMES,
+    FUNCTION_NAMES,
+    VELOCITY_SUFFIX,
+    name_problem,
+    repeated_name,
+)
 
 # Functions a term string may call, mapped to sympy and to torch.
 _SYMPY_FUNCTIONS: dict[str, Callable] = {
@@ -37,7 +43,7 @@ _SYMPY_FUNCTIONS: dict[str, Callable] = {
 }
 _CONSTANTS = {"pi": sp.pi, "E": sp.E}
 _RESERVED = set(_SYMPY_FUNCTIONS) | set(_CONSTANTS)
-_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
+assert _RESERVED == set(FUNCTION_NAMES) | set(CONSTANT_NAMES)
 MAX_EXPRESSION_LENGTH = 10_000
 MAX_EXPONENT = 64
 # Largest magnitude (in bits, |log2|) of a power of two numbers: sympy evaluates
@@ -63,26 +69,9 @@ def check_coordinate_names(names: Iterable[str]) -> list[str]:
     names = list(names)
     if not names:
         raise ValueError("at least one coordinate name is needed, got an empty list")
-    seen = set()
-    for name in names:
-        if not isinstance(name, str) or not _NAME_RE.match(name):
-            raise ValueError(
-                f"coordinate name {name!r} is not valid: use letters, digits and '_', "
-                "starting with a letter (e.g. 'theta', 'x1')"
-            )
-        if name in _RESERVED:
-            raise ValueError(
-                f"coordinate name {name!r} is reserved (a function or constant name); "
-                "choose another name"
-            )
-        if name.endswith(VELOCITY_SUFFIX) or name.endswith(ACCELERATION_SUFFIX):
-            raise ValueError(
-                f"coordinate name {name!r} ends in '{VELOCITY_SUFFIX}' or "
-                f"'{ACCELERATION_SUFFIX}', which are reserved for its derivatives"
-            )
-        if name in seen:
-            raise ValueError(f"coordinate name {name!r} appears twice")
-        seen.add(name)
+    for problem in (*map(name_problem, names), repeated_name(names)):
+        if problem is not None:
+            raise ValueError(problem)
     return names
 
 

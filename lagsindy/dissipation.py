@@ -392,6 +392,7 @@ class DissipationLibrary(BaseEstimator):
         return float(self.eps)
 
     def get_feature_names_out(self, input_features=None) -> np.ndarray:
+        """Names of the force candidates (``input_features`` is ignored)."""
         if not hasattr(self, "terms_"):
             self.build()
         return np.asarray([t.name for t in self.terms_], dtype=object)

@@ -146,8 +146,6 @@ class LagrangianSINDy(ModelUseMixin, RegressorMixin, BaseEstimator):
         ``mass_check_.fraction`` of them have it singular or indefinite, along
         ``mass_check_.coordinates``; ``mass_check_.ok`` is False (and the fit warns)
         above 1 %; with forces, also where it is negative definite (``.negative``).
-    equation_threshold_ : float
-        Set when the fit judged each equation on its own (it warns; refits use it).
     fitted_ : lagsindy.model.FittedLagrangian
         The fitted state these attributes come from (what a model file stores).
     n_features_in_, feature_names_in_
@@ -258,11 +256,11 @@ class LagrangianSINDy(ModelUseMixin, RegressorMixin, BaseEstimator):
             metadata routing (``est.set_fit_request(groups=True)``).
         t : array-like of shape (n_samples,) or CleanedClock, default=None
             Time of each row (or the ``CleanedClock`` of ``derivatives(...,
-            return_clock=True)``, whose cleaned times and segments are then used).
-            On an uneven clock (jitter, dropped frames, gaps) the weak form's rows
-            are first put on an even clock per gap-free segment
-            (:func:`lagsindy.differentiation.to_even_clock`), and ``dt`` (unless
-            given) is the clock's step. ``None``: rows are taken as evenly spaced.
+            return_clock=True)``). Rows within 3 samples of a segment's end are left
+            out (``clock_`` counts them); on an uneven clock the weak form's rows
+            are put on an even clock per gap-free segment (``to_even_clock``; ``dt``
+            unless given: its step). ``bootstrap`` and ``diagnose`` need the same
+            ``t=``. ``None``: rows are taken as evenly spaced, every row fitted.
 
         Returns
         -------
@@ -282,9 +280,10 @@ class LagrangianSINDy(ModelUseMixin, RegressorMixin, BaseEstimator):
         device, dtype = resolve_device(self.device), resolve_dtype(self.dtype)
         Xa, tau, setup = self._setup(X, y, params)
         formulation = pipeline.formulation_of(params, setup.case)
+        clock = None
         if t is not None:
-            Xa, tau, groups, formulation = rows_on_even_clock(
-                formulation, Xa, tau, groups, t
+            Xa, tau, groups, formulation, clock = rows_on_even_clock(
+                formulation, Xa, tau, groups, t, verbose=self.verbose
             )
         Xt = to_tensor(Xa, dtype=dtype, device=device)
         tau_1d = tau is not None and np.asarray(y).ndim == 1
@@ -298,6 +297,7 @@ class LagrangianSINDy(ModelUseMixin, RegressorMixin, BaseEstimator):
             tau_1d=tau_1d,
             verbose=self.verbose,
         )
+        fitted.clock = clock  # what the time stamps changed (None: no t)
         return self._publish(fitted)
 
     def _setup(self, X, y, params):

@@ -559,7 +559,7 @@ class TermEvaluator:
         return mass.detach(), bias
 
     def energies(self, coef, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
-        """Energy ``qd . dL/dqd - L`` of ``L = sum_k coef[k] phi_k`` at each sample.
+        """Energy ``dL/dqd @ qd - L`` of ``L = sum_k coef[k] phi_k`` at each sample.
 
         Parameters
         ----------

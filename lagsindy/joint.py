@@ -49,6 +49,7 @@ from .pipeline import (
     fit_data,
     make_setup,
     probes_of,
+    setup_of,
 )
 from .settings import solver_settings
 
@@ -59,6 +60,7 @@ __all__ = [
     "JointDissipationWarning",
     "refit_config",
     "refit_dissipation",
+    "refit_setup",
 ]
 
 # Cases whose fits are redone jointly (passive fits only warn: their scale is set by
@@ -301,6 +303,20 @@ def refit_config(est):
         solver = clone(solver_settings(copy.get_params(deep=False)))
         changes["solver"] = solver.set_params(equation_threshold=judged)
     return copy.set_params(**changes)
+
+
+def refit_setup(est):
+    """:func:`~lagsindy.pipeline.setup_of` ``est`` with the ``equation_threshold``
+    its fit ended with (``est.equation_threshold_``, see :func:`refit_config`):
+    what solves of its configuration from statistics (the bootstrap's fast path)
+    use."""
+    setup = setup_of(est)
+    judged = getattr(est.fitted_, "equation_threshold", None)
+    if judged is None:
+        return setup
+    settings = clone(setup.solver.settings).set_params(equation_threshold=judged)
+    solver = dataclasses.replace(setup.solver, settings=settings)
+    return dataclasses.replace(setup, solver=solver)
 
 
 def fit(setup, params, formulation, Xt, tau, groups, *, tau_1d=False, verbose=0):

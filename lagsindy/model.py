@@ -173,6 +173,14 @@ class FittedLagrangian:
         ``equation_threshold`` that solve used, which refits of the configuration
         (bootstrap, diagnosis, delay search) use too. ``None``: the solver settings'
         own rule.
+    clock : dict or None
+        Set when the fit was given time stamps (``fit(X, tau, t=...)``): the
+        ``rows`` given, the ``edge_rows`` left out (near a segment's end), the
+        ``fit_rows`` fitted, the even clock's ``dt`` (None: rows fitted as given)
+        and a one-line ``report``
+        (:func:`~lagsindy.formulation.clocked.rows_on_even_clock`). Refits of the
+        same rows (:func:`lagsindy.bootstrap`, :func:`lagsindy.diagnose`) need the
+        same ``t=``.
     """
 
     library: object
@@ -196,6 +204,7 @@ class FittedLagrangian:
     joint_dissipation: dict | None = None
     unmodelled: dict | None = None
     equation_threshold: float | None = None
+    clock: dict | None = None
 
     def __post_init__(self):
         from .dissipation import assemble
@@ -299,6 +308,7 @@ class FittedLagrangian:
             "mass_check_": self.mass_check,
             "joint_dissipation_": self.joint_dissipation,
             "equation_threshold_": self.equation_threshold,
+            "clock_": self.clock,
         }
         out.update({k: v for k, v in optional.items() if v is not None})
         return out

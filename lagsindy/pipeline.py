@@ -32,6 +32,7 @@ from .cases import Problem, SparseSolve, solve_case
 from .dissipation import DissipationLibrary, reduce_forces
 from .evaluator import library_terms
 from .formulation import feature_operator
+from .formulation.clocked import frame_on_clock
 from .formulation.forms import StrongForm, WeakForm, with_window
 from .formulation.probes import (
     PROBE_KINDS,
@@ -60,6 +61,7 @@ __all__ = [
     "fitted_state",
     "fitted_formulation",
     "formulation_of",
+    "on_fit_clock",
     "problem",
     "probes_of",
     "solve",
@@ -395,12 +397,8 @@ def judge_each_equation(
     ``POOR_ACCELERATIONS`` from the measured forces). Then the solve is repeated
     with ``equation_threshold = threshold`` (each term judged in its own equation
     with the threshold itself) and kept, with a warning that says so, when every
-    coordinate then scores at least ``POOR_ACCELERATIONS``.
-
-    Returns
-    -------
-    solution, fitted
-        The ones given, or those of the repeated solve.
+    coordinate then scores at least ``POOR_ACCELERATIONS``. Returns ``(solution,
+    fitted)``: the ones given, or those of the repeated solve (its rule recorded).
     """
     settings = setup.solver.settings
     per_equation = settings.threshold
@@ -417,7 +415,11 @@ def judge_each_equation(
     poor = {k: r2 for k, r2 in scores.items() if r2 < POOR_ACCELERATIONS}
     if not poor:
         return solution, fitted
-    use = with_equation_threshold(setup, per_equation)
+    solver = dataclasses.replace(
+        setup.solver,
+        settings=clone(settings).set_params(equation_threshold=per_equation),
+    )
+    use = dataclasses.replace(setup, solver=solver)
     again = solve(stats, use, Xt, tau)
     if not np.all(np.isfinite(again.coef)):
         return solution, fitted
@@ -438,14 +440,6 @@ def judge_each_equation(
         stacklevel=stacklevel,
     )
     return again, refitted
-
-
-def with_equation_threshold(setup: FitSetup, value) -> FitSetup:
-    """``setup`` with its solver's ``equation_threshold`` set to ``value``."""
-    settings = clone(setup.solver.settings).set_params(equation_threshold=value)
-    return dataclasses.replace(
-        setup, solver=dataclasses.replace(setup.solver, settings=settings)
-    )
 
 
 def check_fit(fitted, setup: FitSetup, stats, solution, Xt, tau, *, stacklevel=4):
@@ -660,8 +654,7 @@ def _as_list(terms) -> list:
 def setup_of(est, **changes) -> FitSetup:
     """The :class:`FitSetup` of a fitted estimator (its built library, dissipation
     terms, case and settings; in case III the scale its fit chose), as its fit
-    used it (with the ``equation_threshold`` its fit ended with); ``changes``
-    replace fields (e.g. ``fixed_term=None``)."""
+    used it; ``changes`` replace fields (e.g. ``fixed_term=None``)."""
     fitted = est.fitted_
     dissipation = Dissipation(
         list(fitted.dissipation_terms),
@@ -674,6 +667,31 @@ def setup_of(est, **changes) -> FitSetup:
         scale = "mass" if fitted.normalization == "mass" else fitted.fixed_term
         setup = dataclasses.replace(setup, fixed_term=scale)
     setup.solver = dataclasses.replace(setup.solver, verbose=0)
-    if fitted.equation_threshold is not None:  # judge_each_equation's rule
-        setup = with_equation_threshold(setup, fitted.equation_threshold)
     return dataclasses.replace(setup, **changes) if changes else setup
+
+
+def on_fit_clock(est, X, tau=None, groups=None, t=None, *, what="", even=False):
+    """``(est, X, tau, groups)`` as a fit given the time stamps ``t`` used them
+    (:func:`~lagsindy.formulation.clocked.frame_on_clock`; ``est`` copied with the
+    clock's ``dt``), for refits of the rows (``what``: who refits; ``even``: rows on
+    an even clock whatever the formulation, for a trajectory criterion).
+    ``t=None``: as given; a fitted ``est`` whose fit had time stamps is refused."""
+    if t is None:
+        if getattr(est, "clock_", None) is not None:
+            raise ValueError(
+                f"est was fitted with time stamps, fit(X, tau, t=...) ("
+                f"{est.clock_['report'] or 'an even clock'}), and {what} would take "
+                "the rows as evenly spaced, edge rows included: pass the same t= to "
+                f"{what}(est, X, tau, ..., t=...)"
+            )
+        return est, X, tau, groups
+    fitted = getattr(est, "fitted_", None)
+    case = resolve_case(est.case, tau) if fitted is None else fitted.case
+    form = formulation_of(est.get_params(deep=False), case)
+    X, tau, groups, form = frame_on_clock(form, X, tau, groups, t, even=even)
+    if fitted is None:
+        return copy_with(est, formulation=form), X, tau, groups
+    params = {**copy_with(est).get_params(deep=False), "formulation": form}
+    params["feature_names_in"] = getattr(est, "feature_names_in_", None)
+    est = type(est).from_fitted(dataclasses.replace(fitted, clock=None), **params)
+    return est, X, tau, groups

@@ -447,7 +447,7 @@ def test_the_python_blocks_of_docs_clocks_run_on_their_own():
     root = Path(__file__).resolve().parents[1]
     text = (root / "docs" / "clocks.md").read_text()
     blocks = re.findall(r"```python\n(.*?)```", text, re.S)
-    assert len(blocks) == 5
+    assert len(blocks) == 6
     runner = (
         "import sys\nfor code in sys.argv[1:]:\n    exec(code, {'__name__': 'doc'})"
     )

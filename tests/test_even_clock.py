@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from lagsindy import CandidateLibrary, LagrangianSINDy
-from lagsindy.differentiation import derivatives, to_even_clock
+from lagsindy.differentiation import derivatives, edge_rows, to_even_clock
+from lagsindy.formulation import AutoForm
 
 
 def states(t):
@@ -146,21 +147,32 @@ def test_the_fit_given_time_stamps_matches_the_even_clock(pendulum_records):
     assert old.formulation_ == "strong" or _largest_difference(old, ref) > 0.02
 
 
-def test_time_stamps_of_an_even_clock_change_nothing_but_dt(pendulum_records):
+def test_time_stamps_of_an_even_clock_change_nothing_but_dt_and_edges(
+    pendulum_records,
+):
+    """On an even clock, t= only sets dt and leaves out the 3 rows at each end of
+    every trajectory (edge_rows)."""
     library, even, _ = pendulum_records
     X = derivatives(even["q"], even["t"], groups=even["groups"], angles="all")
-    a = LagrangianSINDy(library, dt=0.01).fit(X, even["tau"], groups=even["groups"])
+    inner = ~edge_rows(even["t"], even["groups"])
+    assert inner.sum() == X.shape[0] - 6 * len(np.unique(even["groups"]))
+    a = LagrangianSINDy(library, formulation=AutoForm(dt=0.01)).fit(
+        X[inner], even["tau"][inner], groups=even["groups"][inner]
+    )
     b = LagrangianSINDy(library).fit(X, even["tau"], groups=even["groups"], t=even["t"])
     np.testing.assert_allclose(b.coef_, a.coef_, rtol=1e-10, atol=1e-12)
+    assert b.clock_["edge_rows"] == X.shape[0] - inner.sum()
+    assert b.clock_["fit_rows"] == inner.sum() and b.clock_["rows"] == X.shape[0]
 
 
 @pytest.mark.parametrize("longest, strong", [(80, True), (81, False)])
 def test_the_strong_form_only_when_no_segment_holds_a_window(longest, strong):
-    """Segments shorter than the weak form's first window (81 samples): the strong
-    form, with a warning saying it is the only option left and why."""
+    """Segments shorter than the weak form's first window (81 samples, after the 3
+    edge rows at each end are left out): the strong form, with a warning saying it
+    is the only option left and why."""
     rng = np.random.default_rng(1)
     pieces, t0 = [], 0.0
-    for m in [longest] + [60] * 9:
+    for m in [longest + 6] + [60] * 9:
         local = np.arange(m) * 0.01
         local[1:-1] += rng.uniform(-0.2, 0.2, m - 2) * 0.01  # ends exact
         pieces.append(t0 + local)
@@ -175,9 +187,10 @@ def test_the_strong_form_only_when_no_segment_holds_a_window(longest, strong):
 
     with warnings.catch_warnings(record=True) as found:
         warnings.simplefilter("always")
-        Xe, _, groups, form = rows_on_even_clock(AutoForm(), X, None, None, t)
+        Xe, _, groups, form, clock = rows_on_even_clock(AutoForm(), X, None, None, t)
     said = [str(w.message) for w in found]
-    assert np.bincount(to_even_clock(X, t).groups).max() == longest
+    inner = ~edge_rows(t)
+    assert np.bincount(to_even_clock(X[inner], t[inner]).groups).max() == longest
     assert isinstance(form, StrongForm) is strong
     assert any("the only option left" in s for s in said) is strong
     if strong:
@@ -185,7 +198,9 @@ def test_the_strong_form_only_when_no_segment_holds_a_window(longest, strong):
             f"has {longest} samples, fewer than the weak form's window of 81"
             in (said[0])
         )
-        assert Xe is X  # the strong form takes the rows as they are
+        # the strong form takes the rows as they are, less the edge rows
+        np.testing.assert_array_equal(Xe, X[inner])
+        assert clock["edge_rows"] == 60 and clock["dt"] is None
 
 
 def test_a_cleaned_clock_must_be_of_the_same_rows():

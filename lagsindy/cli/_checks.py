@@ -19,6 +19,12 @@ import math
 import re
 from pathlib import Path
 
+from .._names import (
+    ACCELERATION_SUFFIX,
+    VELOCITY_SUFFIX,
+    name_problem,
+    repeated_name,
+)
 from .parser import SYSTEM_NAMES
 
 
@@ -26,11 +32,6 @@ class CLIError(Exception):
     """A user error: printed as one line, exit status 2."""
 
 
-# The X layout's suffixes (lagsindy._expr.VELOCITY_SUFFIX / ACCELERATION_SUFFIX,
-# which imports sympy and torch); tests/cli/test_errors.py checks that they agree.
-VELOCITY_SUFFIX = "_dot"
-ACCELERATION_SUFFIX = "_ddot"
-_NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
 _LIBRARY_RE = re.compile(r"(poly|polynomial|sep|separated)(\d+)\Z")
 MAX_LIBRARY_DEGREE = 6
 
@@ -168,20 +169,9 @@ def coordinates(text):
     coords = split(text)
     if not coords:
         raise CLIError("--coordinates needs at least one column name, e.g. x,theta")
-    for name in coords:
-        if not _NAME_RE.match(name):
-            raise CLIError(
-                f"coordinate name {name!r} is not valid: use letters, digits and '_', "
-                "starting with a letter (e.g. 'theta', 'x1')"
-            )
-        if name.endswith(VELOCITY_SUFFIX) or name.endswith(ACCELERATION_SUFFIX):
-            raise CLIError(
-                f"coordinate name {name!r} ends in '{VELOCITY_SUFFIX}' or "
-                f"'{ACCELERATION_SUFFIX}', which are reserved for its derivatives"
-            )
-    repeated = sorted({c for c in coords if coords.count(c) > 1})
-    if repeated:
-        raise CLIError(f"coordinate name {repeated[0]!r} appears twice")
+    for problem in (*map(name_problem, coords), repeated_name(coords)):
+        if problem is not None:
+            raise CLIError(problem)
     return coords
 
 

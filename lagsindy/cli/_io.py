@@ -160,7 +160,7 @@ def _state_and_groups(df, coords, args, source, angles=(), ordered=True):
     q = _numeric(df, coords, source)
     method = getattr(args, "derivatives", None)
     groups = df["trajectory"].to_numpy() if "trajectory" in df.columns else None
-    args._t = None
+    args._t = args._edge = None
     if not _derivatives_estimated(df, coords, args):
         if ordered and time in df.columns:  # the weak form takes the rows in order
             args._t = _numeric(df, [time], source)[:, 0]
@@ -242,7 +242,7 @@ def _state_and_groups(df, coords, args, source, angles=(), ordered=True):
         )
     if velocities is not None:
         X[:, len(coords) : 2 * len(coords)] = velocities
-    args._t = clock.t
+    args._t, args._edge = clock.t, clock.edge
     return pd.DataFrame(X, columns=names, index=df.index), groups
 
 
@@ -251,12 +251,30 @@ def _on_even_clock(args, X, tau, groups):
     ``LagrangianSINDy.fit(t=)`` does); returns ``(X, tau, groups, dt)``, ``dt``
     None when nothing changed. One progress line says what was done."""
     t = getattr(args, "_t", None)
-    if t is None or getattr(args, "formulation", "auto") == "strong":
+    if t is None:
         return X, tau, groups, None
     import pandas as pd
 
-    from ..differentiation import to_even_clock
+    from ..differentiation import edge_rows, to_even_clock
 
+    # rows near a segment's end left out, as LagrangianSINDy.fit(t=) does
+    factor = float(getattr(args, "gap_factor", 5.0))
+    edge = getattr(args, "_edge", None)
+    edge = edge_rows(t, groups, gap_factor=factor) if edge is None else edge
+    if edge.any() and not edge.all():
+        _say(
+            args,
+            f"{int(edge.sum())} of {edge.size} rows lie within 3 samples of a "
+            "segment's end or in a segment too short to differentiate (one-sided "
+            "derivative estimates): left out of the fit",
+        )
+        keep = np.flatnonzero(~edge)
+        X = X.iloc[keep].reset_index(drop=True)
+        tau = None if tau is None else tau[keep]
+        groups = None if groups is None else np.asarray(groups)[keep]
+        t = t[keep]
+    if getattr(args, "formulation", "auto") == "strong":
+        return X, tau, groups, None
     even = to_even_clock(
         np.asarray(X, dtype=float), t, groups, tau,
         gap_factor=float(getattr(args, "gap_factor", 5.0)),

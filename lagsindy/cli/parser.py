@@ -78,6 +78,18 @@ def _command(name):
     return run
 
 
+_QUIET = "print nothing but errors"
+
+
+def _finish(p, command, *, quiet=_QUIET, derivatives=False, **defaults):
+    """The options every subcommand ends with (derivative estimation where it reads
+    positions, ``--quiet``) and the function that runs it."""
+    if derivatives:
+        _add_derivative_options(p)
+    p.add_argument("--quiet", action="store_true", help=quiet)
+    p.set_defaults(func=_command(command), **defaults)
+
+
 def _add_derivative_options(p):
     p.add_argument(
         "--derivatives",
@@ -335,12 +347,11 @@ def build_parser() -> argparse.ArgumentParser:
         const=None,
         help="do not save a plot",
     )
-    demo.add_argument(
-        "--quiet",
-        action="store_true",
-        help="no progress output (stage lines, notes): results and errors only",
+    _finish(
+        demo,
+        "_demo",
+        quiet="no progress output (stage lines, notes): results and errors only",
     )
-    demo.set_defaults(func=_command("_demo"))
 
     sim = sub.add_parser(
         "simulate",
@@ -397,8 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=0,
         help="random seed of the initial states, inputs and noise",
     )
-    sim.add_argument("--quiet", action="store_true", help="print nothing but errors")
-    sim.set_defaults(func=_command("_simulate"))
+    _finish(sim, "_simulate")
 
     simm = sub.add_parser(
         "simulate-model",
@@ -420,8 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--rate", type=float, default=100.0, help="output samples per second"
     )
     simm.add_argument("--out", required=True, help="output CSV")
-    simm.add_argument("--quiet", action="store_true", help="print nothing but errors")
-    simm.set_defaults(func=_command("_simulate_model"), system=None)
+    _finish(simm, "_simulate_model", system=None)
 
     fit = sub.add_parser(
         "fit",
@@ -457,14 +466,13 @@ def build_parser() -> argparse.ArgumentParser:
         "refined one, the held-out score is the sparse fit's) (default: no "
         "refinement)",
     )
-    _add_derivative_options(fit)
-    fit.add_argument(
-        "--quiet",
-        action="store_true",
-        help="print only the Lagrangian (and errors, and warnings that the result "
+    _finish(
+        fit,
+        "_fit",
+        derivatives=True,
+        quiet="print only the Lagrangian (and errors, and warnings that the result "
         "may be wrong)",
     )
-    fit.set_defaults(func=_command("_fit"))
 
     diag = sub.add_parser(
         "diagnose",
@@ -523,14 +531,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="save the final model (JSON) (default: not saved)",
     )
-    _add_derivative_options(diag)
-    diag.add_argument(
-        "--quiet",
-        action="store_true",
-        help="print only the report (and errors, and warnings that the result may "
+    _finish(
+        diag,
+        "_diagnose",
+        derivatives=True,
+        quiet="print only the report (and errors, and warnings that the result may "
         "be wrong)",
     )
-    diag.set_defaults(func=_command("_diagnose"))
 
     pred = sub.add_parser(
         "predict",
@@ -555,9 +562,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     pred.add_argument("--passive", action="store_true", help="ignore input columns")
     pred.add_argument("--out", required=True, help="output CSV")
-    _add_derivative_options(pred)
-    pred.add_argument("--quiet", action="store_true", help="print nothing but errors")
-    pred.set_defaults(func=_command("_predict"))
+    _finish(pred, "_predict", derivatives=True)
 
     from ..export.command import add_export_command
 

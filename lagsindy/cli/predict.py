@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import warnings
 
+import numpy as np
+
 from . import _checks
 from ._io import (
     _check_out,
@@ -40,10 +42,20 @@ def _predict(args) -> int:
         warnings.filterwarnings("ignore", message="X has feature names")
         forces = est.predict(X)
         acc = est.predict_acceleration(X, tau)
+        # scored without the rows near a segment's end (estimated derivatives:
+        # one-sided there, several times less accurate), as fit and diagnose fit
+        edge = getattr(args, "_edge", None)
+        rows = (
+            np.arange(len(X)) if edge is None or edge.all() else np.flatnonzero(~edge)
+        )
+        left = "" if rows.size == len(X) else (
+            f" (the {len(X) - rows.size} rows within 3 samples of a segment's end "
+            "left out)"
+        )  # fmt: skip
         if tau is not None and est.case_ == "forces":
-            quality = f"R^2 of forces: {est.score(X, tau):.4f}"
+            quality = f"R^2 of forces: {est.score(X.iloc[rows], tau[rows]):.4f}{left}"
         elif tau is None:
-            quality = f"R^2 of accelerations: {est.score(X):.4f}"
+            quality = f"R^2 of accelerations: {est.score(X.iloc[rows]):.4f}{left}"
         else:
             quality = None
     time = _checks.time_column(args)

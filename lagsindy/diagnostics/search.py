@@ -13,6 +13,7 @@ from sklearn.utils.validation import check_is_fitted
 
 from .._validation import validate_state, validate_tau
 from ..partitioned import collect, is_partitioned
+from ..pipeline import on_fit_clock
 from ..formulation.operator import reuse_weak_columns
 from .catalogue import DEFAULT_CATALOGUE, velocity_eps
 from .loop import DiagnosisSettings, Search
@@ -40,6 +41,7 @@ def diagnose(
     bootstrap=None,
     random_state=None,
     verbose: int = 0,
+    t=None,
 ) -> DiagnosisReport:
     """Find the missing effects a fitted model leaves in its residual, add and refit.
 
@@ -111,6 +113,10 @@ def diagnose(
     random_state : int, RandomState instance or None, default=None
         Seeds the bootstrap's resamples (the diagnosis itself is deterministic).
     verbose : int, default=0
+    t : array-like of shape (n_samples,) or CleanedClock, default=None
+        The time stamps ``est`` was fitted with (``est.fit(X, tau, t=t)``): the
+        diagnosis then runs on the rows that fit used (edge rows left out, the weak
+        form's rows on an even clock). Required when ``est`` was fitted with ``t=``.
 
     Returns
     -------
@@ -136,6 +142,10 @@ def diagnose(
     check_is_fitted(est)
     if is_partitioned(X):  # its folds integrate whole trajectories: in memory
         X, tau, groups = collect(X, groups=groups, y=tau)
+    # the rows a fit given t= used (t=None: as given)
+    est, X, tau, groups = on_fit_clock(
+        est, X, tau, groups, t, what="diagnose", even=True
+    )
     Xa, _, _ = validate_state(est, X, reset=False, coordinates=est.coordinates_)
     tau_a = (
         None

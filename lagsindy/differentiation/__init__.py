@@ -162,6 +162,6 @@ from .records import (  # noqa: F401
     check_weak_form_segments,
     split_gaps,
 )
-from .evenclock import EvenClock, to_even_clock  # noqa: F401
+from .evenclock import EvenClock, edge_rows, to_even_clock  # noqa: F401
 from .resample import Resampled, resample  # noqa: F401
 from .transformer import Derivatives  # noqa: F401

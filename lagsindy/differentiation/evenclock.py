@@ -22,6 +22,7 @@ from numbers import Real
 
 import numpy as np
 
+from .clock import EDGE_SAMPLES
 from .records import (
     _GAP_FACTOR,
     _GLITCH_FRACTION,
@@ -257,3 +258,65 @@ def _hermite5(X, ts, grid, d):
         )  # fmt: skip
         out.append(val / h**k)
     return np.concatenate(out, axis=1)
+
+
+def edge_rows(
+    t,
+    groups=None,
+    *,
+    edge_samples: int = EDGE_SAMPLES,
+    min_samples: int = 7,
+    gap_factor: float = _GAP_FACTOR,
+) -> np.ndarray:
+    """Rows near the end of a gap-free segment, whose derivative estimates are poor.
+
+    The rows of each trajectory are cut where a step exceeds ``gap_factor`` times the
+    trajectory's median step (as :func:`clean_clock` and :func:`to_even_clock` cut
+    them); the first and last ``edge_samples`` rows of every segment, and every row
+    of a segment of fewer than ``min_samples`` rows, are flagged. It is
+    :attr:`CleanedClock.edge <lagsindy.differentiation.CleanedClock>` for time
+    stamps given as an array (``LagrangianSINDy.fit(X, tau, t=t)``).
+
+    Parameters
+    ----------
+    t : array-like of shape (n_samples,)
+        Time of each row, increasing within each trajectory.
+    groups : array-like of shape (n_samples,), default=None
+        Trajectory labels (contiguous rows); ``None``: one trajectory.
+    edge_samples : int, default=3
+        Rows flagged at each end of a segment.
+    min_samples : int, default=7
+        Every row of a shorter segment is flagged.
+    gap_factor : float, default=5.0
+
+    Returns
+    -------
+    ndarray of bool of shape (n_samples,)
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from lagsindy.differentiation import edge_rows
+    >>> t = np.r_[np.arange(10), 20 + np.arange(10)] * 0.01  # a gap after row 9
+    >>> np.flatnonzero(~edge_rows(t, edge_samples=2)).tolist()
+    [2, 3, 4, 5, 6, 7, 12, 13, 14, 15, 16, 17]
+    """
+    t = np.asarray(t, dtype=np.float64).ravel()
+    n = t.size
+    if not (isinstance(edge_samples, (int, np.integer)) and edge_samples >= 0):
+        raise ValueError(f"edge_samples must be an integer >= 0, got {edge_samples!r}")
+    edge = np.zeros(n, dtype=bool)
+    for _, sl in _segments(groups, n):
+        steps = np.diff(t[sl])
+        moves = steps[steps > 0]
+        cut = []
+        if moves.size:
+            cut = np.flatnonzero(steps > gap_factor * np.median(moves)) + 1
+        bounds = np.r_[0, cut, sl.stop - sl.start] + sl.start
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if b - a < min_samples:
+                edge[a:b] = True
+            else:
+                edge[a : a + edge_samples] = True
+                edge[b - edge_samples : b] = True
+    return edge

@@ -332,14 +332,7 @@ class _BandedPSpline:
         best = np.empty(n_cols, dtype=int)
         for j in range(n_cols):
             k = coarse[int(np.argmin(table[:, j]))]
-            a, b = max(k - step, 0), min(k + step, last)
-            while b - a > 3:  # golden-section search over the integers a..b
-                m1 = a + int(round(0.382 * (b - a)))
-                m2 = a + int(round(0.618 * (b - a)))
-                if score(m1)[j] <= score(m2)[j]:
-                    b = m2
-                else:
-                    a = m1
+            a, b = _golden_bracket(lambda i: score(i)[j], k, step, last)
             cand = list(range(a, b + 1)) + [k]
             best[j] = min(cand, key=lambda i: (score(i)[j], i))
         return best, np.array([scores[int(best[j])][j] for j in range(n_cols)])
@@ -371,14 +364,7 @@ class _BandedPSpline:
         for j in range(n_cols):
             c = int(np.argmin(table[:, j]))
             k = coarse[c]
-            a, b = max(k - step, 0), min(k + step, last)
-            while b - a > 3:  # golden-section search over the integers a..b
-                m1 = a + int(round(0.382 * (b - a)))
-                m2 = a + int(round(0.618 * (b - a)))
-                if score(m1)[j] <= score(m2)[j]:
-                    b = m2
-                else:
-                    a = m1
+            a, b = _golden_bracket(lambda i: score(i)[j], k, step, last)
             i = min(range(a, b + 1), key=lambda m: (score(m)[j], m))
             near = [m for m in (i - 1, i, i + 1) if 0 <= m <= last]
             values = sorted(score(m)[j] for m in near)
@@ -522,3 +508,18 @@ _PSPLINE_FD_STEP = 1e-5
 # Above this lambda * s_max (condition number of G + lambda P, roughly) the fast
 # trace loses digits: the final choice is then rescored exactly.
 _PSPLINE_FD_MAX_COND = 1e9
+
+
+def _golden_bracket(score, k, step, last):
+    """Golden-section search over the grid indices ``k - step .. k + step`` (within
+    ``0 .. last``) for a minimum of ``score(index)``: the final bracket ``(a, b)``,
+    at most 4 indices wide."""
+    a, b = max(k - step, 0), min(k + step, last)
+    while b - a > 3:
+        m1 = a + int(round(0.382 * (b - a)))
+        m2 = a + int(round(0.618 * (b - a)))
+        if score(m1) <= score(m2):
+            b = m2
+        else:
+            a = m1
+    return a, b

@@ -269,10 +269,12 @@ class MechanicalModel:
     # ------------------------------------------------------------------ symbolic
     @property
     def n_dof(self) -> int:
+        """Number of generalized coordinates."""
         return len(self.coordinates)
 
     @property
     def n_inputs(self) -> int:
+        """Number of inputs ``u`` (columns of ``input_matrix``; force ``B u``)."""
         return self.input_matrix.shape[1]
 
     @property
@@ -431,14 +433,6 @@ class MechanicalModel:
         rtol, atol : float, default=1e-9
         max_step : float, default=inf
 
-        Notes
-        -----
-        With a sampled ``tau``, every step ends at a sample (the interpolated input
-        has a kink there). For one trajectory of a 1- or 2-dof model with an explicit
-        method (RK23, RK45, DOP853), the step is the method's tableau unrolled on
-        Python floats, with scipy's error norm and step-size control: the same
-        result as scipy's solver to rounding, several times faster.
-
         Returns
         -------
         ndarray of shape (n_times, 2 * n_dof) or (n_trajectories, n_times, 2 * n_dof)
@@ -450,6 +444,14 @@ class MechanicalModel:
             message names the time and the state).
         RuntimeError
             When the integrator fails for another reason.
+
+        Notes
+        -----
+        With a sampled ``tau``, every step ends at a sample (the interpolated input
+        has a kink there). For one trajectory of a 1- or 2-dof model with an explicit
+        method (RK23, RK45, DOP853), the step is the method's tableau unrolled on
+        Python floats, with scipy's error norm and step-size control: the same
+        result as scipy's solver to rounding, several times faster.
         """
         return simulation.simulate(
             self, x0, t, tau, method=method, rtol=rtol, atol=atol, max_step=max_step

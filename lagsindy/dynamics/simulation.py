@@ -18,6 +18,9 @@ from scipy.integrate import solve_ivp
 from .checks import SingularMassMatrixError, check_mass, diagnose_failure
 from .steppers import EXPLICIT_RK, integrate_between, integrate_floats
 
+#: An input given as a function ``u(t, state)``: time (float) and state
+#: ``[q..., qdot...]`` to the inputs, shape (n_inputs,) (a batch: states of shape
+#: (n_trajectories, 2 * n_dof) to inputs of shape (n_trajectories, n_inputs)).
 InputFunction = Callable[[float, np.ndarray], np.ndarray]
 
 

@@ -36,6 +36,7 @@ import torch
 from sklearn.base import BaseEstimator
 
 from .._params import cache_param_names
+from .._validation import outside_stacklevel
 from .weak import trajectory_segments, weak_gram, window_stride
 
 __all__ = [
@@ -350,15 +351,21 @@ class AutoForm(WeakForm):
         try:
             return super().statistics(operator, X, tau, groups, extra=extra)
         except ValueError as exc:
-            warnings.warn(
-                "formulation='auto' fell back to the strong form, which is biased "
-                f"when the data are noisy, because the weak form cannot run: {exc}. "
-                "Pass time-ordered trajectories (groups=trajectory labels, dt=) to "
-                "get the weak form, or formulation='strong' to silence this.",
-                UserWarning,
-                stacklevel=5,  # the caller of LagrangianSINDy.fit
-            )
+            self.warn_fallback(exc)
         return StrongForm().statistics(operator, X, tau, groups, extra=extra)
+
+    @staticmethod
+    def warn_fallback(why):
+        """Say that the fit falls back to the strong form, and ``why`` (pointing at
+        the user's line that called the fit)."""
+        warnings.warn(
+            "formulation='auto' fell back to the strong form, which is biased "
+            f"when the data are noisy, because the weak form cannot run: {why}. "
+            "Pass time-ordered trajectories (groups=trajectory labels, dt=) to "
+            "get the weak form, or formulation='strong' to silence this.",
+            UserWarning,
+            stacklevel=outside_stacklevel(),
+        )
 
 
 _BY_NAME = {"strong": StrongForm, "weak": WeakForm, "auto": AutoForm}

@@ -26,6 +26,19 @@ TIME_ORDER_MIN = 0.2
 TIME_ORDER_LAGS = (1, 2, 4, 8, 16, 32)
 
 
+def check_order(order: float) -> None:
+    """Refuse rows whose position steps correlate with the velocities at ``order``
+    below :data:`TIME_ORDER_MIN` (what shuffled, not time-ordered, rows give)."""
+    if order < TIME_ORDER_MIN:
+        raise ValueError(
+            "the rows do not look like time-ordered trajectories (the position "
+            "steps q[s+1] - q[s] correlate with the velocities at only "
+            f"{order:.2f}; shuffled rows give about 0): the weak formulation "
+            "integrates along time, so keep each trajectory's rows in time order "
+            "and pass groups="
+        )
+
+
 # window="auto": the first window tried (samples), at most this many windows (each
 # 2 w - 1 after the previous), each applying to at least this fraction of the
 # samples the first one uses.
@@ -166,14 +179,7 @@ def weak_gram(
             f"{longest}); lower window or record longer trajectories"
         )
     order = check_time_order(Xt, d, usable, enough=TIME_ORDER_MIN)
-    if order < TIME_ORDER_MIN:
-        raise ValueError(
-            "the rows do not look like time-ordered trajectories (the position "
-            "steps q[s+1] - q[s] correlate with the velocities at only "
-            f"{order:.2f}; shuffled rows give about 0): the weak formulation "
-            "integrates along time, so keep each trajectory's rows in time order "
-            "and pass groups="
-        )
+    check_order(order)
     if isinstance(noise_cov, str):
         cov = estimate_noise_covariance(Xt, usable, d)
     elif noise_cov is None:
@@ -404,24 +410,33 @@ def estimate_sampling_interval(X: torch.Tensor, n_dof: int, segments) -> float:
         seg.cpu().numpy() if torch.is_tensor(seg) else np.asarray(seg)
         for seg in segments
     ]
-    idx = [i.astype(np.intp, copy=False) for i in idx if i.size >= 2]
+    ratios, weights = step_ratios(Xn, n_dof, idx)
+    if weights.size == 0:
+        raise ValueError("cannot estimate dt: the velocities are all zero; pass dt=")
     with np.errstate(all="ignore"):
-        if idx:
-            # All segments at once, the steps across two segments left out: the
-            # same ratios, in the same order, as one segment after the other.
-            rows = np.concatenate(idx)
-            inside = np.ones(rows.size - 1, dtype=bool)
-            inside[np.cumsum([i.size for i in idx])[:-1] - 1] = False
-            q, qd = Xn[rows, :n_dof], Xn[rows, n_dof : 2 * n_dof]
-            mid = ((qd[1:] + qd[:-1]) / 2)[inside]
-            ok = np.abs(mid) > 0
-            ratios = (q[1:] - q[:-1])[inside][ok] / mid[ok]
-            weights = mid[ok] ** 2
-        if not idx or weights.size == 0:
-            raise ValueError(
-                "cannot estimate dt: the velocities are all zero; pass dt="
-            )
         return weighted_median(ratios, weights)
+
+
+def step_ratios(X, n_dof, segments):
+    """Each step's position change over its mean velocity, per coordinate, and its
+    weight (the mean velocity squared), over every segment (index arrays into the
+    rows of ``X``) of at least 2 rows; the steps across two segments and those at
+    zero velocity are left out. Their weighted median is the sampling interval
+    (:func:`estimate_sampling_interval`)."""
+    idx = [np.asarray(i).astype(np.intp, copy=False) for i in segments]
+    idx = [i for i in idx if i.size >= 2]
+    if not idx:
+        return np.zeros(0), np.zeros(0)
+    with np.errstate(all="ignore"):
+        # All segments at once, the steps across two segments left out: the same
+        # ratios, in the same order, as one segment after the other.
+        rows = np.concatenate(idx)
+        inside = np.ones(rows.size - 1, dtype=bool)
+        inside[np.cumsum([i.size for i in idx])[:-1] - 1] = False
+        q, qd = X[rows, :n_dof], X[rows, n_dof : 2 * n_dof]
+        mid = ((qd[1:] + qd[:-1]) / 2)[inside]
+        ok = np.abs(mid) > 0
+        return (q[1:] - q[:-1])[inside][ok] / mid[ok], mid[ok] ** 2
 
 
 # Candidates below which weighted_median sorts what is left instead of selecting.

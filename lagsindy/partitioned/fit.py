@@ -13,8 +13,6 @@ it from a subsample.
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import torch
 
@@ -213,14 +211,7 @@ def fit_state(params: dict, X, y=None, groups=None):
         except ValueError as exc:
             if not isinstance(formulation, AutoForm):
                 raise
-            warnings.warn(
-                "formulation='auto' fell back to the strong form, which is biased "
-                f"when the data are noisy, because the weak form cannot run: {exc}. "
-                "Pass time-ordered trajectories (groups=trajectory labels, dt=) to "
-                "get the weak form, or formulation='strong' to silence this.",
-                UserWarning,
-                stacklevel=4,
-            )
+            formulation.warn_fallback(exc)
     if ladder is None:
         total = data.map_reduce(strong_pass(setup, dtype), combine)
         _check_rows(setup, total["n"])

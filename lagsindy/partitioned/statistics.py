@@ -26,6 +26,8 @@ from ..formulation.weak import (
     TIME_ORDER_MIN,
     WHITE_VELOCITY,
     WINDOW_FIRST,
+    check_order,
+    step_ratios,
     estimate_noise_covariance,
     trajectory_segments,
     weighted_median,
@@ -155,23 +157,6 @@ class strong_pass:  # noqa: N801 - used like a function
 
 
 # -------------------------------------------------------------------- weak form
-def _ratios(X, n_dof, segments):
-    """The per-step ratios and weights of
-    :func:`~lagsindy.formulation.weak.estimate_sampling_interval` (same values)."""
-    idx = [np.asarray(s).astype(np.intp) for s in segments]
-    idx = [i for i in idx if i.size >= 2]
-    if not idx:
-        return np.zeros(0), np.zeros(0)
-    with np.errstate(all="ignore"):
-        rows = np.concatenate(idx)
-        inside = np.ones(rows.size - 1, dtype=bool)
-        inside[np.cumsum([i.size for i in idx])[:-1] - 1] = False
-        q, qd = X[rows, :n_dof], X[rows, n_dof : 2 * n_dof]
-        mid = ((qd[1:] + qd[:-1]) / 2)[inside]
-        ok = np.abs(mid) > 0
-        return (q[1:] - q[:-1])[inside][ok] / mid[ok], mid[ok] ** 2
-
-
 def _time_order_sums(X, n_dof, segments):
     """Per lag of :func:`~lagsindy.formulation.weak.check_time_order`: the sums
     ``(a b, a a, b b)`` its correlation is made of (zeros when no pair fits)."""
@@ -254,13 +239,13 @@ class weak_scan:  # noqa: N801
             chunk.X[torch.cat(long).numpy(), : 2 * d] if long else np.zeros((0, 2 * d))
         )
         if self.dt_round == 1:
-            r, w = _ratios(chunk.X, d, segments)
+            r, w = step_ratios(chunk.X, d, segments)
             out["medians"] = [(weighted_median(r, w), float(w.sum()))] if w.size else []
         return out
 
 
 def _median_round(X, d, segments, round_, bracket):
-    r, w = _ratios(X, d, segments)
+    r, w = step_ratios(X, d, segments)
     lo, hi = bracket[:2]
     below = float(w[r < lo].sum())
     inside = (r >= lo) & (r <= hi)
@@ -327,14 +312,7 @@ def weak_decisions(scan, params, n_dof, n_terms, dt):
             order = max(order, ab / den)
             if order >= TIME_ORDER_MIN:
                 break
-    if order < TIME_ORDER_MIN:
-        raise ValueError(
-            "the rows do not look like time-ordered trajectories (the position "
-            "steps q[s+1] - q[s] correlate with the velocities at only "
-            f"{order:.2f}; shuffled rows give about 0): the weak formulation "
-            "integrates along time, so keep each trajectory's rows in time order "
-            "and pass groups="
-        )
+    check_order(order)
     n4 = scan["n4"]
     estimated = scan["z"] / (70.0 * n4) if n4 else np.zeros_like(scan["z"])
     if isinstance(noise_cov, str):
@@ -443,7 +421,7 @@ class trajectory_pass:  # noqa: N801
         out["rows"] = []
         if self.steps:
             segments = trajectory_segments(Xt, op.n_dof, chunk.labels)
-            out["rows"] = [_ratios(chunk.X, op.n_dof, [s]) for s in segments]
+            out["rows"] = [step_ratios(chunk.X, op.n_dof, [s]) for s in segments]
         return out
 
 

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 from torch.func import jacfwd, jvp, vmap
 
+from .regressor import _cross
 from .urdf import PARAMETER_KINDS, RobotTree
 
 GRAVITY = (0.0, 0.0, -9.81)
@@ -50,17 +51,6 @@ class _one_thread:
     def __exit__(self, *exc):
         if self.cpu:
             torch.set_num_threads(self.threads)
-
-
-def _cross(a, b):
-    return torch.stack(
-        [
-            a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
-            a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-            a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0],
-        ],
-        dim=-1,
-    )
 
 
 def _rotate_t(rot, v):

@@ -32,6 +32,7 @@ from sklearn.base import BaseEstimator
 
 from .base_parameters import base_parameters
 from .export import consistent_parameters
+from .library import _BuiltOnDemand
 
 
 class BaseTerms:
@@ -98,7 +99,7 @@ class BaseTerms:
         return f"BaseTerms({len(self.indices)} of {len(self.terms.names)} robot terms)"
 
 
-class BaseParameterLibrary(BaseEstimator):
+class BaseParameterLibrary(_BuiltOnDemand, BaseEstimator):
     """The base parameters of a :class:`RobotLibrary` as a candidate library.
 
     Parameters
@@ -124,6 +125,8 @@ class BaseParameterLibrary(BaseEstimator):
     nominal_ : ndarray of shape (n_base,)
         The URDF's base parameter values (rotor inertias 0).
     """
+
+    _BUILT = ("terms_", "coordinates_", "base_", "robot_", "unpenalized_", "n_terms_")
 
     def __init__(self, robot=None, random_state=0):
         self.robot = robot
@@ -157,33 +160,9 @@ class BaseParameterLibrary(BaseEstimator):
             self.build()
         return self
 
-    def __getattr__(self, name):
-        if name in (
-            "terms_",
-            "coordinates_",
-            "base_",
-            "robot_",
-            "unpenalized_",
-            "n_terms_",
-        ):
-            self.build()
-            return self.__dict__[name]
-        raise AttributeError(
-            f"{type(self).__name__!r} object has no attribute {name!r}"
-        )
-
-    def __len__(self) -> int:
-        return len(self._ensure_built().terms_)
-
-    def get_feature_names_out(self, input_features=None) -> np.ndarray:
-        """Names of the base parameters (``terms_``) as an object array."""
-        return np.asarray(self._ensure_built().terms_, dtype=object)
-
-    def index(self, term: str) -> int:
-        """Position of a base parameter given by its name or a link parameter in it."""
-        names = self._ensure_built().terms_
-        if term in names:
-            return names.index(term)
+    def _other_term(self, term):
+        """The base parameter a link parameter stands in alone."""
+        names = self.terms_
         robot_names = self.robot_.terms_
         if term in robot_names:
             j = robot_names.index(term)
@@ -200,14 +179,6 @@ class BaseParameterLibrary(BaseEstimator):
             f"term {term!r} is not a base parameter of this robot; they are "
             f"{names[:4]}... (see library_.base_.labels)"
         )
-
-    def torch_terms(self) -> BaseTerms:
-        """The term function of the base parameters (``names``, ``fn``, ``columns``)."""
-        return self._ensure_built()._terms
-
-    def to_torch(self) -> BaseTerms:
-        """Alias of :meth:`torch_terms`."""
-        return self.torch_terms()
 
     def constrain(self, problem, solution):
         """The pipeline's hook after the sparse solve (case I): the constrained refit

@@ -11,7 +11,48 @@ from .energy import GRAVITY, RobotTerms, euler_lagrange_columns
 from .urdf import build_tree
 
 
-class RobotLibrary(BaseEstimator):
+class _BuiltOnDemand:
+    """What the robot libraries share: the fitted attributes named in ``_BUILT`` are
+    made by ``build()`` on first use, and the library's length and feature names are
+    its terms'."""
+
+    _BUILT: tuple = ()
+
+    def __getattr__(self, name):
+        if name in type(self)._BUILT:
+            self.build()
+            return self.__dict__[name]
+        raise AttributeError(
+            f"{type(self).__name__!r} object has no attribute {name!r}"
+        )
+
+    def __len__(self) -> int:
+        return len(self._ensure_built().terms_)
+
+    def get_feature_names_out(self, input_features=None) -> np.ndarray:
+        """Names of the terms (``terms_``) as an object array."""
+        return np.asarray(self._ensure_built().terms_, dtype=object)
+
+    def index(self, term: str) -> int:
+        """Position of a term given by its name (``"m_panda_link3"``,
+        ``"Ia_panda_joint1"``; for base parameters also a link parameter that is
+        one)."""
+        names = self._ensure_built().terms_
+        if term in names:
+            return names.index(term)
+        return self._other_term(term)
+
+    def torch_terms(self):
+        """The term function (``names``, ``fn(q, qd)`` for one sample, and the
+        batched forms the pipeline uses)."""
+        return self._ensure_built()._terms
+
+    def to_torch(self):
+        """Alias of :meth:`torch_terms` (the name :class:`CandidateLibrary` uses)."""
+        return self.torch_terms()
+
+
+class RobotLibrary(_BuiltOnDemand, BaseEstimator):
     """Lagrangian terms of a robot arm from its URDF: link inertial parameters.
 
     The Lagrangian of the arm is ``L = sum_j pi_j * phi_j(q, qd)`` where ``pi`` are
@@ -81,6 +122,8 @@ class RobotLibrary(BaseEstimator):
     ['m_upper_arm', 'mx_upper_arm', 'my_upper_arm']
     """
 
+    _BUILT = ("terms_", "coordinates_", "tree_", "locked_", "nominal_")
+
     def __init__(
         self,
         path=None,
@@ -148,39 +191,12 @@ class RobotLibrary(BaseEstimator):
             self.build()
         return self
 
-    def __getattr__(self, name):
-        if name in ("terms_", "coordinates_", "tree_", "locked_", "nominal_"):
-            self.build()
-            return self.__dict__[name]
-        raise AttributeError(
-            f"{type(self).__name__!r} object has no attribute {name!r}"
-        )
-
-    def __len__(self) -> int:
-        return len(self._ensure_built().terms_)
-
-    def get_feature_names_out(self, input_features=None) -> np.ndarray:
-        """Names of the terms (``terms_``) as an object array."""
-        return np.asarray(self._ensure_built().terms_, dtype=object)
-
-    def index(self, term: str) -> int:
-        """Position of a term given by name (``"m_panda_link3"``, ``"Ia_panda_joint1"``)."""
-        names = self._ensure_built().terms_
-        if term in names:
-            return names.index(term)
+    def _other_term(self, term):
         raise ValueError(
             f"term {term!r} is not in the library; names are <kind>_<link> with kind in "
             f"m, mx, my, mz, Ixx, Ixy, Iyy, Ixz, Iyz, Izz (links: "
             f"{[b.name for b in self.tree_.bodies]}) and Ia_<joint>"
         )
-
-    def torch_terms(self) -> RobotTerms:
-        """The term function: ``names``, ``fn(q, qd)`` (one sample), ``fn_batch``."""
-        return self._ensure_built()._terms
-
-    def to_torch(self) -> RobotTerms:
-        """Alias of :meth:`torch_terms` (the name :class:`CandidateLibrary` uses)."""
-        return self.torch_terms()
 
     def euler_lagrange_columns(self, q, qd, qdd, method="recursive") -> np.ndarray:
         """Joint torque regressor: ``tau = columns @ pi``, shape (n_samples, n_dof, n_terms).

@@ -59,19 +59,9 @@ def staged_fista(
     lam: float,
     penalty_weights: torch.Tensor | None = None,
     threshold: float | torch.Tensor = 0.05,
-    reference: float = 0.0,
-    lam_decay: float = 10.0,
-    step_growth: float = 2.0,
-    alpha: float | None = None,
-    max_stages: int = 5,
-    max_iter: int = MAX_ITER,
-    tol: float = 1e-3,
-    solver_tol: float = SOLVER_TOL,
-    debias: bool = True,
-    verbose: int = 0,
     w0: torch.Tensor | None = None,
     nonneg: torch.Tensor | None = None,
-    equation_threshold: float | None = EQUATION_THRESHOLD,
+    **schedule,
 ) -> StagedResult:
     r"""The xL-SINDy schedule: FISTA stages with hard thresholding between them.
 
@@ -125,6 +115,11 @@ def staged_fista(
         See :class:`~lagsindy.solvers.StagedFISTA`; it needs a
         :class:`GramQuadratic` with ``equation_shares`` (else only ``threshold``
         applies).
+    **schedule
+        ``reference``, ``lam_decay``, ``step_growth``, ``alpha``, ``max_stages``,
+        ``max_iter``, ``tol``, ``solver_tol``, ``debias``, ``verbose`` and
+        ``equation_threshold`` as above: passed to :func:`staged_fista_batch`,
+        whose signature holds their defaults.
 
     Returns
     -------
@@ -135,19 +130,9 @@ def staged_fista(
         lam=lam,
         penalty_weights=[penalty_weights],
         threshold=[threshold],
-        reference=reference,
-        lam_decay=lam_decay,
-        step_growth=step_growth,
-        alpha=alpha,
-        max_stages=max_stages,
-        max_iter=max_iter,
-        tol=tol,
-        solver_tol=solver_tol,
-        debias=debias,
-        verbose=verbose,
         w0=[w0],
         nonneg=[nonneg],
-        equation_threshold=equation_threshold,
+        **schedule,
     )[0]
 
 

@@ -153,23 +153,45 @@ def planar_chain(
     lag, diss, names = chain_lagrangian(
         masses, lengths, com=com, inertia=inertia, damping=damping, g=g
     )
+    return chain_system(
+        lag,
+        diss,
+        names,
+        library=lambda: CandidateLibrary.chain(names),
+        paper_input=chain_inputs(n),
+        name=f"{n}-link pendulum",
+        description=chain_description(masses, lengths, g, com, inertia, damping),
+    )
+
+
+def chain_description(masses, lengths, g, com=None, inertia=None, damping=None):
+    """A chain's parameters in words (the :class:`System`'s ``description``)."""
+    compound = com is not None or inertia is not None
+    return (
+        f"{len(masses)} {'compound links' if compound else 'point masses'}: masses "
+        f"{list(masses)} kg, lengths {list(lengths)} m, g = {g}"
+        + (f", joint damping {list(damping)}" if damping is not None else "")
+    )
+
+
+def chain_system(
+    lag, diss, names, *, library, name, description, paper_input=None, prior=True
+):
+    """A :class:`System` of a chain of links on revolute joints: initial angles
+    ``U(-pi/2, pi/2)`` and velocities zero, the first link's ``theta_dot**2``
+    fixed (case III) and, with ``prior``, its ``cos(theta)`` the prior term."""
     ranges = {nm: (-math.pi / 2, math.pi / 2) for nm in names}
     ranges.update({nm + "_dot": (0.0, 0.0) for nm in names})
-    compound = com is not None or inertia is not None
     return System(
         lag,
         names,
         angles=names,
         initial_ranges=ranges,
         dissipation=diss,
-        library=lambda: CandidateLibrary.chain(names),
-        paper_input=chain_inputs(n),
+        library=library,
+        paper_input=paper_input,
         fixed_term=f"{names[0]}_dot**2",
-        prior_terms=[f"cos({names[0]})"],
-        name=f"{n}-link pendulum",
-        description=(
-            f"{n} {'compound links' if compound else 'point masses'}: masses "
-            f"{list(masses)} kg, lengths {list(lengths)} m, g = {g}"
-            + (f", joint damping {list(damping)}" if damping is not None else "")
-        ),
+        prior_terms=[f"cos({names[0]})"] if prior else (),
+        name=name,
+        description=description,
     )

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from ..library import CandidateLibrary
 from .base import System
-from .planar_chain import chain_lagrangian
+from .planar_chain import chain_description, chain_lagrangian, chain_system
 
 #: Order of the authors' parameter vector in ``EstimatedParameters_TriplePendulum.mat``.
 MULTIARM_TRIPLE_KEYS = (
@@ -69,33 +67,26 @@ def triple_pendulum(
     )
     if len(names) != 3:
         raise ValueError(f"a triple pendulum has 3 links, got {len(names)} masses")
-    ranges = {n: (-math.pi / 2, math.pi / 2) for n in names}
-    ranges.update({n + "_dot": (0.0, 0.0) for n in names})
-    compound = com is not None or inertia is not None
-    return System(
+    simple = (
+        com is None
+        and inertia is None
+        and damping is None
+        and tuple(masses) == (1.0,) * 3
+        and tuple(lengths) == (1.0,) * 3
+        and g == 9.81
+    )
+    return chain_system(
         lagrangian,
+        diss,
         names,
-        angles=names,
-        initial_ranges=ranges,
-        dissipation=diss,
         library=lambda: CandidateLibrary.separated(names, angles="all", degree=2),
         paper_input=lambda t, w: np.stack(
             [np.cos(w * t), np.sin(w * t), np.cos(w * t) - np.sin(w * t)], 1
         ),
-        fixed_term="theta1_dot**2",
-        prior_terms=["cos(theta1)"],
         name="triple pendulum",
-        description=(
-            "three 1 kg point masses on 1 m rods, g = 9.81"
-            if not compound
-            and damping is None
-            and tuple(masses) == (1.0,) * 3
-            and tuple(lengths) == (1.0,) * 3
-            and g == 9.81
-            else f"three {'compound links' if compound else 'point masses'}: masses "
-            f"{list(masses)} kg, lengths {list(lengths)} m, g = {g}"
-            + (f", joint damping {list(damping)}" if damping is not None else "")
-        ),
+        description="three 1 kg point masses on 1 m rods, g = 9.81"
+        if simple
+        else chain_description(masses, lengths, g, com, inertia, damping),
     )
 
 
@@ -155,18 +146,14 @@ def multiarm_triple_pendulum(parameters=None, path=None) -> System:
         names=names,
         compact=True,
     )
-    ranges = {n: (-math.pi / 2, math.pi / 2) for n in names}
-    ranges.update({n + "_dot": (0.0, 0.0) for n in names})
-    system = System(
+    system = chain_system(
         lag,
+        diss,
         names,
-        angles=names,
-        initial_ranges=ranges,
-        dissipation=diss,
         library=lambda: CandidateLibrary.chain(names),
-        fixed_term="phi1_dot**2",
         name="MultiArm triple pendulum (authors' model)",
         description="the authors' fitted compound-link model, angles 0 hanging down",
+        prior=False,
     )
     system.parameters = p
     return system

@@ -250,5 +250,6 @@ class LibraryBaggingLagrangianSINDy(MetaEstimatorMixin, RegressorMixin, BaseEsti
         return self.estimator_.score(X, y, sample_weight=sample_weight)
 
     def equation(self, precision: int = 4) -> str:
+        """The refitted Lagrangian as text (see ``LagrangianSINDy.equation``)."""
         check_is_fitted(self)
         return self.estimator_.equation(precision)

@@ -71,7 +71,7 @@ from ..partitioned import (
     stack_trajectories,
     trajectory_pass,
 )
-from ..joint import refit_config
+from ..joint import refit_config, refit_setup
 from ._resampling import (
     DT_NODES,
     GroupStats,
@@ -262,6 +262,7 @@ def bootstrap(
     random_state=None,
     n_jobs=None,
     verbose=0,
+    t=None,
 ):
     r"""Bootstrap intervals and inclusion probabilities of every term.
 
@@ -308,6 +309,10 @@ def bootstrap(
     n_jobs : int, default=None
         Parallel resamples (joblib).
     verbose : int, default=0
+    t : array-like of shape (n_samples,) or CleanedClock, default=None
+        The time stamps to fit with, as ``est.fit(X, tau, t=t)`` takes them (edge
+        rows left out, the weak form's rows put on an even clock; resamples are
+        drawn from those rows). Required when ``est`` was fitted with ``t=``.
 
     Returns
     -------
@@ -337,6 +342,12 @@ def bootstrap(
         raise ValueError(f"n_resamples must be an integer >= 2, got {n_resamples!r}")
     if not (isinstance(level, Real) and 0 < level < 1):
         raise ValueError(f"level must be in (0, 1), got {level!r}")
+    if not is_partitioned(X):  # the rows a fit given t= uses (t=None: as given)
+        est, X, tau, groups = pipeline.on_fit_clock(
+            est, X, tau, groups, t, what="bootstrap"
+        )
+    elif t is not None:
+        raise ValueError("t= is for in-memory data; partitioned rows take no t=")
     full = clone(est).fit(X, tau, groups=groups)
     if is_partitioned(X):
         return _bootstrap_partitioned(
@@ -404,7 +415,7 @@ def bootstrap(
     stats = None
     start = full.stages_[0].coef if full.stages_ else None
     Xt, tau_t = tensors(full, Xa, tau_a)
-    setup = pipeline.setup_of(full)
+    setup = refit_setup(full)  # with the rule the fit ended with
     memo = {}  # what the resamples' problems share (data and library only)
     if fast_path_supported(full):
         stats = group_statistics(full, Xt, tau_t, labels)
@@ -597,7 +608,7 @@ def _bootstrap_partitioned(
             f"{full.fixed_term!r}): pass fixed_term=, or bootstrap in memory"
         )
     data = as_partitioned(X, groups=groups, y=tau)
-    setup = pipeline.setup_of(full)
+    setup = refit_setup(full)  # with the rule the fit ended with
     dtype = resolve_dtype(full.dtype)
     estimated, dts = False, None
     form = StrongForm()

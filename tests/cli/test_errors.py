@@ -336,6 +336,10 @@ CHEAP = {
         ["fit", "{d}/data.csv", "--coordinates", "x_dot", "--out", "{d}/o.json"],
         "reserved for its derivatives",
     ),
+    "reserved name": (
+        ["fit", "{d}/data.csv", "--coordinates", "x,sin", "--out", "{d}/o.json"],
+        "is reserved .a function or constant name.",
+    ),
     "repeated name": (
         ["fit", "{d}/data.csv", "--coordinates", "x,x", "--out", "{d}/o.json"],
         "appears twice",

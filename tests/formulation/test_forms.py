@@ -29,9 +29,10 @@ def test_shuffled_rows_fall_back_to_the_strong_form_and_say_so(pendulum):
     rows = np.random.default_rng(0).permutation(len(pendulum.X))
     X, tau = pendulum.X[rows], pendulum.tau[rows]
     lib = single_pendulum().paper_library()
-    with pytest.warns(UserWarning, match="fell back to the strong form"):
+    with pytest.warns(UserWarning, match="fell back to the strong form") as seen:
         est = LagrangianSINDy(lib).fit(X, tau)
     assert est.formulation_ == "strong"
+    assert seen[0].filename == __file__  # points at the caller's fit
     with pytest.raises(ValueError, match="time-ordered|positive sampling interval"):
         LagrangianSINDy(lib, formulation=WeakForm(dt=0.01)).fit(X, tau)
 

@@ -194,3 +194,21 @@ def test_recursive_regressor_equals_autograd_columns(path, joints):
     np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-11)
     with pytest.raises(ValueError, match="'recursive' or 'autograd'"):
         lib.euler_lagrange_columns(q, qd, qdd, method="fast")
+
+
+def test_base_parameter_library_index():
+    base = CandidateLibrary.from_urdf(PLANAR, armature=False).regression_library()
+    names = list(base.get_feature_names_out())
+    assert len(base) == len(names) and base.index(names[1]) == 1
+    # a link parameter standing alone in a base parameter gives that one's position
+    alone = [
+        name
+        for j, name in enumerate(base.robot_.terms_)
+        if np.count_nonzero(base.base_.matrix[:, j]) == 1
+    ]
+    k = base.index(alone[0])
+    assert np.count_nonzero(base.base_.matrix[k]) >= 1
+    with pytest.raises(ValueError, match="moves no torque"):
+        base.index("my_upper_arm")  # about the joint axis: it moves nothing
+    with pytest.raises(ValueError, match="not a base parameter of this robot"):
+        base.index("m_nothing")

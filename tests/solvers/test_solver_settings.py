@@ -51,7 +51,7 @@ def test_thresholds_and_schedule():
         settings.thresholds([False, True, False]), [0.2, 0.01, 0.2]
     )
     schedule = settings.schedule()
-    keywords = inspect.signature(staged_fista).parameters
+    keywords = inspect.signature(staged_fista_batch).parameters
     assert set(schedule) <= set(keywords) and schedule["tol"] == 1e-4
     # the schedule's keywords drive staged_fista directly
     rng = np.random.default_rng(0)

@@ -320,13 +320,13 @@ def test_refits_use_the_threshold_rule_the_fit_ended_with(light_link_fit):
     configuration (``refit_config``), the diagnosis's refits. A fit that did not
     change its rule records nothing and refits itself."""
     from lagsindy.diagnostics.scoring import _fit_model
-    from lagsindy.joint import refit_config
+    from lagsindy.joint import refit_config, refit_setup
     from lagsindy.solvers import StagedFISTA
 
     est, data, full = light_link_fit
     rule = StagedFISTA().threshold  # judged in its own equation at the threshold
     assert full.equation_threshold_ == rule
-    assert pipeline.setup_of(full).solver.equation_threshold == rule
+    assert refit_setup(full).solver.equation_threshold == rule
     again = refit_config(full)
     assert again is not full and again.solver.equation_threshold == rule
     quiet = _fit_model(full, data.X, data.tau, data.groups, fit=False)
