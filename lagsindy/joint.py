@@ -13,7 +13,10 @@ Lagrangian's terms), returns that model instead, says so with a
 :class:`JointDissipationWarning`, and records it in the model
 (``est.joint_dissipation_``). The same data then give the pole's four terms, the
 ratio ``theta_dot**2 / cos(theta)`` within 0.01 % and the damping within 0.1 %
-(R^2 0.998).
+(R^2 0.998). The joint fit takes the conservative fit's steps, the judgement of each
+equation included: a 0.02 kg pole under damping 1 at 1 N kept ``x_dot**2`` alone
+until its fit, like the conservative one, solved again with every term judged within
+each coordinate's equation.
 
 What stays as before: fits with a dissipation library of their own (pass
 ``dissipation=DissipationLibrary([])`` to keep a conservative fit, or fit inside
@@ -42,14 +45,13 @@ from .dissipation import DissipationLibrary
 from .formulation.probes import PROBE_KINDS, UnmodelledForceWarning, probing
 from .pipeline import (
     build_dissipation,
-    check_fit,
+    copy_with,
     fit_data,
-    fit_statistics,
-    fitted_state,
     make_setup,
     probes_of,
-    solve_ladder,
+    setup_of,
 )
+from .settings import solver_settings
 
 __all__ = [
     "conservative_fits",
@@ -58,6 +60,7 @@ __all__ = [
     "JointDissipationWarning",
     "refit_config",
     "refit_dissipation",
+    "refit_setup",
 ]
 
 # Cases whose fits are redone jointly (passive fits only warn: their scale is set by
@@ -194,8 +197,10 @@ class JointDissipation:
         """The joint fit when the conservative ``fitted``'s probes call for it (see
         :func:`dominates`), else ``fitted`` with its warnings shown.
 
-        ``kwargs`` go to :func:`~lagsindy.pipeline.solve_ladder` (``verbose``) and
-        :func:`~lagsindy.pipeline.fitted_state` (``tau_1d``).
+        The joint fit is :func:`~lagsindy.pipeline.fit_data` with the dissipation
+        candidates: the conservative fit's steps, the judgement of each equation
+        (:func:`~lagsindy.pipeline.judge_each_equation`) included. ``kwargs`` go to
+        it (``verbose``, ``tau_1d``).
         """
         if not self.active:
             return fitted
@@ -219,14 +224,8 @@ class JointDissipation:
         try:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                ladder = fit_statistics(formulation, setup, Xt, tau_t, groups)
-                stats_j, solution_j = solve_ladder(
-                    ladder, setup, Xt, tau, verbose=kwargs.get("verbose", 0)
-                )
-                joint = fitted_state(
-                    setup, stats_j, solution_j, tau_1d=kwargs.get("tau_1d", False)
-                )
-                check_fit(joint, setup, stats_j, solution_j, Xt, tau)
+                # the conservative fit's steps, the judgement of each equation too
+                joint, _, _ = fit_data(setup, formulation, Xt, tau, groups, **kwargs)
         except (ValueError, FloatingPointError) as exc:
             self.replay()
             warnings.warn(
@@ -280,15 +279,44 @@ def refit_dissipation(est):
 
 
 def refit_config(est):
-    """``est``, or, when its fit was redone jointly (:class:`JointDissipation`), an
-    unfitted clone configured with that dissipation library: what refits of its
-    configuration (which run without probes) should fit."""
-    if getattr(est, "dissipation", None) is not None:
+    """What refits of ``est``'s configuration (which run without probes) should
+    fit: ``est`` itself, or an unfitted copy configured as its fit ended, with
+
+    - the dissipation library a joint fit added (:class:`JointDissipation`), and
+    - the ``equation_threshold`` of a fit that solved again with every term judged
+      within each coordinate's equation
+      (:func:`~lagsindy.pipeline.judge_each_equation`; ``est.equation_threshold_``):
+      otherwise each refit would start from the default rule and decide on its own
+      whether to judge each equation, and a bootstrap's resamples would not be
+      resamples of the fit.
+    """
+    changes = {}
+    if getattr(est, "dissipation", None) is None:
+        library = refit_dissipation(est)
+        if library is not None:
+            changes["dissipation"] = library
+    judged = getattr(getattr(est, "fitted_", None), "equation_threshold", None)
+    if not changes and judged is None:
         return est
-    library = refit_dissipation(est)
-    if library is None:
-        return est
-    return clone(est).set_params(dissipation=library)
+    copy = copy_with(est)
+    if judged is not None:
+        solver = clone(solver_settings(copy.get_params(deep=False)))
+        changes["solver"] = solver.set_params(equation_threshold=judged)
+    return copy.set_params(**changes)
+
+
+def refit_setup(est):
+    """:func:`~lagsindy.pipeline.setup_of` ``est`` with the ``equation_threshold``
+    its fit ended with (``est.equation_threshold_``, see :func:`refit_config`):
+    what solves of its configuration from statistics (the bootstrap's fast path)
+    use."""
+    setup = setup_of(est)
+    judged = getattr(est.fitted_, "equation_threshold", None)
+    if judged is None:
+        return setup
+    settings = clone(setup.solver.settings).set_params(equation_threshold=judged)
+    solver = dataclasses.replace(setup.solver, settings=settings)
+    return dataclasses.replace(setup, solver=solver)
 
 
 def fit(setup, params, formulation, Xt, tau, groups, *, tau_1d=False, verbose=0):

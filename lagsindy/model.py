@@ -167,6 +167,12 @@ class FittedLagrangian:
         Set when the fit warned that friction or damping it lacks explains much of
         its residual (:class:`~lagsindy.formulation.probes.UnmodelledForceWarning`):
         ``share`` and the ``named`` forces; :func:`lagsindy.diagnose` reports on it.
+    equation_threshold : float or None
+        Set when the fit solved again with every term judged within each
+        coordinate's equation (:func:`lagsindy.pipeline.judge_each_equation`): the
+        ``equation_threshold`` that solve used, which refits of the configuration
+        (bootstrap, diagnosis, delay search) use too. ``None``: the solver settings'
+        own rule.
     clock : dict or None
         Set when the fit was given time stamps (``fit(X, tau, t=...)``): the
         ``rows`` given, the ``edge_rows`` left out (near a segment's end), the
@@ -197,6 +203,7 @@ class FittedLagrangian:
     mass_check: MassCheck | None = None
     joint_dissipation: dict | None = None
     unmodelled: dict | None = None
+    equation_threshold: float | None = None
     clock: dict | None = None
 
     def __post_init__(self):
@@ -300,6 +307,7 @@ class FittedLagrangian:
             "window_": self.window,
             "mass_check_": self.mass_check,
             "joint_dissipation_": self.joint_dissipation,
+            "equation_threshold_": self.equation_threshold,
             "clock_": self.clock,
         }
         out.update({k: v for k, v in optional.items() if v is not None})

@@ -397,12 +397,8 @@ def judge_each_equation(
     ``POOR_ACCELERATIONS`` from the measured forces). Then the solve is repeated
     with ``equation_threshold = threshold`` (each term judged in its own equation
     with the threshold itself) and kept, with a warning that says so, when every
-    coordinate then scores at least ``POOR_ACCELERATIONS``.
-
-    Returns
-    -------
-    solution, fitted
-        The ones given, or those of the repeated solve.
+    coordinate then scores at least ``POOR_ACCELERATIONS``. Returns ``(solution,
+    fitted)``: the ones given, or those of the repeated solve (its rule recorded).
     """
     settings = setup.solver.settings
     per_equation = settings.threshold
@@ -428,6 +424,7 @@ def judge_each_equation(
     if not np.all(np.isfinite(again.coef)):
         return solution, fitted
     refitted = fitted_state(use, stats, again, tau_1d=tau_1d)
+    refitted.equation_threshold = per_equation  # refits use the same rule
     new_scores = refitted.coordinate_acceleration_r2(Xt, tau)
     if not new_scores or min(new_scores.values()) < POOR_ACCELERATIONS:
         return solution, fitted

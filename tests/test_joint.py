@@ -118,6 +118,32 @@ def test_refits_of_a_joint_model_fit_its_dissipation(light_fits):
     assert refit_config(cons) is cons
 
 
+def test_a_joint_fit_judges_each_equation_like_the_conservative_fit():
+    """A 0.02 kg pole on a 2 kg cart with damping 1 at 1 N: the joint fit at the
+    default threshold kept ``x_dot**2`` alone (the pole's terms are small next to
+    the cart's and under a quarter of no equation's largest term: the pole's own
+    equation is all coupling and gravity) and predicted the pole's accelerations
+    with R^2 0.00. Like the conservative fit, the joint fit now solves again with
+    every term judged within each coordinate's equation, and its refits keep that
+    rule and the dissipation library."""
+    _, data, held = light_pendulum_data(0.01, 1.0, 1.0)
+    est, caught = _fit(data.X, data.tau, data.groups)
+    assert est.joint_dissipation_["kinds"] == ["viscous", "coulomb"]
+    (judged,) = [
+        str(w.message) for w in caught if "judged within each" in str(w.message)
+    ]
+    assert "theta (R^2 -0.00)" in judged
+    assert _kept(est) == set(CART_POLE_TERMS)  # before: {"x_dot**2"}
+    # measured: ratio 0.99946 of l / 2g, viscous(x) 0.99736, held-out R^2 0.9785
+    assert pole_ratio(est) == pytest.approx(TRUE_POLE_RATIO, rel=2e-3)
+    assert found_damping(est) == pytest.approx(1.0, rel=1e-2)
+    assert cart_r2(est, held.X, held.tau) > 0.95
+    assert est.mass_check_.ok
+    config = refit_config(est)
+    assert config.solver.equation_threshold == est.equation_threshold_ == 0.05
+    assert config.dissipation.kinds == ["viscous", "coulomb"]
+
+
 def test_an_empty_dissipation_library_keeps_the_conservative_fit(light, light_fits):
     _, data, _ = light
     est, caught = _fit(

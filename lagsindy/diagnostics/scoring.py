@@ -32,7 +32,7 @@ from ..formulation.weak import (
     negligible_noise,
     trajectory_segments,
 )
-from ..joint import refit_dissipation
+from ..joint import refit_config, refit_dissipation
 
 # A refit whose mass matrix is singular or indefinite at more than this fraction of
 # the checked samples cannot predict accelerations: the fold (or model) is degenerate.
@@ -413,7 +413,7 @@ def _fit_model(est, X, tau, groups, *, effects=(), penalized=(), eps=None, fit=T
     ``effects`` enter as known (unpenalized) terms, ``penalized`` as candidates.
     ``fit=False`` returns the configured (unfitted, quiet) estimator.
     """
-    new = pipeline.copy_with(est)
+    new = pipeline.copy_with(refit_config(est))  # the threshold rule its fit used
     unpenalized = list(est.unpenalized or [])
     library = clone(est.library_)
     cons = [c for c in list(effects) + list(penalized) if c.kind == "conservative"]

@@ -48,6 +48,7 @@ relative on those data, against a spread of 0.2 % to 0.8 %.
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from numbers import Integral, Real
 
 import numpy as np
@@ -70,7 +71,7 @@ from ..partitioned import (
     stack_trajectories,
     trajectory_pass,
 )
-from ..joint import refit_config
+from ..joint import refit_config, refit_setup
 from ._resampling import (
     DT_NODES,
     GroupStats,
@@ -408,21 +409,13 @@ def bootstrap(
     elif full.case_ == "acceleration":
         ref = int(np.argmax(np.abs(all_coef)))
 
-    rng = check_random_state(random_state)
-    mults = rng.multinomial(
-        n_groups, np.full(n_groups, 1.0 / n_groups), size=n_resamples
-    )
-    jack_mults = (
-        1 - np.eye(n_groups, dtype=np.int64)
-        if method == "bca"
-        else np.zeros((0, n_groups))
-    )
+    mults, jack_mults = _draws(random_state, n_groups, n_resamples, method)
 
     fast = False
     stats = None
     start = full.stages_[0].coef if full.stages_ else None
     Xt, tau_t = tensors(full, Xa, tau_a)
-    setup = pipeline.setup_of(full)
+    setup = refit_setup(full)  # with the rule the fit ended with
     memo = {}  # what the resamples' problems share (data and library only)
     if fast_path_supported(full):
         stats = group_statistics(full, Xt, tau_t, labels)
@@ -451,60 +444,77 @@ def bootstrap(
             f"{'fast path' if fast else 'full refits'}"
         )
 
-    refit = None
-    if not fast:
+    plan = _Resamples(full, setup, stats, Xt, memo, all_coef, ref, resampling)
+    plan.start = start
+    if fast:
+        plan.seam, plan.scale = seam, scale
+    else:
 
         def refit(mult):
             return refit_resample(base, Xa, tau_a, rows_of, mult, weak)
 
-    return _resample(
-        full,
-        setup,
-        stats,
-        mults,
-        jack_mults,
-        start,
-        seam if fast else None,
-        scale if fast else None,
-        Xt,
-        memo,
-        refit,
-        all_coef,
-        ref,
-        fast,
-        resampling,
-        n_groups,
-        level,
-        method,
-        n_jobs,
-        verbose,
+        plan.refit = refit
+    return _resample(plan, mults, jack_mults, level, method, n_jobs, verbose)
+
+
+@dataclass
+class _Resamples:
+    """How :func:`bootstrap`'s resamples are solved and reported.
+
+    The fit on all data (``full``, ``all_coef``; ``ref``: the term whose coefficient
+    fixes a passive model's scale); the fast path's setup, per-group statistics
+    and data (``Xt``, ``memo``), warm start and its solve of the full data
+    (``seam``, agreeing with ``all_coef`` to ``scale``); ``refit(mult)``: a full
+    refit of one resample, set instead when the fast path is not trusted.
+    """
+
+    full: object
+    setup: object
+    stats: object
+    Xt: object
+    memo: dict
+    all_coef: np.ndarray
+    ref: int | None
+    resampling: str
+    start: object = None
+    seam: np.ndarray | None = None
+    scale: float | None = None
+    refit: object = None
+
+    @property
+    def fast(self) -> bool:
+        """Whether the resamples are solved from the per-group statistics."""
+        return self.refit is None
+
+    def solve(self, mult):
+        """One resample's coefficients (None where its solve fails)."""
+        if not self.fast:
+            return self.refit(mult)
+        return fast_resample(
+            self.setup, self.stats, mult, self.Xt, self.memo, self.start
+        )
+
+
+def _draws(random_state, n_groups, n_resamples, method):
+    """The resamples' multiplicities of the groups (``n_resamples`` x ``n_groups``)
+    and the jackknife's (leave one group out; none unless ``method="bca"``)."""
+    rng = check_random_state(random_state)
+    mults = rng.multinomial(
+        n_groups, np.full(n_groups, 1.0 / n_groups), size=n_resamples
     )
+    jack_mults = (
+        1 - np.eye(n_groups, dtype=np.int64)
+        if method == "bca"
+        else np.zeros((0, n_groups))
+    )
+    return mults, jack_mults
 
 
-def _resample(
-    full,
-    setup,
-    stats,
-    mults,
-    jack_mults,
-    start,
-    seam,
-    scale,
-    Xt,
-    memo,
-    refit,
-    all_coef,
-    ref,
-    fast,
-    resampling,
-    n_groups,
-    level,
-    method,
-    n_jobs,
-    verbose,
-):
-    """Solve every resample (and jackknife sample) and build the report: from the
-    per-group statistics when ``fast``, else by ``refit(mult)``."""
+def _resample(plan, mults, jack_mults, level, method, n_jobs, verbose):
+    """Solve every resample (and jackknife sample) of ``plan`` and build the
+    report."""
+    full, setup, stats, start = plan.full, plan.setup, plan.stats, plan.start
+    all_coef, fast, n_groups = plan.all_coef, plan.fast, mults.shape[1]
     n_resamples = len(mults)
     all_mults = np.concatenate([mults, jack_mults])
     n_jobs_eff = 1 if n_jobs is None else n_jobs
@@ -512,7 +522,7 @@ def _resample(
         np.arange(len(all_mults)), max(1, min(len(all_mults), _n_workers(n_jobs_eff)))
     )
     batched = None
-    if fast and batch_supported(setup, Xt.dtype):
+    if fast and batch_supported(setup, plan.Xt.dtype):
         # Every resample in one batch (so the result does not depend on n_jobs),
         # the full data's statistics with them: the batch must reproduce the fit too.
         both = np.concatenate(
@@ -524,25 +534,19 @@ def _resample(
             # one unsolvable resample (a motionless stretch drawn many times:
             # "Eigenvalues did not converge") fails the batch: one at a time instead
             solved = None
-        if solved is not None and reproduces(solved[0], seam, _BATCH_RTOL, scale):
+        if solved is not None and reproduces(
+            solved[0], plan.seam, _BATCH_RTOL, plan.scale
+        ):
             batched = solved[1:]
     if batched is not None:
         missing = [i for i, c in enumerate(batched) if c is None]
         for i in missing:  # what the batch could not take: one at a time
-            batched[i] = fast_resample(setup, stats, all_mults[i], Xt, memo, start)
+            batched[i] = plan.solve(all_mults[i])
         results = [batched]
     else:
-        if fast:
 
-            def work(ix):
-                return [
-                    fast_resample(setup, stats, all_mults[i], Xt, memo, start)
-                    for i in ix
-                ]
-        else:
-
-            def work(ix):
-                return [refit(all_mults[i]) for i in ix]
+        def work(ix):
+            return [plan.solve(all_mults[i]) for i in ix]
 
         results = Parallel(n_jobs=n_jobs, verbose=max(0, verbose - 1))(
             delayed(work)(ix) for ix in chunks
@@ -555,7 +559,7 @@ def _resample(
         if c is None:
             continue
         kept[i] = c != 0
-        c = normalize_to(c, ref)
+        c = normalize_to(c, plan.ref)
         if c is not None:
             out[i] = c
     samples, jack = out[:n_resamples], out[n_resamples:]
@@ -580,7 +584,7 @@ def _resample(
         samples=samples,
         level=float(level),
         method=method,
-        resampling=resampling,
+        resampling=plan.resampling,
         n_groups=n_groups,
         n_resamples=int(n_resamples),
         fast_path=bool(fast),
@@ -604,7 +608,7 @@ def _bootstrap_partitioned(
             f"{full.fixed_term!r}): pass fixed_term=, or bootstrap in memory"
         )
     data = as_partitioned(X, groups=groups, y=tau)
-    setup = pipeline.setup_of(full)
+    setup = refit_setup(full)  # with the rule the fit ended with
     dtype = resolve_dtype(full.dtype)
     estimated, dts = False, None
     form = StrongForm()
@@ -633,15 +637,7 @@ def _bootstrap_partitioned(
         stats = GroupStats(nodes, np.asarray(dts), steps)
     all_coef = full.fitted_.all_coef()
     ref = full.library_.index(full.fixed_term_) if full.case_ == "fixed" else None
-    rng = check_random_state(random_state)
-    mults = rng.multinomial(
-        n_groups, np.full(n_groups, 1.0 / n_groups), size=n_resamples
-    )
-    jack_mults = (
-        1 - np.eye(n_groups, dtype=np.int64)
-        if method == "bca"
-        else np.zeros((0, n_groups))
-    )
+    mults, jack_mults = _draws(random_state, n_groups, n_resamples, method)
     Xt = torch.zeros((0, 3 * full.n_dof_), dtype=dtype)  # the statistics suffice
     memo = {}
     seam = fast_resample(setup, stats, np.ones(n_groups), Xt, memo)
@@ -658,28 +654,9 @@ def _bootstrap_partitioned(
             "trajectories (partitioned data), fast path"
         )
     start = full.stages_[0].coef if full.stages_ else None
-    return _resample(
-        full,
-        setup,
-        stats,
-        mults,
-        jack_mults,
-        start,
-        seam,
-        scale,
-        Xt,
-        memo,
-        None,
-        all_coef,
-        ref,
-        True,
-        "trajectories",
-        n_groups,
-        level,
-        method,
-        None,
-        verbose,
-    )
+    plan = _Resamples(full, setup, stats, Xt, memo, all_coef, ref, "trajectories")
+    plan.start, plan.seam, plan.scale = start, seam, scale
+    return _resample(plan, mults, jack_mults, level, method, None, verbose)
 
 
 def _n_workers(n_jobs):

@@ -295,3 +295,76 @@ def test_a_fast_path_is_trusted_up_to_its_tolerance(rtol):
     assert not reproduces(want - [0, 0, 2 * above], want, rtol, 2.0)
     assert not reproduces(want + [0, 1e-300, 0], want, rtol, 1.0)  # other support
     assert not reproduces(None, want, rtol, 1.0)  # a failed solve
+
+
+@pytest.fixture(scope="module")
+def light_link_fit():
+    """A double pendulum whose second link is 100 times lighter, strongly driven:
+    the default fit solves again with every term judged within each coordinate's
+    equation (``tests/model/test_checks.py``) and records that rule."""
+    from lagsindy.systems import double_pendulum
+
+    system = double_pendulum(m2=0.01)
+    data = make_dataset(
+        system, n_trajectories=10, duration=5, excitation="sincos", random_state=0
+    )
+    est = LagrangianSINDy(system.paper_library())
+    with pytest.warns(UserWarning, match="judged within each coordinate's equation"):
+        full = clone(est).fit(data.X, data.tau, groups=data.groups)
+    return est, data, full
+
+
+def test_refits_use_the_threshold_rule_the_fit_ended_with(light_link_fit):
+    """The rule the fit ended with is recorded (``equation_threshold_``) and every
+    refit of the configuration uses it: the fast path's setup, the full refits'
+    configuration (``refit_config``), the diagnosis's refits. A fit that did not
+    change its rule records nothing and refits itself."""
+    from lagsindy.diagnostics.scoring import _fit_model
+    from lagsindy.joint import refit_config, refit_setup
+    from lagsindy.solvers import StagedFISTA
+
+    est, data, full = light_link_fit
+    rule = StagedFISTA().threshold  # judged in its own equation at the threshold
+    assert full.equation_threshold_ == rule
+    assert refit_setup(full).solver.equation_threshold == rule
+    again = refit_config(full)
+    assert again is not full and again.solver.equation_threshold == rule
+    quiet = _fit_model(full, data.X, data.tau, data.groups, fit=False)
+    assert quiet.solver.equation_threshold == rule
+    # the refit with that rule is the fit itself, without a second judgement
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        refit = clone(again).fit(data.X, data.tau, groups=data.groups)
+    assert not [w for w in caught if "judged within" in str(w.message)]
+    np.testing.assert_allclose(
+        refit.fitted_.all_coef(), full.fitted_.all_coef(), rtol=1e-10, atol=1e-12
+    )
+
+    plain = LagrangianSINDy(single_pendulum().paper_library(), formulation="strong")
+    d = make_dataset(single_pendulum(), 3, 2.0, random_state=0)
+    plain.fit(d.X, d.tau, groups=d.groups)
+    assert not hasattr(plain, "equation_threshold_")
+    assert refit_config(plain) is plain
+
+
+def test_a_bootstrap_resamples_the_rule_the_fit_ended_with(light_link_fit):
+    """Before: the resamples solved with the default rule, so the fast path did not
+    reproduce the fit and every resample was a full refit deciding on its own
+    whether to judge each equation (inclusion of the light link's gravity 0.60 in
+    20 resamples). Now the fast path reproduces the fit and is used."""
+    est, data, _ = light_link_fit
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        report = bootstrap(
+            est,
+            data.X,
+            data.tau,
+            groups=data.groups,
+            n_resamples=2,
+            method="percentile",
+            random_state=0,
+        )
+    said = [str(w.message) for w in caught]
+    assert not [m for m in said if "fast path" in m]
+    assert report.fast_path
+    assert report.estimator.equation_threshold_ == 0.05  # the default threshold
