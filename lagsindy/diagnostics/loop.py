@@ -276,6 +276,10 @@ class Search:
         if found is None:
             return
         estimate, shifted = found
+        # What the dissipative candidates explain at delay 0: a delay must explain
+        # more than they can (missing damping also shifts the force's phase, and a
+        # delay then stands in for it).
+        joint_value = self._joint_value(joint)
         tau_sh = to_tensor(shifted, dtype=torch.float64, device="cpu")
         extra_sh = self._gain_columns(tau_sh)
         ss = _Statistics(self.op, Xt, tau_sh, extra_sh, self.folds, "strong")
@@ -300,7 +304,14 @@ class Search:
             trial = None
         st = self.support_of(trial) if trial is not None else self.s0
         jt = self.J(st)[0] if trial is not None else np.inf
-        if jt < (1 - self.min_improvement) * self.value and self.valid(st):
+        damping_alone = joint_value is not None and not (
+            self._joint_value(None) < (1 - self.min_improvement) * joint_value
+        )
+        if (
+            jt < (1 - self.min_improvement) * self.value
+            and self.valid(st)
+            and not damping_alone
+        ):
             driven = tuple(
                 c
                 for i, c in enumerate(self.coords)
@@ -317,13 +328,30 @@ class Search:
                 )
         else:
             if verbose:
+                why = (
+                    "the dissipative candidates explain as much without it"
+                    if damping_alone
+                    else f"held-out criterion {self.value:.4g} -> {jt:.4g}"
+                )
                 print(
                     f"[lagsindy] an input delay of {1e3 * estimate.delay:.1f} ms "
-                    f"does not improve the held-out criterion ({self.value:.4g} -> "
-                    f"{jt:.4g})"
+                    f"does not improve the prediction ({why})"
                 )
             self.scorer, self.scorer_s = self.scorer_rec, self.scorer_s_rec
             self.tau_a = self.tau_recorded
+
+    def _joint_value(self, joint):
+        """Held-out criterion, on the current input, of the joint fit with the
+        dissipative candidates (``joint``: that fit already made; ``None``: fit it);
+        ``None`` without dissipative candidates or when the fit fails."""
+        if not self.diss:
+            return None
+        if joint is None:
+            try:
+                joint = self.fit_with([], {}, penalized=self.diss)
+            except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                return None
+        return self.J(self.support_of(joint))[0]
 
     # -------------------------------------------------- step 1: joint revision of L
     def revise(self):
