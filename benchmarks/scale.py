@@ -140,13 +140,13 @@ def file_draws(system, k):
     return x0, rng.uniform(math.pi / 2, math.pi, PER_FILE)
 
 
-def write_data(folder: Path, n_traj: int, n_samples: int) -> Path:
+def write_data(folder: Path, n_traj: int, n_samples: int) -> int:
     """The log as Parquet files of ``PER_FILE`` whole trajectories each.
 
     File ``k`` always holds the same trajectories (files already there are kept,
     so a larger run extends a smaller one). ``BATCH_FILES`` files are simulated
     together and written one by one: memory is bounded by one batch (about 450 MB
-    at 10,000 samples per trajectory).
+    at 10,000 samples per trajectory). Returns the number of rows written.
     """
     import pyarrow as pa
     import pyarrow.parquet as pq
@@ -156,6 +156,7 @@ def write_data(folder: Path, n_traj: int, n_samples: int) -> Path:
     B = np.asarray(system.input_matrix, dtype=float)
     t = np.arange(n_samples) / RATE
     n_files = -(-n_traj // PER_FILE)
+    written = 0
     names = [f"theta{i}" for i in (1, 2)]
     for first in range(0, n_files, BATCH_FILES):
         batch = [k for k in range(first, min(first + BATCH_FILES, n_files))]
@@ -194,8 +195,9 @@ def write_data(folder: Path, n_traj: int, n_samples: int) -> Path:
             path.with_suffix(".tmp").rename(path)
             del table, st
         del states
+        written += len(todo) * PER_FILE * n_samples
         print(f"  wrote {(todo[-1] + 1) * PER_FILE}/{n_traj} trajectories", flush=True)
-    return folder
+    return written
 
 
 class PeakRSS:
@@ -354,25 +356,28 @@ def main(argv=None):
     folder = Path(args.dir or os.environ.get("TMPDIR", "/tmp")) / (
         f"lagsindy_scale_dop853_{n_samples}"
     )
-    print(f"data: {_uptime()}", flush=True)
-    t0 = time.perf_counter()
-    write_data(folder, n_traj, n_samples)
-    made = time.perf_counter() - t0
-    print(f"data: {made:.0f} s, {_uptime()}", flush=True)
-    store = folder / "results.json"
-    results = json.loads(store.read_text()) if store.exists() else {}
-    if made > 1:  # written now (not read back): record how long it took
-        results["_data"] = {"seconds": made, "rows": n_traj * n_samples}
     names = (
         list(runs)
         if args.runs is None
         else [r for r in args.runs.split(",") if r and r != "none"]
     )
+    if names:  # the files these runs read (another process may write the rest)
+        n_traj = max(runs[name]["files"] for name in names) * PER_FILE
+    print(f"data: {_uptime()}", flush=True)
+    t0 = time.perf_counter()
+    written = write_data(folder, n_traj, n_samples)
+    made = time.perf_counter() - t0
+    print(f"data: {made:.0f} s, {_uptime()}", flush=True)
+    store = folder / "results.json"
+    results = json.loads(store.read_text()) if store.exists() else {}
+    if written == n_traj * n_samples:  # all written now: how long it took
+        results["_data"] = {"seconds": made, "rows": written}
     for name in names:
         spec = {**runs[name], "folder": str(folder)}
         print(f"measuring {name} {spec} ({_uptime()})", flush=True)
         res = _run(spec)
         print({k: v for k, v in res.items() if k != "coef"}, flush=True)
+        results = {**(json.loads(store.read_text()) if store.exists() else {})}
         results[name] = res
         store.write_text(json.dumps(results))
     _common.write("scale.md", report(results, runs, args, n_samples))
