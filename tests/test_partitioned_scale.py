@@ -2,7 +2,7 @@
 
 The 1e8-row benchmark simulates its forced double pendulums with a batched
 fixed-step DOP853 in numpy instead of :func:`lagsindy.systems.make_dataset`'s
-adaptive solver (about 100x faster); these tests hold it to the system's own
+adaptive solver (16x less CPU time); these tests hold it to the system's own
 dynamics, a tight reference solution and the old writer's trajectories, and check
 that fits of the files it writes find the true Lagrangian, partitioned as in memory.
 """
