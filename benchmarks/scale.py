@@ -424,6 +424,10 @@ def main(argv=None):
             spec["progress"] = str(folder / f"progress-{name}.json")
         print(f"measuring {name} {spec} ({_uptime()})", flush=True)
         res = _run(spec)
+        progress = Path(spec.get("progress", folder / "none"))
+        if "error" in res and progress.exists():  # stopped: what it had done
+            res["progress"] = json.loads(progress.read_text())
+            res["rows_per_file"] = PER_FILE * n_samples
         print({k: v for k, v in res.items() if k != "coef"}, flush=True)
         results = {**(json.loads(store.read_text()) if store.exists() else {})}
         results[name] = res
@@ -466,6 +470,20 @@ def report(results, runs, args, n_samples) -> str:
     for key in runs:
         r = results.get(key)
         if r is None:
+            continue
+        if "error" in r and "progress" in r:  # stopped: the partitions it did
+            p = r["progress"]
+            done = p["partitions_done"] * r["rows_per_file"]
+            rate = done / p["seconds"]
+            rel = "-"
+            if base is not None and "error" not in base:
+                rel = f"{rate / (base['rows'] / base['seconds']):.0%}"
+            text += (
+                f"| Dask, {r['workers']} worker(s), stopped | {done:,} of "
+                f"{r['files'] * r['rows_per_file']:,} | {p['seconds']:.1f} s | "
+                f"{rate:,.0f} | {rel} | {p['peak_mib']:.0f} MiB | - | - | "
+                f"- / {p['load']:.1f} |\n"
+            )
             continue
         if "error" in r:
             text += f"| {key} | - | error: {r['error']} | | | | | | |\n"

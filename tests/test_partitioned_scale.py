@@ -147,6 +147,19 @@ def test_report_rows(monkeypatch):
             "load_after": 6.0,
         },
         "_data": {"seconds": 12.0, "rows": 100},
+        "dask1-large": {
+            "mode": "dask",
+            "workers": 1,
+            "files": 20,
+            "error": "exit -15",
+            "rows_per_file": 50,
+            "progress": {
+                "seconds": 10.0,
+                "partitions_done": 4,
+                "peak_mib": 20.0,
+                "load": 9.0,
+            },
+        },
     }
     _, _, runs = scale.plan(full=False)
     text = scale.report(results, runs, None, 10)
@@ -157,3 +170,6 @@ def test_report_rows(monkeypatch):
     row = "| Dask, 1 worker(s) | 100 | 4.0 s | 25 | 50% | 10 MiB | 1.0e-12 | 7 s |"
     assert row + " 5.0 / 6.0 |" in text
     assert "simulated and written in 12 s" in text
+    # a stopped run: the rows of the partitions it finished, over its time
+    stopped = "| Dask, 1 worker(s), stopped | 200 of 1,000 | 10.0 s | 20 | 40% |"
+    assert stopped + " 20 MiB | - | - | - / 9.0 |" in text
