@@ -12,6 +12,7 @@ import warnings
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from benchmarks import scale
 from lagsindy import LagrangianSINDy
@@ -74,6 +75,7 @@ def test_batched_simulation_is_near_a_tight_reference():
 
 
 def _write(folder, monkeypatch, n_traj=30, n_samples=300):
+    pytest.importorskip("pyarrow")  # lagsindy[dask]
     monkeypatch.setattr(scale, "PER_FILE", 10)
     monkeypatch.setattr(scale, "BATCH_FILES", 2)
     assert scale.write_data(folder, n_traj, n_samples) == n_traj * n_samples
