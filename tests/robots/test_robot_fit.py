@@ -12,6 +12,7 @@ from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy
 from lagsindy.evaluator import TermEvaluator, TorchTerms, subset_terms
 from lagsindy.robots import (
     FRICTION_KINDS,
+    ROBOT_CATALOGUE,
     example_urdf,
     feasibility,
     parameter_table,
@@ -190,6 +191,44 @@ def test_diagnose_finds_the_spring():
     assert report.effects[0] == "spring(elbow)"
     assert report.steps[0].how in ("added", "joint")
     assert report.steps[0].coefficient == pytest.approx(3.0, rel=1e-3)
+
+
+def test_diagnose_finds_coupled_joints_and_no_delay():
+    """A damper between the joints on delay-free data: its force lags like a
+    delayed input's, and diagnose took it for a -8.9 ms delay (and viscous friction
+    12 % off) until a delay had to explain more than the dissipative candidates."""
+    from lagsindy import diagnose
+
+    lib = CandidateLibrary.from_urdf(example_urdf("planar2"))
+    t = np.arange(0.0, 6.0, 0.002)
+    w = np.array([[0.7, 1.9], [1.3, 3.1]])
+    q = 0.4 * np.sin(np.outer(t, w[0])) + 0.2 * np.cos(np.outer(t, w[1]))
+    qd = 0.4 * w[0] * np.cos(np.outer(t, w[0])) - 0.2 * w[1] * np.sin(np.outer(t, w[1]))
+    qdd = -0.4 * w[0] ** 2 * np.sin(np.outer(t, w[0])) - 0.2 * w[1] ** 2 * np.cos(
+        np.outer(t, w[1])
+    )
+    tau = lib.euler_lagrange_columns(q, qd, qdd) @ lib.nominal_ + [0.6, 0.3] * qd
+    tau += 0.8 * (qd[:, :1] - qd[:, 1:]) * [1.0, -1.0]
+    tau += 0.01 * tau.std(0) * np.random.default_rng(0).standard_normal(tau.shape)
+    X = np.hstack([q, qd, qdd])
+    est = LagrangianSINDy(
+        lib, dissipation=DissipationLibrary(["viscous"]), formulation="strong"
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the fit warns: something is missing
+        est.fit(X, tau)
+        report = diagnose(est, X, tau, catalogue=[*ROBOT_CATALOGUE, "relative"])
+    assert "delay" not in report.effects
+    final = dict(
+        zip(
+            [f.name for f in report.final.dissipation_terms_],
+            report.final.dissipation_coef_,
+        )
+    )
+    # measured: 0.8000, 0.595, 0.301
+    assert final["relative(shoulder,elbow)"] == pytest.approx(0.8, rel=5e-3)
+    assert final["viscous(shoulder)"] == pytest.approx(0.6, rel=0.02)
+    assert final["viscous(elbow)"] == pytest.approx(0.3, rel=0.02)
 
 
 def test_conservative_candidates_refused_for_robots(strong_fit, planar):
