@@ -87,10 +87,39 @@ def test_every_code_block_is_run_or_shown_only():
         )
 
 
+@pytest.mark.parametrize("fresh", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_a_block_runs_alone_and_can_fail(fresh, tmp_path):
+    """The block runner (the block server's forked children, or a fresh
+    interpreter each): a block sees nothing of another, in its own empty folder."""
+
+    def run(code, expected=None):
+        folder = tmp_path / f"b{len(list(tmp_path.iterdir()))}"
+        folder.mkdir()
+        run_block(code, expected, folder, "test block", fresh=fresh)
+
+    run("import os\nx = 1\nopen('left.txt', 'w').write('x')\nprint(os.listdir())")
+    with pytest.raises(AssertionError, match="NameError"):
+        run("print(x)")  # the previous block's name is not there
+    with pytest.raises(AssertionError, match="left.txt"):
+        run(
+            "import os\nassert not os.listdir(), os.listdir()\nopen('left.txt', 'w')\n"
+            "import sys\nsys.exit(os.listdir())"
+        )
+    with pytest.raises(AssertionError, match="failed"):
+        run("import sys\nsys.exit(3)")
+    run("import sys\nsys.exit(0)")
+    with pytest.raises(AssertionError, match="but printed"):
+        run("print('L = 0.31*x')", "L = 0.24*x")
+    run("if __name__ == '__main__':\n    print('L = 0.25*x')", "L = 0.25*x")
+    with pytest.raises(AssertionError, match="not yet imported"):
+        run("import sys\nassert 'lagsindy' in sys.modules, 'not yet imported'")
+
+
 @pytest.mark.parametrize(
     "page, line, code, expected", BLOCKS, ids=[f"{b[0]}:{b[1]}" for b in BLOCKS]
 )
-def test_docs_block_runs_alone(page, line, code, expected, tmp_path):
+@pytest.mark.parametrize("fresh", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_docs_block_runs_alone(page, line, code, expected, fresh, tmp_path):
     # optional dependencies: CasADi (the "casadi" extra) and a C compiler
     if "import casadi" in code:
         pytest.importorskip("casadi", reason="CasADi is not installed")
@@ -99,7 +128,7 @@ def test_docs_block_runs_alone(page, line, code, expected, tmp_path):
 
         if find_compiler() is None:
             pytest.skip("no C compiler")
-    run_block(code, expected, tmp_path, f"{page} block at line {line}")
+    run_block(code, expected, tmp_path, f"{page} block at line {line}", fresh=fresh)
 
 
 def _need_sphinx():

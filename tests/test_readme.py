@@ -77,5 +77,6 @@ def test_output_matching_can_fail():
 @pytest.mark.parametrize(
     "line, code, expected", BLOCKS, ids=[f"line{b[0]}" for b in BLOCKS]
 )
-def test_readme_block_runs_alone(line, code, expected, tmp_path):
-    run_block(code, expected, tmp_path, f"README.md block at line {line}")
+@pytest.mark.parametrize("fresh", [False, pytest.param(True, marks=pytest.mark.slow)])
+def test_readme_block_runs_alone(line, code, expected, fresh, tmp_path):
+    run_block(code, expected, tmp_path, f"README.md block at line {line}", fresh=fresh)
