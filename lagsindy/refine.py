@@ -31,9 +31,14 @@ from sklearn.exceptions import ConvergenceWarning
 from sklearn.utils.validation import check_is_fitted
 
 from . import _validation as val
+from . import pipeline
 from ._torch import resolve_dtype
 from .evaluator import TermEvaluator
-from .formulation.weak import position_jumps, estimate_sampling_interval, trajectory_segments
+from .formulation.weak import (
+    estimate_sampling_interval,
+    position_jumps,
+    trajectory_segments,
+)
 
 # A coefficient that moves by more than this (relative) is reported: the equation
 # error and the rollouts then disagree about the model, which a missing effect or
@@ -276,7 +281,10 @@ def refine(
     t : array-like of shape (n_samples,), default=None
         Sample times. With it, windows never span a gap (a step that differs from the
         sampling interval by more than 1 %). Without it, the sampling interval is the
-        fit's ``dt_`` (or estimated from ``q`` and ``q_dot``).
+        fit's ``dt_`` (or estimated from ``q`` and ``q_dot``). For a model fitted
+        with time stamps (``fit(X, tau, t=clock)``), pass the same ``t``: the rows
+        are then refined as that fit used them, on its even clock (without it,
+        ``refine`` refuses the model).
     horizon : int, default=100
         Window length in samples. Long windows weigh slow drifts (energy, phase)
         but make the problem less convex for fast or chaotic motion.
@@ -338,6 +346,13 @@ def refine(
     >>> print(refined.refinement_)                            # doctest: +SKIP
     """
     check_is_fitted(est)
+    if getattr(est, "clock_", None) is not None:
+        # a fit given time stamps: refine its rows on its even clock (the rollouts
+        # step at one interval); without the stamps, a refusal
+        est, X, tau, groups = pipeline.on_fit_clock(
+            est, X, tau, groups, t, what="refine", even=True
+        )
+        t = None
     for name, value, low in (
         ("horizon", horizon, 2),
         ("substeps", substeps, 1),
