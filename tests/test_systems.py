@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 
@@ -304,3 +306,32 @@ def test_case_II_says_when_it_falls_back_to_an_eigenvector_start(monkeypatch):
         est = LagrangianSINDy(lib, case="acceleration", random_state=0).fit(data.X)
     c = dict(zip(est.term_names_, est.coef_))
     assert {n for n, v in c.items() if v != 0} == {"theta_dot**2", "cos(theta)"}
+
+
+def test_chain_systems_share_their_setup():
+    """Chains fix the first link's theta_dot**2 (case III) and start at rest within
+    +-pi/2; the generic ones take its cos(theta) as the prior term, the MultiArm
+    model (the authors' fit) none."""
+    from lagsindy.systems import (
+        multiarm_triple_pendulum,
+        planar_chain,
+        triple_pendulum,
+    )
+
+    for system, prior in (
+        (planar_chain(2, masses=[1.0, 0.5], damping=[0.1, 0.2]), ["cos(theta1)"]),
+        (triple_pendulum(), ["cos(theta1)"]),
+        (multiarm_triple_pendulum(), []),
+    ):
+        first = system.coordinates[0]
+        assert system.fixed_term == f"{first}_dot**2"
+        assert system.prior_terms == prior
+        assert system.initial_ranges[first] == (-math.pi / 2, math.pi / 2)
+        assert system.initial_ranges[f"{first}_dot"] == (0.0, 0.0)
+    assert planar_chain(2, masses=[1.0, 0.5], damping=[0.1, 0.2]).description == (
+        "2 point masses: masses [1.0, 0.5] kg, lengths [1.0, 1.0] m, g = 9.81, "
+        "joint damping [0.1, 0.2]"
+    )
+    assert (
+        triple_pendulum().description == "three 1 kg point masses on 1 m rods, g = 9.81"
+    )

@@ -208,6 +208,13 @@ def test_base_parameter_library_index():
     ]
     k = base.index(alone[0])
     assert np.count_nonzero(base.base_.matrix[k]) >= 1
+    shared = [
+        name
+        for j, name in enumerate(base.robot_.terms_)
+        if np.count_nonzero(base.base_.matrix[:, j]) > 1
+    ]
+    with pytest.raises(ValueError, match="enters [0-9]+ base parameters"):
+        base.index(shared[0])
     with pytest.raises(ValueError, match="moves no torque"):
         base.index("my_upper_arm")  # about the joint axis: it moves nothing
     with pytest.raises(ValueError, match="not a base parameter of this robot"):
