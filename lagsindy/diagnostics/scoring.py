@@ -359,13 +359,27 @@ def _mass_samples(op, Xt, folds):
     return mass, mass_all
 
 
+# Smallest scale of a coordinate's equation in diagnose's scorer, relative to the
+# largest (measured: 1e-2 still let the spherical pendulum's phi equation collapse
+# the refits, 1e-1 does not; light-pole grids identical at 1e-1).
+_WEIGHT_FLOOR = 0.1
+
+
 def _weighted_scorer(stats, start_coef, n_features, target, fixed_col, nonneg, mass):
     """A :class:`_Scorer` whose equations are weighted by the starting model's forces.
 
     Each coordinate's weight is the inverse energy of the starting model's force
     contributions on it (the sum of the magnitudes of its terms), or of the measured
-    force (``target``) when larger; its per-fold ``reference`` scales are the same
-    energies on each fold.
+    force (``target``) when larger, that scale raised to at least
+    ``_WEIGHT_FLOOR`` of the largest coordinate's; its per-fold ``reference`` scales
+    are the same energies on each fold.
+
+    The floor: a cyclic undriven coordinate (a spherical pendulum's phi) has terms
+    whose Euler-Lagrange column is the rate of a conserved momentum, at noise level;
+    weighted by that scale alone (1e7 times theta's), its equation, pure noise, was
+    best met by coefficients near zero, every refit collapsed, and diagnose swapped
+    gravity for an equivalent-on-the-data term plus an offset. A light link's
+    equation (a pole of 1 % of the cart's mass) keeps its full weight above it.
     """
     full = stats.fit.sum(0)  # (d, P, P)
     d = full.shape[0]
@@ -376,7 +390,8 @@ def _weighted_scorer(stats, start_coef, n_features, target, fixed_col, nonneg, m
         if target is None
         else np.sqrt(np.clip(full[:, target, target], 0, None))
     )
-    scale = np.maximum(model, meas) ** 2
+    scale = np.maximum(model, meas)
+    scale = np.maximum(scale, _WEIGHT_FLOOR * scale.max()) ** 2
     w = 1.0 / np.where(scale > 0, scale, 1.0)
     sc = _Scorer(stats, n_features, target, fixed_col, nonneg, w, mass)
     ref = []
