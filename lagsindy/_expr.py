@@ -19,8 +19,6 @@ import torch
 
 from ._names import (
     ACCELERATION_SUFFIX,
-    CONSTANT_NAMES,
-    FUNCTION_NAMES,
     VELOCITY_SUFFIX,
     name_problem,
     repeated_name,
@@ -42,8 +40,6 @@ _SYMPY_FUNCTIONS: dict[str, Callable] = {
     "sign": sp.sign,
 }
 _CONSTANTS = {"pi": sp.pi, "E": sp.E}
-_RESERVED = set(_SYMPY_FUNCTIONS) | set(_CONSTANTS)
-assert _RESERVED == set(FUNCTION_NAMES) | set(CONSTANT_NAMES)
 MAX_EXPRESSION_LENGTH = 10_000
 MAX_EXPONENT = 64
 # Largest magnitude (in bits, |log2|) of a power of two numbers: sympy evaluates

@@ -7,9 +7,6 @@ pandas or torch traceback.
 
 from __future__ import annotations
 
-import os
-import sys
-
 import numpy as np
 import pandas as pd
 import scipy.sparse as sps
@@ -17,27 +14,6 @@ import scipy.sparse as sps
 from ._expr import ACCELERATION_SUFFIX, VELOCITY_SUFFIX, state_names
 
 _LAYOUT_HINT = "[q..., q_dot..., q_ddot...]"
-
-
-_PACKAGE_DIR = os.path.dirname(os.path.abspath(__file__)) + os.sep
-
-
-def outside_stacklevel() -> int:
-    """The ``stacklevel`` that makes a warning issued by the calling function point
-    at the first frame outside this package (the user's line), however deep in the
-    package the warning is raised."""
-    frame, level = sys._getframe(1), 1
-    while frame is not None and _inside(frame.f_code):
-        frame, level = frame.f_back, level + 1
-    return level
-
-
-def _inside(code) -> bool:
-    # this package's frames, and scikit-learn's wrapper around every ``fit``
-    # (``_fit_context``), which stands between the user's line and the method
-    return code.co_filename.startswith(_PACKAGE_DIR) or (
-        code.co_name == "wrapper" and f"{os.sep}sklearn{os.sep}" in code.co_filename
-    )
 
 
 def is_frame(X) -> bool:

@@ -270,7 +270,7 @@ class LagrangianSINDy(ModelUseMixin, RegressorMixin, BaseEstimator):
         for name in [k for k in vars(self) if k.endswith("_") and not k.endswith("__")]:
             delattr(self, name)
         params = self.get_params(deep=False)
-        settings.warn_deprecated(params, stacklevel=3)  # the caller of fit
+        settings.warn_deprecated(params)
         if partitioned.is_partitioned(X):  # Dask, Parquet, chunks: map-reduce
             fitted, names = partitioned.fit_state(params, X, y, groups)
             self.n_features_in_ = 3 * fitted.n_dof

@@ -40,6 +40,7 @@ import warnings
 import numpy as np
 from sklearn.base import clone
 
+from ._stacklevel import outside_stacklevel
 from ._torch import to_tensor
 from .dissipation import DissipationLibrary
 from .formulation.probes import PROBE_KINDS, UnmodelledForceWarning, probing
@@ -232,7 +233,7 @@ class JointDissipation:
                 f"a joint fit with {dissipation.library!r} failed ({exc}); the model "
                 "is the conservative fit",
                 UserWarning,
-                stacklevel=3,
+                stacklevel=outside_stacklevel(),
             )
             return fitted
         kept = {
@@ -257,7 +258,7 @@ class JointDissipation:
             "est.joint_dissipation_ records it. To keep the conservative fit, pass "
             "dissipation=DissipationLibrary([]).",
             JointDissipationWarning,
-            stacklevel=3,
+            stacklevel=outside_stacklevel(),
         )
         for w in caught:
             _show(w)

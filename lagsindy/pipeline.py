@@ -27,6 +27,7 @@ import torch
 from sklearn.base import clone
 
 from . import _validation as val
+from ._stacklevel import outside_stacklevel
 from ._torch import to_numpy, to_tensor
 from .cases import Problem, SparseSolve, solve_case
 from .dissipation import DissipationLibrary, reduce_forces
@@ -288,10 +289,7 @@ def solve(
     if warn and setup.case != "acceleration":
         free = np.flatnonzero(p.identifiable)
         allowed = 1 if setup.case == "fixed" else 0
-        # (stacklevel: the caller of LagrangianSINDy.fit, through solve_ladder)
-        warn_if_not_identifiable(
-            p.balanced, free, p.names, allowed=allowed, stacklevel=8
-        )
+        warn_if_not_identifiable(p.balanced, free, p.names, allowed=allowed)
     return solution
 
 
@@ -376,14 +374,14 @@ def fit_data(setup: FitSetup, formulation, Xt, tau, groups, *, tau_1d=False, ver
     stats, solution = solve_ladder(ladder, setup, Xt, tau, verbose=verbose)
     fitted = fitted_state(setup, stats, solution, tau_1d=tau_1d)
     solution, fitted = judge_each_equation(
-        setup, stats, solution, fitted, Xt, tau, tau_1d=tau_1d, stacklevel=4
+        setup, stats, solution, fitted, Xt, tau, tau_1d=tau_1d
     )
-    check_fit(fitted, setup, stats, solution, Xt, tau, stacklevel=5)
+    check_fit(fitted, setup, stats, solution, Xt, tau)
     return fitted, stats, solution
 
 
 def judge_each_equation(
-    setup: FitSetup, stats, solution, fitted, Xt, tau, *, tau_1d=False, stacklevel=4
+    setup: FitSetup, stats, solution, fitted, Xt, tau, *, tau_1d=False
 ):
     """Case I with several coordinates: the solution again with every term judged
     within each coordinate's equation, when a coordinate's accelerations are
@@ -437,16 +435,17 @@ def judge_each_equation(
         f"every term judged within each coordinate's equation "
         f"(equation_threshold={per_equation:g}); R^2 now {now}.",
         UserWarning,
-        stacklevel=stacklevel,
+        stacklevel=outside_stacklevel(),
     )
     return again, refitted
 
 
-def check_fit(fitted, setup: FitSetup, stats, solution, Xt, tau, *, stacklevel=4):
-    """The fit's checks, each a warning that says what is likely wrong: FISTA not
-    converged, an empty model, the learned mass matrix (stored as
-    ``fitted.mass_check``), angles in polynomials beyond two turns, missing friction
-    or damping (probe forces), residual and acceleration checks."""
+def check_fit(fitted, setup: FitSetup, stats, solution, Xt, tau):
+    """The fit's checks, each a warning that says what is likely wrong (pointing at
+    the user's line): FISTA not converged, an empty model, the learned mass matrix
+    (stored as ``fitted.mass_check``), angles in polynomials beyond two turns,
+    missing friction or damping (probe forces), residual and acceleration checks."""
+    stacklevel = outside_stacklevel()
     n_terms, coef = setup.n_terms, solution.coef
     warn_not_converged(solution.result.stages, setup.solver.max_iter)
     if not np.any(coef[:n_terms]):
@@ -546,7 +545,7 @@ def _warn_default_library(coordinates):
         "links, CandidateLibrary.polynomial(coordinates, angles=[...], degree=3 or 4), "
         "or a system's paper_library().",
         UserWarning,
-        stacklevel=6,
+        stacklevel=outside_stacklevel(),
     )
 
 

@@ -31,6 +31,7 @@ from sklearn.utils._param_validation import (
     validate_parameter_constraints,
 )
 
+from ._stacklevel import outside_stacklevel
 from .formulation.forms import AutoForm, StrongForm, WeakForm, make_formulation
 from .solvers import StagedFISTA
 
@@ -146,10 +147,10 @@ def _call(values: dict) -> str:
     return ", ".join(f"{k}={v!r}" for k, v in values.items())
 
 
-def warn_deprecated(params: dict, *, stacklevel: int = 2) -> None:
-    """Warn (``FutureWarning``) about the flat parameters ``params`` sets, naming
-    the settings object that replaces them (an object and its flat parameters both
-    set: the error first)."""
+def warn_deprecated(params: dict) -> None:
+    """Warn (``FutureWarning``, at the user's line) about the flat parameters
+    ``params`` sets, naming the settings object that replaces them (an object and
+    its flat parameters both set: the error first)."""
     solver_settings(params)
     formulation_settings(params)
     solver = _flat(params, SOLVER_PARAMS)
@@ -159,7 +160,7 @@ def warn_deprecated(params: dict, *, stacklevel: int = 2) -> None:
             f"in a future version: pass solver=StagedFISTA({_call(solver)}) "
             "(from lagsindy.solvers import StagedFISTA).",
             FutureWarning,
-            stacklevel=stacklevel + 1,
+            stacklevel=outside_stacklevel(),
         )
     form = _flat(params, FORMULATION_PARAMS)
     if form:
@@ -170,7 +171,7 @@ def warn_deprecated(params: dict, *, stacklevel: int = 2) -> None:
             f"a future version: pass formulation={cls.__name__}({_call(form)}) "
             f"(from lagsindy.formulation import {cls.__name__}).",
             FutureWarning,
-            stacklevel=stacklevel + 1,
+            stacklevel=outside_stacklevel(),
         )
 
 

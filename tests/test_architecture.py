@@ -16,7 +16,7 @@ MODULES = sorted(PACKAGE.rglob("*.py"))
 
 # Lowest first. A unit is the longest dotted prefix of a module listed here.
 LAYERS = [
-    ("base", ["_expr", "_lazy", "_names", "_torch", "_params", "_validation", "_version"]),
+    ("base", ["_expr", "_lazy", "_names", "_stacklevel", "_torch", "_params", "_validation", "_version"]),
     ("differentiation", ["differentiation"]),
     (
         "terms and forces",

@@ -304,14 +304,14 @@ class Search:
             trial = None
         st = self.support_of(trial) if trial is not None else self.s0
         jt = self.J(st)[0] if trial is not None else np.inf
-        damping_alone = joint_value is not None and not (
-            self._joint_value(None) < (1 - self.min_improvement) * joint_value
+        wins = jt < (1 - self.min_improvement) * self.value and self.valid(st)
+        # (the joint fit on the shifted input only when the delay wins alone)
+        damping_alone = (
+            wins
+            and joint_value is not None
+            and not self._joint_value(None) < (1 - self.min_improvement) * joint_value
         )
-        if (
-            jt < (1 - self.min_improvement) * self.value
-            and self.valid(st)
-            and not damping_alone
-        ):
+        if wins and not damping_alone:
             driven = tuple(
                 c
                 for i, c in enumerate(self.coords)

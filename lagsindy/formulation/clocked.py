@@ -15,12 +15,13 @@ from numbers import Integral
 
 import numpy as np
 
+from .._stacklevel import outside_stacklevel
 from ..differentiation import CleanedClock, edge_rows, to_even_clock
 from .forms import StrongForm, WeakForm
 from .weak import WINDOW_FIRST
 
 
-def rows_on_even_clock(formulation, X, tau, groups, t, *, verbose=0, stacklevel=3):
+def rows_on_even_clock(formulation, X, tau, groups, t, *, verbose=0):
     """The rows, forces, groups and formulation a fit with time stamps uses.
 
     Rows near a segment's end (``clock.edge``: within 3 samples of a gap or a
@@ -79,7 +80,7 @@ def rows_on_even_clock(formulation, X, tau, groups, t, *, verbose=0, stacklevel=
             raise ValueError(f"t must have one time per row of X ({n}), got {t.size}")
         period, edge = None, edge_rows(t, groups)
     X, tau, groups, t = _without_edges(X, tau, groups, t, edge)
-    out = _on_even_clock(formulation, X, tau, groups, t, period, stacklevel + 1)
+    out = _on_even_clock(formulation, X, tau, groups, t, period)
     clock = _clock_record(n, int(edge.sum()), out[0].shape[0], out[4])
     if verbose and clock["report"]:
         print(f"[lagsindy] {clock['report']}")
@@ -125,7 +126,7 @@ def _clock_record(n_rows, n_edge, n_fit, even):
     }
 
 
-def _on_even_clock(formulation, X, tau, groups, t, period, stacklevel):
+def _on_even_clock(formulation, X, tau, groups, t, period):
     """``(X, tau, groups, formulation, even)`` of the fit; ``even`` (the
     :class:`~lagsindy.differentiation.EvenClock`) None when the rows are fitted as
     given."""
@@ -147,7 +148,7 @@ def _on_even_clock(formulation, X, tau, groups, t, period, stacklevel):
                 f"window of {need}. Record longer stretches without gaps, or pass a "
                 "smaller window= (at least 5 samples).",
                 UserWarning,
-                stacklevel=stacklevel + 1,
+                stacklevel=outside_stacklevel(),
             )
             return X, tau, groups, StrongForm(), None
     if params.get("dt") is None:

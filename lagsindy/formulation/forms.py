@@ -36,7 +36,7 @@ import torch
 from sklearn.base import BaseEstimator
 
 from .._params import cache_param_names
-from .._validation import outside_stacklevel
+from .._stacklevel import outside_stacklevel
 from .weak import trajectory_segments, weak_gram, window_stride
 
 __all__ = [

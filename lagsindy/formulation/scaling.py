@@ -8,6 +8,7 @@ import warnings
 import numpy as np
 import torch
 
+from .._stacklevel import outside_stacklevel
 from .._torch import to_numpy
 from ..solvers.datafits import GramQuadratic
 
@@ -394,7 +395,7 @@ def fixed_term_bounds(gram) -> np.ndarray:
     return np.clip(1.0 / inv_diag, 0.0, 1.0)
 
 
-def warn_if_not_identifiable(balanced, free, names, *, allowed, stacklevel=3):
+def warn_if_not_identifiable(balanced, free, names, *, allowed):
     """Warn when the data leave more than ``allowed`` exact null combinations of terms.
 
     In case I a null combination of Euler-Lagrange columns means the data cannot
@@ -419,5 +420,5 @@ def warn_if_not_identifiable(balanced, free, names, *, allowed, stacklevel=3):
         "differently (a constant input cannot be told from a linear potential), add "
         "trajectories, or remove terms from the library.",
         IdentifiabilityWarning,
-        stacklevel=stacklevel,
+        stacklevel=outside_stacklevel(),
     )

@@ -227,7 +227,7 @@ def fit_state(params: dict, X, y=None, groups=None):
     fitted = pipeline.fitted_state(setup, stats, solution, tau_1d=False)
     # (stacklevel: the caller of LagrangianSINDy.fit, one frame further than
     # in memory)
-    pipeline.check_fit(fitted, setup, stats, solution, Xs, tau_s, stacklevel=5)
+    pipeline.check_fit(fitted, setup, stats, solution, Xs, tau_s)
     return fitted, data.feature_names
 
 

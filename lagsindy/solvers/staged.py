@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from sklearn.exceptions import ConvergenceWarning
 
+from .._stacklevel import outside_stacklevel
 from ._problems import Alone, Lockstep
 from .datafits import GramQuadratic
 from .fista import fista
@@ -444,5 +445,5 @@ def warn_not_converged(stages, max_iter):
             f"{bad}; the support may be wrong. Increase max_iter, or raise "
             "solver_tol if the residual cost is already small.",
             ConvergenceWarning,
-            stacklevel=3,
+            stacklevel=outside_stacklevel(),
         )

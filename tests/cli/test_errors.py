@@ -454,13 +454,15 @@ def test_errors_come_before_heavy_imports(cheap_errors, case):
 
 
 def test_cheap_names_agree_with_the_library():
-    """The checks' copies of the library's naming rules and system names."""
-    from lagsindy import _expr
+    """The checks' copies of the library's naming rules and system names; the
+    light naming module's reserved names are the functions and constants a term
+    string reads."""
+    from lagsindy import _expr, _names
     from lagsindy.cli import _checks
     from lagsindy.systems import SYSTEMS, get_system
 
-    assert _checks.VELOCITY_SUFFIX == _expr.VELOCITY_SUFFIX
-    assert _checks.ACCELERATION_SUFFIX == _expr.ACCELERATION_SUFFIX
+    assert set(_names.FUNCTION_NAMES) == set(_expr._SYMPY_FUNCTIONS)
+    assert set(_names.CONSTANT_NAMES) == set(_expr._CONSTANTS)
     coords = ["x", "theta"]
     assert _checks.state_names(coords) == _expr.state_names(coords)
     assert _checks.state_names(coords, accelerations=False) == _expr.state_names(

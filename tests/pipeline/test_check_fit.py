@@ -64,3 +64,25 @@ def test_default_library_on_several_coordinates_says_it_cannot_couple(double, pe
         warnings.simplefilter("always")
         LagrangianSINDy().fit(pend.X, groups=pend.groups)  # one coordinate
     assert not any("library=None" in str(w.message) for w in caught)
+
+
+def test_the_fits_warnings_point_at_the_users_line():
+    """Warnings raised deep in the fit (the probes, the identifiability check, the
+    fallback to the strong form) name the line that called ``fit``, not a line of
+    lagsindy or of scikit-learn's wrapper around ``fit``."""
+    from lagsindy.systems import cart_pendulum
+
+    system = cart_pendulum().with_damping(viscous={"x": 3.0})
+    data = make_dataset(
+        system, 6, 4.0, excitation="sincos", noise=1e-3, protocol="sensor",
+        random_state=0,
+    )  # fmt: skip
+    est = LagrangianSINDy(system.paper_library())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est.fit(data.X, data.tau, groups=data.groups)
+    kinds = {w.category.__name__ for w in caught}
+    assert "UnmodelledForceWarning" in kinds  # replayed from the joint fit
+    assert [w.filename for w in caught] == [__file__] * len(caught), [
+        (w.category.__name__, w.filename, w.lineno) for w in caught
+    ]
