@@ -14,6 +14,7 @@ import warnings
 import numpy as np
 import torch
 
+from .._stacklevel import outside_stacklevel
 from .._torch import to_numpy, to_tensor
 from ..differentiation import check_weak_form_segments
 from .testfunctions import bump_function  # noqa: F401  (its 0.2 home)
@@ -560,6 +561,6 @@ def choose_window(ladder, solve, *, search=False, verbose=0, prefer=None):
             "short windows: then record longer trajectories or pass a longer "
             "window= and check that the coefficients settle.",
             WindowWarning,
-            stacklevel=4,
+            stacklevel=outside_stacklevel(),
         )
     return stats, solution
