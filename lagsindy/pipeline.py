@@ -30,7 +30,7 @@ from . import _validation as val
 from ._stacklevel import outside_stacklevel
 from ._torch import to_numpy, to_tensor
 from .cases import Problem, SparseSolve, solve_case
-from .cases.forces import better_support
+from .cases.forces import better_support, fits_better, misses_an_equation
 from .dissipation import DissipationLibrary, reduce_forces
 from .evaluator import library_terms
 from .formulation import feature_operator
@@ -442,7 +442,7 @@ def judge_each_equation(
         return solution, fitted
     scores = fitted.coordinate_acceleration_r2(Xt, tau)
     poor = {k: r2 for k, r2 in scores.items() if r2 < POOR_ACCELERATIONS}
-    if not poor:
+    if not poor and not misses_an_equation(stats.gram, solution.coef):
         return solution, fitted
     solver = dataclasses.replace(
         setup.solver,
@@ -452,19 +452,29 @@ def judge_each_equation(
     again = solve(stats, use, Xt, tau)
     if not np.all(np.isfinite(again.coef)):
         return solution, fitted
+    more = np.count_nonzero(again.coef) > np.count_nonzero(solution.coef)
+    gains = [] if poor else fits_better(stats.gram, solution, again, more_terms=more)
+    if not (poor or gains):
+        return solution, fitted
     refitted = fitted_state(use, stats, again, tau_1d=tau_1d)
     refitted.equation_threshold = per_equation  # refits use the same rule
     new_scores = refitted.coordinate_acceleration_r2(Xt, tau)
     if not new_scores or min(new_scores.values()) < POOR_ACCELERATIONS:
         return solution, fitted
+    names = fitted.coordinates
     which = ", ".join(f"{k} (R^2 {r2:.2f})" for k, r2 in poor.items())
     now = ", ".join(f"{k} {new_scores[k]:.2f}" for k in poor)
+    said = f"predicted the accelerations of {which} poorly"
+    if gains:
+        said = "missed " + ", ".join(
+            f"{names[i]}'s equation by {a:.1e} of its energy" for i, a, _ in gains
+        )
+        now = ", ".join(f"{names[i]} {b:.1e}" for i, _, b in gains)
     warnings.warn(
-        f"the model at the default threshold predicted the accelerations of {which} "
-        f"poorly: terms that the equation of a light or strongly driven coordinate "
-        f"needs were small next to the other coordinates' terms. Refitted with "
-        f"every term judged within each coordinate's equation "
-        f"(equation_threshold={per_equation:g}); R^2 now {now}.",
+        f"the model at the default threshold {said}: terms that the equation of a "
+        f"light or strongly driven coordinate needs were small next to the other "
+        f"coordinates' terms. Refitted with every term judged within each "
+        f"coordinate's equation (equation_threshold={per_equation:g}); now {now}.",
         UserWarning,
         stacklevel=outside_stacklevel(),
     )
