@@ -534,3 +534,16 @@ def test_speed_fit_only_and_floor_fits_replace_only_their_parts():
     )
     assert "rows 1" not in second and "rows 2" in second
     assert second.replace("rows 2", "rows 1") == first
+
+
+@pytest.mark.slow  # a benchmark script end to end (the checks it measures have tests)
+def test_light_links_tiny(tiny_results):
+    from benchmarks import light_links
+
+    assert light_links.main([]) == 0
+    text = (tiny_results / "light_links_quick.md").read_text()
+    _check_header(text)
+    # the separated library on a 2 % second link: the true terms only with the
+    # checks (measured: 1/1 with, 0/1 without)
+    assert "| 2 | separated | on | 1/1 |" in text
+    assert "| 2 | separated | off | 0/1 |" in text
