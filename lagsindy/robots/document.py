@@ -3,15 +3,16 @@
 :func:`library_document` writes what rebuilds a
 :class:`~lagsindy.robots.fitting.BaseParameterLibrary`: the URDF's text (embedded, so
 the model file needs no other file), the library's settings (``joints``, ``locked``
-as built, ``armature``, ``gravity``, ``penalize``, ``consistent``,
-``random_state``) and the base-parameter grouping as fitted (``independent`` columns
-and the ``matrix`` ``beta = K pi``), so that a file read back has the same columns
-whatever a later reduction would choose. :func:`library_from_document` checks every
-value and rebuilds the library from them; nothing in the document is evaluated. The
-URDF text is parsed by the same reader as a URDF file (the standard library's
-``xml.etree``), after refusing document type declarations (no entities can expand),
-from a copy written once per distinct text into a cache folder
-(:func:`urdf_cache_dir`), which the rebuilt library's ``path`` names.
+as given: the other joints' positions follow from the URDF; ``armature``,
+``gravity``, ``penalize``, ``consistent``, ``random_state``) and the base-parameter
+grouping as fitted (``independent`` columns and the ``matrix`` ``beta = K pi``), so
+that a file read back has the same columns whatever a later reduction would choose.
+:func:`library_from_document` checks every value and rebuilds the library from
+them; nothing in the document is evaluated. The URDF text is parsed by the same
+reader as a URDF file (the standard library's ``xml.etree``), after refusing
+document type declarations (no entities can expand), from a copy written once per
+distinct text into a cache folder (:func:`urdf_cache_dir`), which the rebuilt
+library's ``path`` names.
 """
 
 from __future__ import annotations
@@ -84,7 +85,9 @@ def library_document(library) -> dict:
         "urdf": text,
         "urdf_name": path.name,
         "joints": list(robot.coordinates_),
-        "locked": {k: float(v) for k, v in robot.locked_.items()},
+        "locked": None
+        if robot.locked is None
+        else {str(k): float(v) for k, v in dict(robot.locked).items()},
         "armature": bool(robot.armature),
         "gravity": [float(g) for g in robot.gravity],
         "penalize": bool(robot.penalize),
@@ -184,9 +187,10 @@ def library_from_document(doc, coordinates=None, terms=None):
     _check_urdf_text(text)
     joints = _strings(doc["joints"], "joints")
     locked = doc["locked"]
-    if not isinstance(locked, dict):
-        _fail("'locked' must be an object of joint positions")
-    locked = {str(k): _number(v, f"locked[{k!r}]") for k, v in locked.items()}
+    if locked is not None and not isinstance(locked, dict):
+        _fail("'locked' must be an object of joint positions or null")
+    if locked is not None:
+        locked = {str(k): _number(v, f"locked[{k!r}]") for k, v in locked.items()}
     flags = {}
     for key in ("armature", "penalize", "consistent"):
         if not isinstance(doc[key], bool):
