@@ -77,7 +77,9 @@ def main(argv=None):
     saved = {}
     for name, duration, rate in (("planar2", 2.0, 500.0), ("arm7", 4.0, 250.0)):
         lib, X, tau = _data(name, duration, rate)
-        est = LagrangianSINDy(lib, dissipation=DissipationLibrary(["viscous"]))
+        est = LagrangianSINDy(
+            lib, dissipation=DissipationLibrary(["viscous"]), formulation="strong"
+        )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             t0 = time.perf_counter()

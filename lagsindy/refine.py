@@ -15,6 +15,9 @@ batched integration. Passive data fix a Lagrangian only up to a factor: one
 coefficient (the fit's fixed term, else the largest) is held, the others move.
 Dissipative coefficients (viscous, relative, drag, Coulomb) keep the kinetic
 energy's sign (non-negative in the fit's scale); a bias or custom force is signed.
+A robot's refined coefficients (a URDF library with ``consistent=True``) are made
+physically consistent by the fit's own constrained refit, on the rollouts'
+Gauss-Newton model (``BaseParameterLibrary.consistent_refit``).
 """
 
 from __future__ import annotations
