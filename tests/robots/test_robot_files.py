@@ -225,3 +225,46 @@ def test_cli_reads_a_robot_model_file(fitted, planar, tmp_path, capsys):
     code = main(["export", str(model), "--out", str(tmp_path / "arm.py")])
     assert code != 0
     assert "to_urdf" in capsys.readouterr().err
+
+
+@pytest.mark.slow  # (~70 s: the torch terms' integration and diagnose's refits)
+def test_cli_simulates_and_diagnoses_a_robot_model_file(planar, tmp_path):
+    import pandas as pd
+
+    from lagsindy.cli import main
+
+    est = _fit(example_urdf("planar2"), planar, kinds=("viscous",))
+    model = est.save(tmp_path / "arm.json")
+    out = tmp_path / "sim.csv"
+    args = ["--x0", "0.3,-0.4,0.5,0.2", "--duration", "0.01", "--rate", "200"]
+    assert main(["simulate-model", str(model), *args, "--out", str(out)]) == 0
+    sim = pd.read_csv(out)
+    want = est.simulate(np.array([0.3, -0.4, 0.5, 0.2]), sim.t.to_numpy())
+    assert _rel(want[:, :2], sim[["shoulder", "elbow"]].to_numpy()) <= 1e-9
+    names = ["shoulder", "elbow"]
+    cols = names + [f"{c}_dot" for c in names] + [f"{c}_ddot" for c in names]
+    rows = slice(0, 900)  # (diagnose's cost)
+    frame = pd.DataFrame(planar.X[rows], columns=cols)
+    frame.insert(0, "t", planar.t[rows])
+    for j, c in enumerate(names):
+        frame[f"tau_{c}"] = planar.tau[rows, j]
+    data = tmp_path / "arm.csv"
+    frame.to_csv(data, index=False)
+    final = tmp_path / "final.json"
+    code = main(
+        [
+            "diagnose",
+            str(data),
+            "--model",
+            str(model),
+            "--catalogue",
+            "spring",
+            "--out-model",
+            str(final),
+            "--quiet",
+        ]
+    )
+    assert code == 0
+    back = LagrangianSINDy.load(final)  # a robot model file again
+    assert back.library_.terms_ == est.library_.terms_
+    assert json.loads(final.read_text())["schema_version"] == 2
