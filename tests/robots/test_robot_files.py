@@ -268,3 +268,11 @@ def test_cli_simulates_and_diagnoses_a_robot_model_file(planar, tmp_path):
     back = LagrangianSINDy.load(final)  # a robot model file again
     assert back.library_.terms_ == est.library_.terms_
     assert json.loads(final.read_text())["schema_version"] == 2
+
+
+def test_a_grouping_of_another_robot_is_refused(fitted):
+    from lagsindy.robots import BaseParameterLibrary
+
+    arm7 = CandidateLibrary.from_urdf(example_urdf("arm7"), ARM7_JOINTS)
+    with pytest.raises(ValueError, match="another robot library"):
+        BaseParameterLibrary(arm7, base=fitted.library_.base_).build()
