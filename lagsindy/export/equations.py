@@ -176,9 +176,9 @@ def model_equations(source, input_matrix=None, *, date=None) -> ModelEquations:
     if model.lagrangian is None:  # a torch term function's (a URDF library's)
         raise ValueError(
             "this model's Lagrangian is a torch term function (a URDF library's "
-            "energy regressor), which has no symbolic equations to write as code: "
-            "use the estimator (predict, simulate), save it with est.save(path), or "
-            "write the identified robot into a URDF with est.to_urdf(path)"
+            "energy regressor), which has no symbolic equations (code export, CasADi "
+            "and linearize need them): use the estimator (predict, simulate), save it "
+            "with est.save(path), or write the robot into a URDF with est.to_urdf(path)"
         )
     q, qd, _ = model.symbols
     n = len(q)
