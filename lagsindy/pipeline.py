@@ -30,6 +30,7 @@ from . import _validation as val
 from ._stacklevel import outside_stacklevel
 from ._torch import to_numpy, to_tensor
 from .cases import Problem, SparseSolve, solve_case
+from .cases.forces import better_support, fits_better, misses_an_equation
 from .dissipation import DissipationLibrary, reduce_forces
 from .evaluator import library_terms
 from .formulation import feature_operator
@@ -47,25 +48,33 @@ from .formulation.probes import (
 from .formulation.scaling import BalancedGram, warn_if_not_identifiable
 from .formulation.weak import choose_window
 from .model import POOR_ACCELERATIONS, FittedLagrangian, feature_index
-from .settings import as_objects, formulation_settings, solver_settings
+from .settings import (
+    as_objects,
+    build_library,
+    formulation_settings,
+    resolve_case,
+    solver_settings,
+)
 from .solvers import warn_not_converged
 
 __all__ = [
     "Dissipation",
     "FitSetup",
     "build_dissipation",
+    "build_library",
     "check_fit",
     "constrained",
     "copy_with",
     "fit_data",
     "fit_operator",
     "fit_statistics",
-    "fitted_state",
     "fitted_formulation",
+    "fitted_state",
     "formulation_of",
     "on_fit_clock",
-    "problem",
     "probes_of",
+    "problem",
+    "resolve_case",
     "solve",
     "solve_ladder",
 ]
@@ -273,15 +282,26 @@ def problem(
 
 
 def solve(
-    stats, setup: FitSetup, Xt=None, tau=None, *, memo=None, start=None, warn=True
+    stats,
+    setup: FitSetup,
+    Xt=None,
+    tau=None,
+    *,
+    memo=None,
+    start=None,
+    warn=True,
+    support=None,
 ):
     """Solve the case on ``stats``: the :class:`~lagsindy.cases.Solution`.
 
     ``memo``: what problems on the same data share (see
     :class:`~lagsindy.cases.Problem`); ``start``: a warm start in coefficient units;
-    ``warn``: warn when the data leave combinations of terms undetermined.
+    ``warn``: warn when the data leave combinations of terms undetermined;
+    ``support``: a mask of the features the solve may use (the others left out).
     """
     p = problem(stats, setup, Xt, tau, memo=memo, start=start)
+    if support is not None:
+        p.identifiable = p.identifiable & np.asarray(support, dtype=bool)
     solution = constrained(setup, p, solve_case(setup.case, p))
     solution.row_scale = p.balanced.row_scale
     if warn and setup.case != "acceleration":
@@ -314,7 +334,18 @@ def solve_ladder(ladder, setup: FitSetup, Xt, tau=None, *, verbose=0):
             use = dataclasses.replace(setup, fixed_term=scale)
         return solve(stats, use, Xt, tau, memo=memo)
 
-    return choose_window(ladder, run, search=search, verbose=verbose)
+    def prefer(stats, solution, others):  # case I: a light link's equation
+        return better_support(
+            stats.gram,
+            solution,
+            others,
+            lambda mask: solve(stats, setup, Xt, tau, memo=memo, support=mask),
+        )
+
+    forces = setup.case == "forces"
+    return choose_window(
+        ladder, run, search=search, verbose=verbose, prefer=prefer if forces else None
+    )
 
 
 def fitted_state(setup: FitSetup, stats, solution, *, tau_1d=False):
@@ -415,7 +446,7 @@ def judge_each_equation(
         return solution, fitted
     scores = fitted.coordinate_acceleration_r2(Xt, tau)
     poor = {k: r2 for k, r2 in scores.items() if r2 < POOR_ACCELERATIONS}
-    if not poor:
+    if not poor and not misses_an_equation(stats.gram, solution.coef):
         return solution, fitted
     solver = dataclasses.replace(
         setup.solver,
@@ -425,19 +456,29 @@ def judge_each_equation(
     again = solve(stats, use, Xt, tau)
     if not np.all(np.isfinite(again.coef)):
         return solution, fitted
+    more = np.count_nonzero(again.coef) > np.count_nonzero(solution.coef)
+    gains = [] if poor else fits_better(stats.gram, solution, again, more_terms=more)
+    if not (poor or gains):
+        return solution, fitted
     refitted = fitted_state(use, stats, again, tau_1d=tau_1d)
     refitted.equation_threshold = per_equation  # refits use the same rule
     new_scores = refitted.coordinate_acceleration_r2(Xt, tau)
     if not new_scores or min(new_scores.values()) < POOR_ACCELERATIONS:
         return solution, fitted
+    names = fitted.coordinates
     which = ", ".join(f"{k} (R^2 {r2:.2f})" for k, r2 in poor.items())
     now = ", ".join(f"{k} {new_scores[k]:.2f}" for k in poor)
+    said = f"predicted the accelerations of {which} poorly"
+    if gains:
+        said = "missed " + ", ".join(
+            f"{names[i]}'s equation by {a:.1e} of its energy" for i, a, _ in gains
+        )
+        now = ", ".join(f"{names[i]} {b:.1e}" for i, _, b in gains)
     warnings.warn(
-        f"the model at the default threshold predicted the accelerations of {which} "
-        f"poorly: terms that the equation of a light or strongly driven coordinate "
-        f"needs were small next to the other coordinates' terms. Refitted with "
-        f"every term judged within each coordinate's equation "
-        f"(equation_threshold={per_equation:g}); R^2 now {now}.",
+        f"the model at the default threshold {said}: terms that the equation of a "
+        f"light or strongly driven coordinate needs were small next to the other "
+        f"coordinates' terms. Refitted with every term judged within each "
+        f"coordinate's equation (equation_threshold={per_equation:g}); now {now}.",
         UserWarning,
         stacklevel=outside_stacklevel(),
     )
@@ -492,67 +533,6 @@ def probes_of(fitted, setup: FitSetup, stats, solution):
 
 
 # ------------------------------------------------------------------------- setups
-_CASES = ("auto", "forces", "fixed", "acceleration")
-
-
-def resolve_case(case, tau):
-    """``"auto"``: case I (``"forces"``) when forces are given, else III."""
-    if case == "auto":
-        return "forces" if tau is not None else "fixed"
-    if case == "forces" and tau is None:
-        raise ValueError("case='forces' needs tau: call fit(X, tau)")
-    if case in ("fixed", "acceleration") and tau is not None:
-        raise ValueError(
-            f"case={case!r} is for passive data; call fit(X) without tau, or "
-            "use case='forces'"
-        )
-    return case
-
-
-def build_library(library, coordinates, n_samples):
-    """The built copy of ``library`` (``None``: the default degree-2 polynomials,
-    with a warning when the coordinates may be coupled)."""
-    from .library import CandidateLibrary
-
-    library = clone(library) if library is not None else None
-    if library is None:
-        library = CandidateLibrary.polynomial(
-            coordinates, angles="all", degree=2, raw_angles=True
-        )
-        if len(coordinates) > 1:
-            _warn_default_library(coordinates)
-    elif library.coordinates is None:
-        library.set_params(coordinates=coordinates)
-    library.build()
-    if callable(getattr(library, "regression_library", None)):  # a robot's base
-        library = library.regression_library()  # parameters (lagsindy.robots)
-    n_dof, n_terms = len(library.coordinates_), len(library.terms_)
-    if n_samples * n_dof < n_terms:
-        raise ValueError(
-            f"too few samples: {n_samples} sample(s) x {n_dof} coordinate(s) "
-            f"give {n_samples * n_dof} equations for {n_terms} candidate "
-            "terms; record more data or use a smaller library"
-        )
-    return library
-
-
-def _warn_default_library(coordinates):
-    """The default library's products of two factors cannot couple velocities through
-    an angle (a double pendulum fitted with it returned 27 meaningless terms)."""
-    a, b = coordinates[:2]
-    warnings.warn(
-        f"library=None fits degree-2 polynomials of {coordinates}, which have no term "
-        "coupling two coordinates' velocities through an angle (a cart-pendulum's "
-        f"x_dot*theta_dot*cos(theta), a double pendulum's {a}_dot*{b}_dot*cos({a} - "
-        f"{b})): if these coordinates are coupled, the fit returns a wrong Lagrangian. "
-        f"Pass a library: CandidateLibrary.chain({list(coordinates)}) for a chain of "
-        "links, CandidateLibrary.polynomial(coordinates, angles=[...], degree=3 or 4), "
-        "or a system's paper_library().",
-        UserWarning,
-        stacklevel=outside_stacklevel(),
-    )
-
-
 def _term_index(library, param, term) -> int:
     """Index of a term named by a parameter, with the parameter in the message."""
     try:

@@ -22,6 +22,7 @@ from numbers import Integral, Real
 import numpy as np
 import sympy as sp
 import torch
+from sklearn.base import clone
 from sklearn.utils._param_validation import (
     HasMethods,
     Hidden,
@@ -249,3 +250,62 @@ def flat_settings(params: dict) -> dict:
     params.update(_FORM_DEFAULTS)
     params.update(form.get_params(deep=False))
     return params
+
+
+# ------------------------------------------------------- the fit's case and library
+def resolve_case(case, tau):
+    """``"auto"``: case I (``"forces"``) when forces are given, else III."""
+    if case == "auto":
+        return "forces" if tau is not None else "fixed"
+    if case == "forces" and tau is None:
+        raise ValueError("case='forces' needs tau: call fit(X, tau)")
+    if case in ("fixed", "acceleration") and tau is not None:
+        raise ValueError(
+            f"case={case!r} is for passive data; call fit(X) without tau, or "
+            "use case='forces'"
+        )
+    return case
+
+
+def build_library(library, coordinates, n_samples):
+    """The built copy of ``library`` (``None``: the default degree-2 polynomials,
+    with a warning when the coordinates may be coupled)."""
+    from .library import CandidateLibrary
+
+    library = clone(library) if library is not None else None
+    if library is None:
+        library = CandidateLibrary.polynomial(
+            coordinates, angles="all", degree=2, raw_angles=True
+        )
+        if len(coordinates) > 1:
+            _warn_default_library(coordinates)
+    elif library.coordinates is None:
+        library.set_params(coordinates=coordinates)
+    library.build()
+    if callable(getattr(library, "regression_library", None)):  # a robot's base
+        library = library.regression_library()  # parameters (lagsindy.robots)
+    n_dof, n_terms = len(library.coordinates_), len(library.terms_)
+    if n_samples * n_dof < n_terms:
+        raise ValueError(
+            f"too few samples: {n_samples} sample(s) x {n_dof} coordinate(s) "
+            f"give {n_samples * n_dof} equations for {n_terms} candidate "
+            "terms; record more data or use a smaller library"
+        )
+    return library
+
+
+def _warn_default_library(coordinates):
+    """The default library's products of two factors cannot couple velocities through
+    an angle (a double pendulum fitted with it returned 27 meaningless terms)."""
+    a, b = coordinates[:2]
+    warnings.warn(
+        f"library=None fits degree-2 polynomials of {coordinates}, which have no term "
+        "coupling two coordinates' velocities through an angle (a cart-pendulum's "
+        f"x_dot*theta_dot*cos(theta), a double pendulum's {a}_dot*{b}_dot*cos({a} - "
+        f"{b})): if these coordinates are coupled, the fit returns a wrong Lagrangian. "
+        f"Pass a library: CandidateLibrary.chain({list(coordinates)}) for a chain of "
+        "links, CandidateLibrary.polynomial(coordinates, angles=[...], degree=3 or 4), "
+        "or a system's paper_library().",
+        UserWarning,
+        stacklevel=outside_stacklevel(),
+    )

@@ -302,8 +302,10 @@ def test_case_II_says_when_it_falls_back_to_an_eigenvector_start(monkeypatch):
         single_pendulum(), n_trajectories=10, excitation=None, random_state=0
     )
     lib = single_pendulum().paper_library()
-    with pytest.warns(UserWarning, match="could not start from case III's search"):
+    with pytest.warns(UserWarning, match="could not start from case III's search") as r:
         est = LagrangianSINDy(lib, case="acceleration", random_state=0).fit(data.X)
+    said = [w for w in r if "could not start" in str(w.message)]
+    assert [w.filename for w in said] == [__file__]  # the user's line
     c = dict(zip(est.term_names_, est.coef_))
     assert {n for n, v in c.items() if v != 0} == {"theta_dot**2", "cos(theta)"}
 

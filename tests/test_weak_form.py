@@ -280,6 +280,7 @@ def test_window_auto_warns_when_no_window_settles(cart_positions_only, monkeypat
             data.X, data.tau, groups=data.groups
         )
     assert est.window_ == 81
+    assert rec[0].filename == __file__  # the user's line, not lagsindy's
     moves = str(rec[0].message).split("(")[1].split(")")[0].split(", ")
     first, second = (float(m.rstrip("%")) for m in moves)
     assert 5.5 < first < 7 and second < 0.5  # measured 6.1 %, 0.3 %

@@ -13,6 +13,7 @@ from dataclasses import replace
 import numpy as np
 import torch
 
+from .._stacklevel import outside_stacklevel
 from .._torch import to_numpy
 from ..solvers import AccelerationDatafit
 from . import Problem, Solution
@@ -116,7 +117,7 @@ def _start(p: Problem, free, g, scale, datafit):
         "accelerations, which can depend on rounding when several nearly tie: "
         "compare with case III (fit(X) without case=)",
         UserWarning,
-        stacklevel=5,
+        stacklevel=outside_stacklevel(),
     )
     vecs = torch.linalg.eigh(g)[1][:, :CASE_II_STARTS]
     losses = [datafit.value(vecs[:, k]) for k in range(vecs.shape[1])]

@@ -14,6 +14,7 @@ import warnings
 import numpy as np
 import torch
 
+from .._stacklevel import outside_stacklevel
 from .._torch import to_numpy, to_tensor
 from ..differentiation import check_weak_form_segments
 from .testfunctions import bump_function  # noqa: F401  (its 0.2 home)
@@ -487,7 +488,7 @@ def window_change(a, b) -> float:
     return float(np.linalg.norm(a - b) / scale) if scale > 0 else 0.0
 
 
-def choose_window(ladder, solve, *, search=False, verbose=0):
+def choose_window(ladder, solve, *, search=False, verbose=0, prefer=None):
     """Solve on each window of ``ladder`` until the next window confirms the result.
 
     ``ladder`` holds functions returning the Gram statistics of each window;
@@ -499,6 +500,9 @@ def choose_window(ladder, solve, *, search=False, verbose=0):
     agrees, the first window is kept and a :class:`WindowWarning` says how the
     coefficients moved: a misspecified model (a missing term or effect) depends on
     the weighting of the residual, so a longer window is no better there.
+    ``prefer(stats, solution, others)``, when given, may replace the kept solution
+    by one on the kept statistics informed by the other windows' solutions
+    (case I: :func:`~lagsindy.cases.forces.better_support`).
 
     Returns
     -------
@@ -529,6 +533,18 @@ def choose_window(ladder, solve, *, search=False, verbose=0):
             current = recorded(check[0]) if search else check
     settled = changes[-1] <= WINDOW_CHANGE
     stats, solution, caught = current if settled else results[0]
+    if prefer is not None:
+        others = [r[1] for r in (*results, check) if r[1] is not solution]
+        with warnings.catch_warnings(record=True) as again:
+            warnings.simplefilter("always")
+            chosen = prefer(stats, solution, others)
+        if chosen is not solution:
+            solution, caught = chosen, again
+            if verbose:
+                print(
+                    "[lagsindy] another window's terms, solved on this window, fit "
+                    "every equation better: kept"
+                )
     if verbose:
         print(f"[lagsindy] kept the test window of {stats.window} samples")
     for w in caught:
@@ -545,6 +561,6 @@ def choose_window(ladder, solve, *, search=False, verbose=0):
             "short windows: then record longer trajectories or pass a longer "
             "window= and check that the coefficients settle.",
             WindowWarning,
-            stacklevel=4,
+            stacklevel=outside_stacklevel(),
         )
     return stats, solution
