@@ -63,6 +63,7 @@ __all__ = [
     "build_dissipation",
     "build_library",
     "check_fit",
+    "constrained",
     "copy_with",
     "fit_data",
     "fit_operator",
@@ -301,16 +302,19 @@ def solve(
     p = problem(stats, setup, Xt, tau, memo=memo, start=start)
     if support is not None:
         p.identifiable = p.identifiable & np.asarray(support, dtype=bool)
-    solution = solve_case(setup.case, p)
-    constrain = getattr(setup.library, "constrain", None)
-    if callable(constrain) and setup.case == "forces":  # e.g. a robot's consistency
-        solution = constrain(p, solution)
+    solution = constrained(setup, p, solve_case(setup.case, p))
     solution.row_scale = p.balanced.row_scale
     if warn and setup.case != "acceleration":
         free = np.flatnonzero(p.identifiable)
         allowed = 1 if setup.case == "fixed" else 0
         warn_if_not_identifiable(p.balanced, free, p.names, allowed=allowed)
     return solution
+
+
+def constrained(setup: FitSetup, p: Problem, solution):
+    """A case I ``solution`` under the library's ``constrain`` hook (robots)."""
+    hook = getattr(setup.library, "constrain", None)
+    return hook(p, solution) if callable(hook) and setup.case == "forces" else solution
 
 
 def solve_ladder(ladder, setup: FitSetup, Xt, tau=None, *, verbose=0):

@@ -15,6 +15,9 @@ batched integration. Passive data fix a Lagrangian only up to a factor: one
 coefficient (the fit's fixed term, else the largest) is held, the others move.
 Dissipative coefficients (viscous, relative, drag, Coulomb) keep the kinetic
 energy's sign (non-negative in the fit's scale); a bias or custom force is signed.
+A robot's refined coefficients (a URDF library with ``consistent=True``) are made
+physically consistent by the fit's own constrained refit, on the rollouts'
+Gauss-Newton model (``BaseParameterLibrary.consistent_refit``).
 """
 
 from __future__ import annotations
@@ -33,7 +36,7 @@ from sklearn.utils.validation import check_is_fitted
 from . import _validation as val
 from . import pipeline
 from ._torch import resolve_dtype
-from .evaluator import TermEvaluator
+from .evaluator import TermEvaluator, subset_terms
 from .formulation.weak import (
     estimate_sampling_interval,
     position_jumps,
@@ -425,7 +428,7 @@ def refine(
     p_lag = fitted.coef.size
     dynamics = _Dynamics(
         fitted.coordinates,
-        [fitted.terms[k] for k in support[:n_lag]],
+        subset_terms(fitted.terms, support[:n_lag]),
         [fitted.dissipation_terms[k - p_lag].forces for k in support[n_lag:]],
     )
     c0 = all_coef[support].astype(float)
@@ -578,6 +581,31 @@ def refine(
     rmse_after = float(np.sqrt(np.sum(evaluate(result.x)[0] ** 2)))
     if rmse_after > rmse_before:  # the trust region never accepts a worse point
         coef, states, rmse_after = c0.copy(), x0, rmse_before
+    project = getattr(fitted.library, "consistent_refit", None)
+    if forced and callable(project) and not np.array_equal(coef, c0):
+        # a robot's link parameters stay consistent: the fit's constrained refit on
+        # the rollouts' Gauss-Newton model (states held), kept if it beats the start
+        shift = (states - x0).ravel() if fit_states else np.zeros(0)
+        x = np.concatenate([coef[free], shift])
+        r_x, jac = evaluate(x)
+        jac_c = jac[:, :nf].toarray() if sparse.issparse(jac) else jac[:, :nf]
+        gram = np.zeros((all_coef.size + 1,) * 2)
+        cols = np.append(support[free], -1)
+        block = np.column_stack([jac_c, jac_c @ coef[free] - r_x])
+        gram[np.ix_(cols, cols)] = block.T @ block
+        pin = 1e6 * max(np.diag(gram).max(), 1e-300)  # terms off the support stay 0
+        off = np.setdiff1d(np.arange(p_lag), support)
+        gram[off, off] = pin
+        trial = all_coef.astype(float)
+        trial[support] = coef
+        dissipative_all = [t.dissipative for t in fitted.dissipation_terms]
+        found = project(gram, trial, dissipative_all)
+        if found is not None and not np.array_equal(found.coef[support], coef):
+            coef = found.coef[support]
+            x = np.concatenate([coef[free], shift])
+            rmse_after = float(np.sqrt(np.sum(evaluate(x)[0] ** 2)))
+            if rmse_after > rmse_before:  # the fit's own coefficients are consistent
+                coef, states, rmse_after = c0.copy(), x0, rmse_before
     finer = _Rollouts(dynamics, tau_nodes, horizon, dt, 2 * substeps).positions(
         coef[None], states[None]
     )

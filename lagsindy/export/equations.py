@@ -173,6 +173,13 @@ def model_equations(source, input_matrix=None, *, date=None) -> ModelEquations:
     from .._version import __version__
 
     model, fitted = _model_of(source)
+    if model.lagrangian is None:  # a torch term function's (a URDF library's)
+        raise ValueError(
+            "this model's Lagrangian is a torch term function (a URDF library's "
+            "energy regressor), which has no symbolic equations (code export, CasADi "
+            "and linearize need them): use the estimator (predict, simulate), save it "
+            "with est.save(path), or write the robot into a URDF with est.to_urdf(path)"
+        )
     q, qd, _ = model.symbols
     n = len(q)
     lagrangian = sp.sympify(model.lagrangian)

@@ -35,6 +35,10 @@ Document layout (``schema_version`` 1)::
 Lagrangian's scale: by the coefficient of ``fixed_term`` or by the mean trace of
 the mass matrix (``fixed_term`` is then the term whose coefficient is 1).
 
+Schema version 2 (a URDF library's model; others are still written as version 1):
+``terms`` are base parameter names, and a ``robot`` object rebuilds the library
+(:mod:`lagsindy.robots.document`: the URDF's text, settings and grouping).
+
 ``dissipation`` lists the candidate non-conservative terms of the fit (see
 :mod:`lagsindy.dissipation`), each ``{"name": "viscous(theta)", "kind": "viscous",
 "coordinates": ["theta"], "forces": [generalized force per coordinate for a unit
@@ -72,7 +76,9 @@ from ..settings import flat_settings
 
 FORMAT = "lagsindy-model"
 SCHEMA_VERSION = 1
-SCHEMA_VERSIONS = (1,)
+#: The version of a model fitted with a URDF library (the ``robot`` field).
+ROBOT_SCHEMA_VERSION = 2
+SCHEMA_VERSIONS = (1, 2)
 #: Largest number of library terms (or dissipation entries) in a model file.
 MAX_TERMS = 20_000
 _MAX_NAME_LENGTH = 200
@@ -96,9 +102,10 @@ _FIELDS = {
     "residual": ((int, float, type(None)), "a number or null"),
     "dissipation": ((list,), "a list of objects"),
     "normalization": ((str, type(None)), "a string or null"),
+    "robot": ((dict, type(None)), "an object or null"),
 }
 #: Fields added after schema version 1 was published: absent in older files.
-_OPTIONAL = {"normalization": None}
+_OPTIONAL = {"normalization": None, "robot": None}
 _NORMALIZATIONS = ("term", "mass")
 _CASES = ("forces", "fixed", "acceleration")
 
@@ -179,7 +186,10 @@ def model_to_dict(est) -> dict:
     fitted = est.fitted_
     coords = list(fitted.coordinates)
     allowed = state_names(coords, accelerations=False)
-    terms = [_to_text(t, allowed, "term") for t in fitted.terms]
+    robot = hasattr(fitted.library, "torch_terms")  # (library_document checks it)
+    text = (lambda t, a, w: str(t)) if robot else _to_text
+    names_ = fitted.library.terms_ if robot else fitted.terms
+    terms = [text(t, allowed, "term") for t in names_]
     coef = np.asarray(fitted.coef, dtype=float)
     if not np.all(np.isfinite(coef)):
         raise ValueError("the model has non-finite coefficients; it cannot be saved")
@@ -196,9 +206,7 @@ def model_to_dict(est) -> dict:
     unpenalized = [
         t
         if isinstance(t, str) and t in dissipation_names
-        else _to_text(
-            fitted.terms[fitted.library.index(t)], allowed, "unpenalized term"
-        )
+        else text(names_[fitted.library.index(t)], allowed, "unpenalized term")
         for t in (params["unpenalized"] or [])
     ]
     if hyper.get("unpenalized") is not None:
@@ -227,9 +235,9 @@ def model_to_dict(est) -> dict:
                 "coefficient": float(d),
             }
         )
-    return {
+    out = {
         "format": FORMAT,
-        "schema_version": SCHEMA_VERSION,
+        "schema_version": ROBOT_SCHEMA_VERSION if robot else SCHEMA_VERSION,
         "lagsindy_version": __version__,
         "coordinates": coords,
         "terms": terms,
@@ -246,6 +254,11 @@ def model_to_dict(est) -> dict:
         "dissipation": dissipation,
         "normalization": fitted.normalization,
     }
+    if robot:
+        from ..robots.document import library_document
+
+        out["robot"] = library_document(fitted.library)
+    return out
 
 
 # ----------------------------------------------------------------------------- load
@@ -408,6 +421,12 @@ def model_from_dict(doc: dict):
     extra = sorted(set(doc) - set(_FIELDS))
     if extra:
         raise ValueError(f"the model file has unknown fields {extra[:5]}")
+    robot = values["robot"]
+    if (robot is None) == (version == ROBOT_SCHEMA_VERSION):
+        raise ValueError(
+            f"a model file of schema version {ROBOT_SCHEMA_VERSION} (a URDF "
+            "library's) has a 'robot' object, and no other version has one"
+        )
     if len(values["lagsindy_version"]) > _MAX_NAME_LENGTH:
         raise ValueError("field 'lagsindy_version' of the model file is too long")
 
@@ -431,7 +450,8 @@ def model_from_dict(doc: dict):
         raise ValueError(
             f"the model file has {len(terms)} terms but {len(coefs)} coefficients"
         )
-    exprs = [_parse(t, allowed, "term") for t in terms]
+    library = None if robot is None else _robot_library(robot, coords, terms)
+    exprs = [] if robot is not None else [_parse(t, allowed, "term") for t in terms]
     seen = {}
     for text, expr in zip(terms, exprs):
         if expr.is_number:
@@ -454,7 +474,7 @@ def model_from_dict(doc: dict):
     named = {e.get("name") for e in values["dissipation"] if isinstance(e, dict)}
     for text in ([fixed] if fixed is not None else []) + list(unpenalized):
         if text not in named:  # a dissipation name, or else a term
-            _parse(text, allowed, "term")
+            _term(library, text, allowed, "term")
     hyper = _hyperparameters(values["hyperparameters"])
     normalization = values["normalization"]
     if normalization is not None and normalization not in _NORMALIZATIONS:
@@ -467,7 +487,7 @@ def model_from_dict(doc: dict):
         if text == "mass" and text is fixed_hyper:
             continue
         if isinstance(text, str) and text not in named:
-            _parse(text, allowed, "hyperparameter term")
+            _term(library, text, allowed, "hyperparameter term")
 
     n_features = values["n_features_in"]
     if n_features != 3 * n_dof:
@@ -497,9 +517,10 @@ def model_from_dict(doc: dict):
         values["dissipation"], coords, allowed
     )
 
-    library = CandidateLibrary.from_terms(
-        coords, list(terms), remove_trivial=False, remove_dependent=False
-    ).build()
+    if library is None:
+        library = CandidateLibrary.from_terms(
+            coords, list(terms), remove_trivial=False, remove_dependent=False
+        ).build()
     if len(library.terms_) != len(terms):
         raise ValueError("the model file's terms do not form a valid library")
     for text in unpenalized:
@@ -524,6 +545,23 @@ def model_from_dict(doc: dict):
         tau_1d=bool(values["tau_1d"]),
     )
     return hyper, fitted, names
+
+
+def _robot_library(doc, coords, terms):
+    from ..robots.document import library_from_document
+
+    return library_from_document(doc, coords, terms)
+
+
+def _term(library, text, allowed, what):
+    """A term named in the file: an expression, or a URDF library's term name."""
+    if library is None:
+        return _parse(text, allowed, what)
+    if text not in library.terms_:
+        raise ValueError(
+            f"{what} {text[:80]!r} in the model file is not among its terms"
+        )
+    return text
 
 
 def _same_forces(a, b, coords) -> bool:
@@ -619,12 +657,6 @@ MAX_FILE_BYTES = 20_000_000
 def write_model_file(est, path) -> Path:
     """Write the model document of a fitted estimator (:func:`model_to_dict`) as a
     JSON file, one field per line (readable and diff-friendly); the path written."""
-    if hasattr(est.library_, "torch_terms"):
-        raise ValueError(
-            "a model file stores sympy terms, and this model's terms are a torch term "
-            "function (a URDF library's): keep it with pickle or joblib, or write the "
-            "identified robot with est.to_urdf(path)"
-        )
     doc = model_to_dict(est)
     path = Path(path)
     lines = [

@@ -108,6 +108,10 @@ class BaseParameterLibrary(_BuiltOnDemand, BaseEstimator):
         The link-level library (built or not).
     random_state : int, default=0
         Seeds the exciting states the base parameters are computed at.
+    base : BaseParameters, default=None
+        A grouping to use instead of computing one (a model file's, so that the
+        library read back has the fitted columns); its ``names`` must be the robot
+        library's terms.
 
     Attributes
     ----------
@@ -128,16 +132,24 @@ class BaseParameterLibrary(_BuiltOnDemand, BaseEstimator):
 
     _BUILT = ("terms_", "coordinates_", "base_", "robot_", "unpenalized_", "n_terms_")
 
-    def __init__(self, robot=None, random_state=0):
+    def __init__(self, robot=None, random_state=0, base=None):
         self.robot = robot
         self.random_state = random_state
+        self.base = base
 
     def build(self):
         """Build the robot library, reduce it to base parameters; returns ``self``."""
         if self.robot is None:
             raise ValueError("BaseParameterLibrary needs robot= (a RobotLibrary)")
         robot = self.robot._ensure_built()
-        base = base_parameters(robot, random_state=self.random_state)
+        base = self.base
+        if base is None:
+            base = base_parameters(robot, random_state=self.random_state)
+        elif list(base.names) != list(robot.terms_):
+            raise ValueError(
+                "base= was computed for another robot library (its parameter names "
+                "differ from this library's terms); leave base=None to compute it"
+            )
         self.robot_ = robot
         self.base_ = base
         self.coordinates_ = list(robot.coordinates_)
@@ -185,7 +197,7 @@ class BaseParameterLibrary(_BuiltOnDemand, BaseEstimator):
         of :func:`lagsindy.robots.consistency.constrained_refit` when the robot library
         has ``consistent=True``; otherwise a warning when the fitted base parameters
         are not physically consistent (with the violation)."""
-        from .consistency import VIOLATION_TOL, constrained_refit, violation
+        from .consistency import VIOLATION_TOL, violation
 
         n = self.n_terms_
         coef = np.asarray(solution.coef, float)
@@ -207,20 +219,45 @@ class BaseParameterLibrary(_BuiltOnDemand, BaseEstimator):
                 )
             return solution
         dissipative = [t.dissipative for t in problem.dissipation_terms]
-        found = constrained_refit(
-            self.robot_,
-            self.base_,
-            gram,
-            coef,
-            n,
-            dissipative,
-            coef[n:] != 0,
-        )
-        self._representatives[found.coef[:n].tobytes()] = found.parameters
-        if len(self._representatives) > 64:
-            self._representatives.pop(next(iter(self._representatives)))
-        solution.coef = found.coef
+        solution.coef = self.consistent_refit(gram, coef, dissipative).coef
         return solution
+
+    def consistent_refit(self, gram, coef, dissipative):
+        """``coef`` refitted with physically consistent link parameters on the
+        quadratic objective of ``gram``: the constrained refit of every consumer
+        (the fit's :meth:`constrain`, the bootstrap's resamples through it,
+        :func:`lagsindy.refine` on its Gauss-Newton model of the rollouts).
+
+        Parameters
+        ----------
+        gram : ndarray of shape (P + 1, P + 1)
+            Gram matrix of the features and the target (last), coefficient units:
+            the objective is ``x^T G x / 2 - g^T x``.
+        coef : ndarray of shape (P,)
+            The unconstrained coefficients (base parameters, then dissipation); the
+            dissipation terms they keep (non-zero) are the ones refitted.
+        dissipative : sequence of bool, shape (P - n_terms_,)
+            Which dissipation coefficients must be non-negative.
+
+        Returns
+        -------
+        ConsistentFit or None
+            ``None`` when the robot library has ``consistent=False``.
+        """
+        from .consistency import constrained_refit
+
+        if not getattr(self.robot_, "consistent", True):
+            return None
+        n = self.n_terms_
+        coef = np.asarray(coef, float)
+        found = constrained_refit(
+            self.robot_, self.base_, gram, coef, n, dissipative, coef[n:] != 0
+        )
+        cache = self.__dict__.setdefault("_representatives", {})
+        cache[found.coef[:n].tobytes()] = found.parameters
+        if len(cache) > 64:
+            cache.pop(next(iter(cache)))
+        return found
 
     def link_parameters(self, beta):
         """Consistent full link parameters whose base parameters are ``beta``: the

@@ -18,6 +18,7 @@ from sklearn.base import clone
 
 from .. import pipeline
 from .._torch import resolve_device, resolve_dtype, to_numpy, to_tensor
+from ..cases import Solution
 from ..formulation.forms import StrongForm, WeakForm, group_rows
 from ..formulation.probes import without_probes
 from ..formulation.scaling import BalancedGram
@@ -179,10 +180,12 @@ def batched_resamples(setup, stats, mults, start=None):
     iterations batched over the resamples, every start of the path).
 
     The resamples are balanced together (:meth:`BalancedGram.many`), so each gets
-    what its own solve would, up to rounding. Returns a list with the coefficients
-    of each resample, or ``None`` where that resample must be solved alone (a
-    different set of identifiable columns, a step the divergence guard would
-    change, a failure).
+    what its own solve would, up to rounding; the library's constraint (a robot's
+    physical consistency: :func:`lagsindy.pipeline.constrained`) is then applied to
+    each resample as :func:`lagsindy.pipeline.solve` applies it to a fit. Returns a
+    list with the coefficients of each resample, or ``None`` where that resample
+    must be solved alone (a different set of identifiable columns, a step the
+    divergence guard would change, a failure).
     """
     n_features = setup.n_features
     out = [None] * len(mults)
@@ -207,9 +210,19 @@ def batched_resamples(setup, stats, mults, start=None):
         0.0,
         start=start,
     )
+    constrain = callable(getattr(setup.library, "constrain", None))
     for i, res in zip(same, solved):
-        if res is not None:
-            out[i] = res[0]
+        if res is None:
+            continue
+        out[i] = res[0]
+        if constrain:  # the fit's constraint on each resample (a robot's consistency)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")  # as fast_resample's solves
+                try:
+                    p = pipeline.problem(summed[i], setup)
+                    out[i] = pipeline.constrained(setup, p, Solution(*res)).coef
+                except (ValueError, FloatingPointError, RuntimeError):
+                    out[i] = None  # solved alone instead, like a failed member
     return out
 
 

@@ -261,11 +261,13 @@ def test_to_urdf_needs_a_urdf_library(tmp_path):
         est.to_urdf(tmp_path / "x.urdf")
 
 
-def test_model_file_refused_with_a_clear_error(strong_fit, tmp_path):
+def test_model_file_and_pickle(strong_fit, tmp_path, monkeypatch):
+    """(Model files of robot fits: tests/robots/test_robot_files.py.)"""
     import pickle
 
-    with pytest.raises(ValueError, match="to_urdf"):
-        strong_fit.save(tmp_path / "m.json")
+    monkeypatch.setenv("LAGSINDY_CACHE_DIR", str(tmp_path / "cache"))
+    loaded = LagrangianSINDy.load(strong_fit.save(tmp_path / "m.json"))
+    np.testing.assert_array_equal(loaded.coef_, strong_fit.coef_)
     back = pickle.loads(pickle.dumps(strong_fit))
     np.testing.assert_array_equal(back.coef_, strong_fit.coef_)
 
