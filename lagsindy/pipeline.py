@@ -453,7 +453,9 @@ def judge_each_equation(
         settings=clone(settings).set_params(equation_threshold=per_equation),
     )
     use = dataclasses.replace(setup, solver=solver)
-    again = solve(stats, use, Xt, tau)
+    with warnings.catch_warnings(record=True) as held:  # said only if kept
+        warnings.simplefilter("always")
+        again = solve(stats, use, Xt, tau)
     if not np.all(np.isfinite(again.coef)):
         return solution, fitted
     more = np.count_nonzero(again.coef) > np.count_nonzero(solution.coef)
@@ -465,6 +467,8 @@ def judge_each_equation(
     new_scores = refitted.coordinate_acceleration_r2(Xt, tau)
     if not new_scores or min(new_scores.values()) < POOR_ACCELERATIONS:
         return solution, fitted
+    for w in held:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     names = fitted.coordinates
     which = ", ".join(f"{k} (R^2 {r2:.2f})" for k, r2 in poor.items())
     now = ", ".join(f"{k} {new_scores[k]:.2f}" for k in poor)

@@ -60,6 +60,11 @@ class ConsistentFit:
         How much the constraint raised the least-squares objective, relative to the
         target's sum of squares (0 when the unconstrained fit was consistent).
     n_iter : int
+    converged : bool
+        Whether ADMM met its tolerance within ``MAX_ITER`` iterations (or the
+        unconstrained fit was consistent). When not, the parameters are still
+        feasible (every iterate is projected) but may not be the constrained
+        optimum.
     """
 
     coef: np.ndarray
@@ -67,6 +72,7 @@ class ConsistentFit:
     min_eigenvalue: np.ndarray
     objective_increase: float
     n_iter: int
+    converged: bool = True
 
 
 def _pi_of_j(j):
@@ -191,6 +197,7 @@ def constrained_refit(robot, base, gram, coef, n_terms, dissipative, support):
         factor = scipy.linalg.cho_factor(hess + rho * np.eye(n_u))
         v, w = project(u0), np.zeros(n_u)
         size = max(np.linalg.norm(v), 1e-300)
+        converged = False
         for it in range(1, MAX_ITER + 1):
             u = scipy.linalg.cho_solve(factor, lin + rho * (v - w))
             v_old = v
@@ -200,6 +207,7 @@ def constrained_refit(robot, base, gram, coef, n_terms, dissipative, support):
                 np.linalg.norm(u - v) <= TOL * size
                 and np.linalg.norm(v - v_old) <= TOL * size
             ):
+                converged = True
                 break
         x = t_mat @ v
         pi = np.concatenate(
@@ -238,13 +246,14 @@ def constrained_refit(robot, base, gram, coef, n_terms, dissipative, support):
             "bk,pk->bp", clipped[:n_link].reshape(n_bodies, 10), p_body
         ).ravel()
         clipped[n_link:] = np.maximum(pi_u[n_link:], 0.0)
-        x, pi, f_con = xu.copy(), clipped, f_unc
+        x, pi, f_con, converged = xu.copy(), clipped, f_unc, True
     return ConsistentFit(
         coef=x,
         parameters=pi,
         min_eigenvalue=feasibility(pi, n_bodies),
         objective_increase=float(f_con - f_unc),
         n_iter=it,
+        converged=converged,
     )
 
 

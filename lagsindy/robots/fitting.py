@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from sklearn.base import BaseEstimator
 
+from .._stacklevel import outside_stacklevel
 from .base_parameters import base_parameters
 from .export import consistent_parameters
 from .library import _BuiltOnDemand
@@ -215,11 +216,24 @@ class BaseParameterLibrary(_BuiltOnDemand, BaseEstimator):
                     "(relative); fit with consistent=True (the default) to constrain "
                     "them",
                     UserWarning,
-                    stacklevel=9,
+                    stacklevel=outside_stacklevel(),
                 )
             return solution
         dissipative = [t.dissipative for t in problem.dissipation_terms]
-        solution.coef = self.consistent_refit(gram, coef, dissipative).coef
+        found = self.consistent_refit(gram, coef, dissipative)
+        if not found.converged:
+            from .consistency import MAX_ITER
+
+            warnings.warn(
+                f"the physically consistent refit stopped at its {MAX_ITER}-iteration "
+                "cap before converging: the link parameters are feasible but may "
+                "not be the best consistent ones (the constrained optimum is on the "
+                "edge of the feasible set); compare est.score with "
+                "consistent=False",
+                UserWarning,
+                stacklevel=outside_stacklevel(),
+            )
+        solution.coef = found.coef
         return solution
 
     def consistent_refit(self, gram, coef, dissipative):

@@ -148,3 +148,28 @@ def test_refine_keeps_link_parameters_consistent():
         refined.library_, refined.fitted_.all_coef(), refined.dissipation_terms_
     )
     assert ok, worst
+
+
+def test_a_consistent_refit_that_hits_its_cap_says_so(monkeypatch):
+    """ADMM stopped by its iteration cap leaves feasible parameters that may not be
+    the constrained optimum: the fit warns (at the user's line) instead of keeping
+    silent; with the default cap the same fit does not warn. The record (1 s of the
+    two-link arm, 5 % torque noise, rotor inertia 5e-4) makes the unconstrained
+    fit infeasible, so the fit runs ADMM."""
+    from benchmarks.robot_consistency_cost import _data
+
+    from lagsindy.robots import consistency
+
+    lib, X, tau = _data("planar2", 1.0, 250.0)
+
+    def fit_warnings():
+        est = LagrangianSINDy(lib, dissipation=DissipationLibrary(list(FRICTION_KINDS)))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            est.fit(X, tau)
+        return [w for w in caught if "iteration cap" in str(w.message)]
+
+    assert fit_warnings() == []
+    monkeypatch.setattr(consistency, "MAX_ITER", 3)
+    said = fit_warnings()
+    assert len(said) == 1 and said[0].filename == __file__
