@@ -73,9 +73,11 @@ def shift_input(tau, t, delay, groups=None):
         Recorded inputs.
     t : array-like of shape (n_samples,)
         Time stamps, increasing within each trajectory.
-    delay : float
+    delay : float or array-like of shape (n_inputs,)
         Seconds between recording an input and its action (> 0: the input acts
-        later than recorded). 0 returns a copy.
+        later than recorded). 0 returns a copy. One delay per column of ``tau``
+        shifts each input by its own (a robot's joints, whose drives lag
+        differently: :func:`lagsindy.diagnose` with ``"joint_delay"``).
     groups : array-like of shape (n_samples,), default=None
         Trajectory labels (contiguous rows); ``None``: one trajectory.
 
@@ -90,20 +92,32 @@ def shift_input(tau, t, delay, groups=None):
     >>> t = np.arange(5) * 0.01
     >>> shift_input(t * 100, t, 0.02).tolist()
     [0.0, 0.0, 0.0, 1.0, 2.0]
+    >>> shift_input(np.c_[t, t] * 100, t, [0.0, 0.01])[:, 1].tolist()
+    [0.0, 0.0, 1.0, 2.0, 3.0]
     """
     tau = np.asarray(tau, dtype=float)
     flat = tau.ndim == 1
     tau2 = tau[:, None] if flat else tau
     t = np.asarray(t, dtype=float)
-    delay = float(delay)
-    if not math.isfinite(delay):
+    delays = np.asarray(delay, dtype=float)
+    if delays.ndim > 1 or (delays.ndim == 1 and delays.shape != (tau2.shape[1],)):
+        raise ValueError(
+            f"delay must be a number of seconds or one per column of tau "
+            f"({tau2.shape[1]}), got shape {delays.shape}"
+        )
+    if not np.all(np.isfinite(delays)):
         raise ValueError(f"delay must be a finite number of seconds, got {delay!r}")
     if t.shape != (tau2.shape[0],):
         raise ValueError(
             f"t must have one time stamp per row of tau ({tau2.shape[0]}), got shape "
             f"{t.shape}"
         )
-    out = _shift_many(tau2, t, np.array([delay]), groups)[0]
+    if delays.ndim == 0:
+        out = _shift_many(tau2, t, delays[None], groups)[0]
+    else:  # one delay per column
+        out = np.empty_like(tau2)
+        for j, dj in enumerate(delays):
+            out[:, j] = _shift_many(tau2[:, j : j + 1], t, dj[None], groups)[0, :, 0]
     return out[:, 0] if flat else out
 
 

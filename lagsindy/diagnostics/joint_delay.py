@@ -1,0 +1,357 @@
+"""A delay per driven input (a robot's joints): the ``"joint_delay"`` candidate.
+
+:func:`lagsindy.delay.estimate_delay` finds one shift of the whole input. On a robot
+each joint's drive may lag by its own amount; :func:`estimate_joint_delays` finds one
+delay per input column (the convention of :func:`lagsindy.delay.shift_input`: a
+delay ``d_j > 0`` means the torque recorded on joint ``j`` at ``t`` acts at
+``t + d_j``).
+
+The search is the single delay's ``method="support"`` search per column: the
+estimator is fitted at delay 0 and, with its support fixed, its forces are linear in
+the coefficients, so every candidate shift of one column is a least squares on the
+support's force columns, scored on held-out trajectories (``GroupKFold``). The
+columns are searched one at a time with the others at their current estimate
+(coordinate descent, whole sample shifts refined by a parabola through the best
+candidate and its neighbours) until no estimate moves by a hundredth of a sampling
+interval; the estimator is then refitted on the input shifted per column and the
+search repeated until its support is stable (at most 3 fits). Each column's
+uncertainty is the spread of its per-fold estimates (the other columns held at the
+final estimate).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+from sklearn.base import clone
+from sklearn.model_selection import GroupKFold
+
+from .. import pipeline
+from .._torch import resolve_device, resolve_dtype, to_tensor
+from .._validation import validate_state
+from ..delay import shift_input, worth_trying
+from ..formulation.operator import reuse_weak_columns
+from ..formulation.probes import without_probes
+from ..joint import refit_config
+
+__all__ = ["JointDelayEstimate", "estimate_joint_delays"]
+
+# Default largest delay tried, in sampling intervals (10 ms at 1 kHz is a common
+# drive lag: twice the single delay's range, so that it is not at the edge).
+MAX_STEPS = 20
+# Coordinate-descent sweeps over the columns per fitted support, and the change
+# (in sampling intervals) below which an estimate has stopped moving.
+MAX_SWEEPS = 6
+SAME_DELAY = 1e-2
+
+
+@dataclass
+class JointDelayEstimate:
+    """Result of :func:`estimate_joint_delays`.
+
+    Attributes
+    ----------
+    delays : ndarray of shape (n_inputs,)
+        Estimated delay of every input column in seconds (0 for an undriven one).
+    std : ndarray of shape (n_inputs,)
+        Their uncertainty: standard deviation of the per-fold estimates over the
+        square root of the number of folds (NaN undriven or with one fold).
+    driven : ndarray of bool, shape (n_inputs,)
+        Columns with a nonzero input (the others have no delay to estimate).
+    coordinates : list of str
+        The input columns' coordinates.
+    candidates : ndarray of shape (n_candidates,)
+        The whole-sample shifts tried for every column.
+    fold_delays : ndarray of shape (n_splits, n_inputs)
+        Each fold's estimate per column.
+    dt : float
+        The sampling interval.
+    """
+
+    delays: np.ndarray
+    std: np.ndarray
+    driven: np.ndarray
+    coordinates: list
+    candidates: np.ndarray = field(repr=False)
+    fold_delays: np.ndarray = field(repr=False)
+    dt: float = float("nan")
+
+    def significant(self) -> np.ndarray:
+        """Columns whose delay is kept: driven, at least a tenth of a sampling
+        interval and more than twice its standard error (the rule of the single
+        delay, :func:`lagsindy.delay.worth_trying`)."""
+        out = np.zeros(len(self.delays), dtype=bool)
+        for j in np.flatnonzero(self.driven):
+            one = _One(self.delays[j], self.std[j])
+            out[j] = worth_trying(one, self.dt)
+        return out
+
+    def kept(self) -> np.ndarray:
+        """The delays with the insignificant ones set to 0 (seconds)."""
+        return np.where(self.significant(), self.delays, 0.0)
+
+    def __str__(self):
+        parts = [
+            f"{c} {1e3 * d:.2f} ms +- {1e3 * s:.2f}"
+            for c, d, s, on in zip(self.coordinates, self.delays, self.std, self.driven)
+            if on
+        ]
+        return (
+            f"input delay per joint: {', '.join(parts)} ({len(self.fold_delays)} "
+            f"folds, shifts from {1e3 * self.candidates[0]:.1f} to "
+            f"{1e3 * self.candidates[-1]:.1f} ms)"
+        )
+
+
+@dataclass
+class _One:  # what worth_trying reads of one column
+    delay: float
+    std: float
+
+
+def _vertex(candidates, score):
+    """Sub-sample minimum by the parabola through the best point and its neighbours
+    (the best candidate itself at the ends); ``(delay, at_edge)``."""
+    k = int(np.argmin(score))
+    if k == 0 or k == len(score) - 1:
+        return float(candidates[k]), True
+    y0, y1, y2 = score[k - 1], score[k], score[k + 1]
+    curvature = y0 - 2 * y1 + y2
+    if not curvature > 0:
+        return float(candidates[k]), False
+    h = candidates[k + 1] - candidates[k]
+    return float(candidates[k] + 0.5 * h * (y0 - y2) / curvature), False
+
+
+class _FoldSolver:
+    """Held-out least-squares scores of many right-hand sides on fixed columns.
+
+    One QR factorization of each fold's training rows of ``A`` (``n_rows * n_dof``
+    rows, sample-major), reused for every candidate input.
+    """
+
+    def __init__(self, A, rows, folds, n_dof):
+        self.parts = []
+        for train, _ in folds:
+            tr = np.repeat(np.isin(rows, train), n_dof)
+            te = ~tr
+            q, r = np.linalg.qr(A[tr])
+            diag = np.abs(np.diagonal(r))
+            good = diag.size and diag.min() > 1e-8 * diag.max()
+            self.parts.append((tr, te, q, r, good, A[tr], A[te]))
+
+    def scores(self, B, scale):
+        """``B`` of shape (n_candidates, n_rows * n_dof): mean squared held-out
+        error per fold and candidate, over ``scale``."""
+        out = np.empty((len(self.parts), B.shape[0]))
+        for f, (tr, te, q, r, good, a_tr, a_te) in enumerate(self.parts):
+            rhs = B[:, tr].T
+            if good:
+                xi = scipy.linalg.solve_triangular(r, q.T @ rhs, check_finite=False)
+            else:
+                xi = np.linalg.lstsq(a_tr, rhs, rcond=None)[0]
+            err = a_te @ xi - B[:, te].T
+            out[f] = np.mean(err**2, axis=0) / scale
+        return out
+
+
+def _force_columns(est, X):
+    """Force of each support term at X, (n_samples * n_dof, n_support), or None."""
+    Xa, _, _ = validate_state(est, X, reset=False, coordinates=est.coordinates_)
+    Xt = to_tensor(Xa, dtype=resolve_dtype(est.dtype), device=resolve_device(est.device))
+    cols, coef = est.fitted_.support_columns(Xt)
+    if coef.size == 0:
+        return None
+    return np.asarray(cols).reshape(-1, coef.size)
+
+
+def _take_rows(X, rows):
+    import pandas as pd
+
+    return X.iloc[rows] if isinstance(X, pd.DataFrame) else np.asarray(X)[rows]
+
+
+def estimate_joint_delays(
+    estimator,
+    X,
+    tau,
+    t,
+    *,
+    groups=None,
+    max_delay=None,
+    n_splits=3,
+    verbose=0,
+    fitted_at_zero=None,
+):
+    """Estimate one delay per input column (a robot joint's drive lag).
+
+    Parameters
+    ----------
+    estimator : LagrangianSINDy
+        An unfitted estimator with the library and options of the final fit (cloned
+        for every fit).
+    X : array-like or DataFrame of shape (n_samples, 3 * n_dof)
+    tau : array-like of shape (n_samples, n_dof)
+        Recorded inputs.
+    t : array-like of shape (n_samples,)
+        Time stamps (increasing within each trajectory).
+    groups : array-like of shape (n_samples,), default=None
+        Trajectory labels; ``None``: the record is cut into ``n_splits`` pieces.
+    max_delay : float, default=None
+        Largest absolute delay tried per column, in seconds; ``None``: 20 sampling
+        intervals.
+    n_splits : int, default=3
+    verbose : int, default=0
+    fitted_at_zero : LagrangianSINDy, default=None
+        ``estimator`` already fitted on every row and the recorded input (used as
+        the first fit).
+
+    Returns
+    -------
+    JointDelayEstimate
+
+    Warns
+    -----
+    UserWarning
+        When a column's best shift is at the end of the range (increase
+        ``max_delay``).
+    """
+    n = len(X)
+    tau2 = np.asarray(tau, dtype=float)
+    tau2 = tau2[:, None] if tau2.ndim == 1 else tau2
+    t = np.asarray(t, dtype=float)
+    if tau2.shape[0] != n or t.shape != (n,):
+        raise ValueError("X, tau and t must have the same number of rows")
+    if groups is None:
+        groups = np.minimum(np.arange(n) * n_splits // n, n_splits - 1)
+    groups = np.asarray(groups)
+    change = np.flatnonzero(groups[1:] != groups[:-1]) + 1
+    bounds = list(zip(np.r_[0, change], np.r_[change, n]))
+    if len(bounds) < 2:
+        raise ValueError("estimate_joint_delays needs at least 2 trajectories")
+    dt = float(np.median(np.concatenate([np.diff(t[a:b]) for a, b in bounds])))
+    steps = MAX_STEPS if max_delay is None else int(math.floor(max_delay / dt + 1e-9))
+    if steps < 1:
+        raise ValueError(f"max_delay={max_delay} is below one sampling interval")
+    candidates = dt * np.arange(-steps, steps + 1)
+    keep = np.zeros(n, dtype=bool)
+    for a, b in bounds:
+        ts = t[a:b]
+        edge = steps * dt * 1.000001
+        keep[a:b] = (ts >= ts[0] + edge) & (ts <= ts[-1] - edge)
+    if keep.sum() < 10 * len(bounds):
+        raise ValueError("the trajectories are too short for the delays tried")
+    rows = np.flatnonzero(keep)
+    k = min(int(n_splits), len(bounds))
+    folds = list(GroupKFold(n_splits=k).split(np.zeros(n), groups=groups))
+    m = tau2.shape[1]
+    driven = np.any(tau2 != 0, axis=0)
+    scale = float(np.mean(np.var(tau2[keep][:, driven], axis=0))) or 1.0
+    # every candidate shift of every column, on the kept rows
+    shifted = np.stack([shift_input(tau2, t, c, groups)[rows] for c in candidates])
+    Xk, gk = _take_rows(X, rows), groups[rows]
+    delays = np.zeros(m)
+    fold_delays = np.zeros((k, m))
+    support, edges = None, set()
+    for fit_no in range(3):
+        if fit_no == 0 and fitted_at_zero is not None:
+            est = fitted_at_zero
+        else:
+            est = clone(estimator)
+            with warnings.catch_warnings(), without_probes():
+                warnings.simplefilter("ignore")
+                if fit_no == 0:
+                    est.fit(X, tau2, groups=groups)
+                else:
+                    acting = shift_input(tau2, t, delays, groups)[rows]
+                    est.fit(Xk, acting, groups=gk)
+        new_support = tuple(np.flatnonzero(np.asarray(est.coef_)))
+        A = _force_columns(est, Xk)
+        if A is None:
+            raise ValueError("the fitted model kept no term: no delay to estimate")
+        solver = _FoldSolver(A, rows, folds, m)
+        current = shift_input(tau2, t, delays, groups)[rows]
+        last = {}
+        for _ in range(MAX_SWEEPS):
+            moved = 0.0
+            for j in np.flatnonzero(driven):
+                B = np.repeat(current[None], len(candidates), axis=0)
+                B[:, :, j] = shifted[:, :, j]
+                scores = solver.scores(B.reshape(len(candidates), -1), scale)
+                new, at_edge = _vertex(candidates, scores.mean(axis=0))
+                last[j] = (scores, at_edge)
+                moved = max(moved, abs(new - delays[j]))
+                delays[j] = new
+                current[:, j] = shift_input(tau2[:, j], t, new, groups)[rows]
+            if moved <= SAME_DELAY * dt:
+                break
+        for j, (scores, at_edge) in last.items():
+            fold_delays[:, j] = [_vertex(candidates, s)[0] for s in scores]
+            if at_edge:
+                edges.add(j)
+        if verbose:
+            print(
+                f"[lagsindy] support of {len(new_support)} terms: delays "
+                + ", ".join(f"{1e3 * d:.2f}" for d in delays)
+                + " ms",
+                flush=True,
+            )
+        if new_support == support:
+            break
+        support = new_support
+    std = np.full(m, math.nan)
+    if k > 1:
+        std[driven] = np.std(fold_delays[:, driven], axis=0, ddof=1) / np.sqrt(k)
+    coords = list(getattr(estimator, "coordinates_", None) or [])
+    if len(coords) != m:
+        coords = [f"input {j}" for j in range(m)]
+    estimate = JointDelayEstimate(
+        delays, std, driven, coords, candidates, fold_delays, dt
+    )
+    for j in sorted(edges):
+        warnings.warn(
+            f"the best delay of {coords[j]} is at the end of the range tried "
+            f"({1e3 * delays[j]:.1f} ms); it may be larger: increase max_delay",
+            UserWarning,
+            stacklevel=2,
+        )
+    return estimate
+
+
+def diagnose_joint_delays(
+    est, X, tau, segments, dt, verbose, fitted_at_zero=None, coordinates=None
+):
+    """For :func:`lagsindy.diagnose`: ``(JointDelayEstimate, tau shifted per column by
+    the significant delays)``, or None when no column's delay is significant or the
+    estimate fails."""
+    n = len(tau)
+    t = np.zeros(n)
+    labels = np.zeros(n, dtype=np.int64)
+    for k, seg in enumerate(segments):
+        t[seg] = np.arange(len(seg)) * dt
+        labels[seg] = k
+    groups = labels if len(segments) >= 2 else None
+    base = pipeline.copy_with(
+        refit_config(est), verbose=0, formulation=pipeline.fitted_formulation(est)
+    )
+    try:
+        with warnings.catch_warnings(), reuse_weak_columns():
+            warnings.simplefilter("ignore")
+            estimate = estimate_joint_delays(
+                base, X, tau, t, groups=groups, fitted_at_zero=fitted_at_zero
+            )
+    except (ValueError, FloatingPointError, np.linalg.LinAlgError) as exc:
+        if verbose:
+            print(f"[lagsindy] no per-joint delay estimate: {exc}")
+        return None
+    if coordinates is not None:
+        estimate.coordinates = list(coordinates)
+    if verbose:
+        print(f"[lagsindy] {estimate}")
+    if not estimate.significant().any():
+        return None
+    return estimate, shift_input(tau, t, estimate.kept(), groups)
