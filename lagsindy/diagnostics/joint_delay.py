@@ -130,8 +130,10 @@ def _vertex(candidates, score):
 class _FoldSolver:
     """Held-out least-squares scores of many right-hand sides on fixed columns.
 
-    One QR factorization of each fold's training rows of ``A`` (``n_rows * n_dof``
-    rows, sample-major), reused for every candidate input.
+    One QR factorization with column pivoting of each fold's training rows of ``A``
+    (``n_rows * n_dof`` rows, sample-major), reused for every candidate input;
+    columns that the others span to 1e-10 (a force candidate equal to a
+    combination of base parameters on these data) are left out.
     """
 
     def __init__(self, A, rows, folds, n_dof):
@@ -139,34 +141,40 @@ class _FoldSolver:
         for train, _ in folds:
             tr = np.repeat(np.isin(rows, train), n_dof)
             te = ~tr
-            q, r = np.linalg.qr(A[tr])
+            q, r, perm = scipy.linalg.qr(A[tr], mode="economic", pivoting=True)
             diag = np.abs(np.diagonal(r))
-            good = diag.size and diag.min() > 1e-8 * diag.max()
-            self.parts.append((tr, te, q, r, good, A[tr], A[te]))
+            rank = int(np.sum(diag > 1e-10 * diag.max())) if diag.size else 0
+            cols = perm[:rank]
+            self.parts.append(
+                (tr, te, q[:, :rank], r[:rank, :rank], A[te][:, cols])
+            )
 
     def scores(self, B, scale):
         """``B`` of shape (n_candidates, n_rows * n_dof): mean squared held-out
         error per fold and candidate, over ``scale``."""
         out = np.empty((len(self.parts), B.shape[0]))
-        for f, (tr, te, q, r, good, a_tr, a_te) in enumerate(self.parts):
-            rhs = B[:, tr].T
-            if good:
-                xi = scipy.linalg.solve_triangular(r, q.T @ rhs, check_finite=False)
-            else:
-                xi = np.linalg.lstsq(a_tr, rhs, rcond=None)[0]
+        for f, (tr, te, q, r, a_te) in enumerate(self.parts):
+            xi = scipy.linalg.solve_triangular(r, q.T @ B[:, tr].T, check_finite=False)
             err = a_te @ xi - B[:, te].T
             out[f] = np.mean(err**2, axis=0) / scale
         return out
 
 
 def _force_columns(est, X):
-    """Force of each support term at X, (n_samples * n_dof, n_support), or None."""
+    """Force columns, (n_samples * n_dof, n_columns), of the fitted ``est``'s kept
+    Lagrangian terms and of every one of its force candidates (kept or not: a
+    friction term the fit at a wrong delay dropped must not bias the search), or
+    None when it kept no term."""
     Xa, _, _ = validate_state(est, X, reset=False, coordinates=est.coordinates_)
     Xt = to_tensor(Xa, dtype=resolve_dtype(est.dtype), device=resolve_device(est.device))
-    cols, coef = est.fitted_.support_columns(Xt)
-    if coef.size == 0:
+    coef = est.fitted_.all_coef()
+    n_lib = len(np.asarray(est.coef_))
+    index = np.r_[np.flatnonzero(coef[:n_lib]), np.arange(n_lib, len(coef))]
+    if not np.any(coef):
         return None
-    return np.asarray(cols).reshape(-1, coef.size)
+    op = est.fitted_.feature_operator(index, Xt.device, Xt.dtype)
+    cols = np.asarray(op.columns(Xt).detach().cpu().numpy())
+    return cols.reshape(-1, len(index))
 
 
 def _take_rows(X, rows):
@@ -269,7 +277,7 @@ def estimate_joint_delays(
                 else:
                     acting = shift_input(tau2, t, delays, groups)[rows]
                     est.fit(Xk, acting, groups=gk)
-        new_support = tuple(np.flatnonzero(np.asarray(est.coef_)))
+        new_support = tuple(np.flatnonzero(est.fitted_.all_coef()))
         A = _force_columns(est, Xk)
         if A is None:
             raise ValueError("the fitted model kept no term: no delay to estimate")
@@ -287,6 +295,8 @@ def estimate_joint_delays(
                 moved = max(moved, abs(new - delays[j]))
                 delays[j] = new
                 current[:, j] = shift_input(tau2[:, j], t, new, groups)[rows]
+            if verbose > 1:
+                print("  sweep", np.round(1e3 * delays, 3), flush=True)
             if moved <= SAME_DELAY * dt:
                 break
         for j, (scores, at_edge) in last.items():
