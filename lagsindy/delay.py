@@ -59,13 +59,14 @@ def _hashable(x):
     return x.item() if hasattr(x, "item") else x
 
 
-def shift_input(tau, t, delay, groups=None):
+def shift_input(tau, t, delay, groups=None, *, method="linear"):
     """The input acting at each sample: ``tau(t - delay)``, per trajectory.
 
-    Linear interpolation between samples, within each trajectory only. Where
-    ``t - delay`` falls before the first (after the last) sample of a trajectory,
-    the first (last) recorded value is held; drop the first ``delay`` seconds of
-    each trajectory (or the last ``-delay``) if those rows matter.
+    Linear interpolation between samples (``method="linear"``), within each
+    trajectory only. Where ``t - delay`` falls before the first (after the last)
+    sample of a trajectory, the first (last) recorded value is held; drop the first
+    ``delay`` seconds of each trajectory (or the last ``-delay``) if those rows
+    matter.
 
     Parameters
     ----------
@@ -80,6 +81,16 @@ def shift_input(tau, t, delay, groups=None):
         differently: :func:`lagsindy.diagnose` with ``"joint_delay"``).
     groups : array-like of shape (n_samples,), default=None
         Trajectory labels (contiguous rows); ``None``: one trajectory.
+    method : {"linear", "fourier"}, default="linear"
+        ``"fourier"``: a band-limited fractional shift (the phase of every
+        frequency turned by the delay, evenly sampled trajectories only, the
+        trajectory's end values held beyond its ends as with ``"linear"``). Linear
+        interpolation between two samples averages their noise (a shift by half a
+        sample halves white noise's variance), so a noisy input shifted by a
+        fraction of a sample is smoother than the recorded one whatever the true
+        delay; the Fourier shift keeps the noise's variance (``diagnose``'s
+        per-joint delays use it, so that smoothing is never taken for a delay).
+        Whole-sample shifts are the same with both, away from the ends.
 
     Returns
     -------
@@ -112,13 +123,45 @@ def shift_input(tau, t, delay, groups=None):
             f"t must have one time stamp per row of tau ({tau2.shape[0]}), got shape "
             f"{t.shape}"
         )
+    if method not in ("linear", "fourier"):
+        raise ValueError(f"method must be 'linear' or 'fourier', got {method!r}")
+    shift = _shift_many if method == "linear" else _shift_fourier
     if delays.ndim == 0:
-        out = _shift_many(tau2, t, delays[None], groups)[0]
+        out = shift(tau2, t, delays[None], groups)[0]
     else:  # one delay per column
         out = np.empty_like(tau2)
         for j, dj in enumerate(delays):
-            out[:, j] = _shift_many(tau2[:, j : j + 1], t, dj[None], groups)[0, :, 0]
+            out[:, j] = shift(tau2[:, j : j + 1], t, dj[None], groups)[0, :, 0]
     return out[:, 0] if flat else out
+
+
+def _shift_fourier(tau2, t, delays, groups):
+    """:func:`_shift_many` by a band-limited shift (``method="fourier"``): each
+    trajectory padded with its end values beyond the largest shift (and to an even
+    FFT length), every frequency's phase turned by ``delay``, the padding cut."""
+    out = np.empty((len(delays),) + tau2.shape)
+    for _, sl in _blocks(groups, len(t)):
+        ts = t[sl]
+        steps = np.diff(ts)
+        if len(ts) < 2 or np.any(steps <= 0):
+            raise ValueError(
+                "t must increase within each trajectory; pass groups= for stacked "
+                "trajectories"
+            )
+        dt = float(np.median(steps))
+        if np.max(np.abs(steps - dt)) > 1e-6 * dt:
+            raise ValueError(
+                "method='fourier' needs evenly sampled trajectories; use "
+                "method='linear' on an uneven clock"
+            )
+        pad = int(np.ceil(np.max(np.abs(delays)) / dt)) + 16
+        x = np.pad(tau2[sl], ((pad, pad), (0, 0)), mode="edge")
+        spectrum = np.fft.rfft(x, axis=0)
+        freq = np.fft.rfftfreq(x.shape[0], d=dt)
+        for k, delay in enumerate(delays):
+            turned = spectrum * np.exp(-2j * np.pi * freq * delay)[:, None]
+            out[k, sl] = np.fft.irfft(turned, n=x.shape[0], axis=0)[pad:-pad]
+    return out
 
 
 def _shift_many(tau2, t, delays, groups):

@@ -154,6 +154,7 @@ class Search:
         self.swaps = []
         self.tau_a = tau_a
         self.tau_recorded = tau_a
+        self.tau_scored = None  # the input scored on, when not tau_a
         self.scorer_rec, self.scorer_s_rec = self.scorer, self.scorer_s
         # once accepted: [(Candidate, delay in s, its std)], one per joint delay
         self.delay = None
@@ -254,10 +255,14 @@ class Search:
         )
 
     # ------------------------------------------------------ step 0: input delay
-    def _use_input(self, tau):
-        """Score and refit on the input ``tau`` (the recorded one shifted)."""
+    def _use_input(self, tau, scoring=None):
+        """Refit on the input ``tau`` (the recorded one shifted) and score on
+        ``scoring`` (default ``tau``; per-joint delays: each fold's rows shifted by
+        the delays estimated without it)."""
         Xt = self.Xt
-        tau_sh = to_tensor(tau, dtype=torch.float64, device="cpu")
+        self.tau_scored = scoring
+        scoring = tau if scoring is None else scoring
+        tau_sh = to_tensor(scoring, dtype=torch.float64, device="cpu")
         extra_sh = self._gain_columns(tau_sh)
         ss = _Statistics(self.op, Xt, tau_sh, extra_sh, self.folds, "strong")
         sw = None
@@ -278,7 +283,7 @@ class Search:
 
     def _use_recorded(self):
         self.scorer, self.scorer_s = self.scorer_rec, self.scorer_s_rec
-        self.tau_a = self.tau_recorded
+        self.tau_a, self.tau_scored = self.tau_recorded, None
 
     def input_delay(self, per_joint=False):
         """Accept an input delay when the model refitted on the shifted input wins.
@@ -300,22 +305,26 @@ class Search:
         args = (joint_config, self.Xf, self.tau_a, self.segments, float(self.dt))
         if per_joint:
             found = diagnose_joint_delays(
-                *args, verbose, fitted_at_zero=joint, coordinates=self.coords
+                *args,
+                verbose,
+                fitted_at_zero=joint,
+                coordinates=self.coords,
+                folds=self.folds,
             )
         else:
             found = diagnose_delay(*args, verbose, fitted_at_zero=joint)
         if found is None:
             return
-        estimate, shifted = found
+        estimate, shifted, cross = found if per_joint else (*found, None)
         # What the dissipative candidates explain at delay 0: a delay must explain
         # more than they can (missing damping also shifts the force's phase, and a
         # delay then stands in for it).
         joint_value = self._joint_value(joint)
         kept = estimate.kept() if per_joint else None
-        self._use_input(shifted)
+        self._use_input(shifted, cross)
         trial, st, jt = self._delay_trial()
         if per_joint and trial is not None:
-            kept, trial, st, jt = self._prune_joint_delays(estimate, kept, st, jt)
+            kept, trial, st, jt = self._prune_joint_delays(kept, st, jt)
         wins = (
             trial is not None
             and jt < (1 - self.min_improvement) * self.value
@@ -380,17 +389,22 @@ class Search:
         st = self.support_of(trial)
         return trial, st, self.J(st)[0]
 
-    def _prune_joint_delays(self, estimate, kept, st, jt):
+    def _prune_joint_delays(self, kept, st, jt):
         """Drop the joint delays whose removal does not worsen the held-out
         criterion by ``min_improvement`` (on the trial's support); refit when one
         was dropped. Returns the kept delays, the trial, its support and value."""
-        shifted = self.tau_a
+        shifted, cross = self.tau_a, self.tau_scored
+
+        def without(columns):
+            a, b = shifted.copy(), cross.copy()
+            for i in columns:
+                a[:, i] = b[:, i] = self.tau_recorded[:, i]
+            return a, b
+
         drop = []
         if np.count_nonzero(kept) > 1:
             for i in np.flatnonzero(kept):
-                without = shifted.copy()
-                without[:, i] = self.tau_recorded[:, i]
-                self._use_input(without)
+                self._use_input(*without([i]))
                 v = self.J(st)[0]
                 if not jt < (1 - self.min_improvement) * v:
                     drop.append(i)
@@ -402,16 +416,12 @@ class Search:
                 f"criterion: {[self.coords[i] for i in drop]}"
             )
         if not drop:
-            self._use_input(shifted)
-            trial = self.fit_with([], {})
-            return kept, trial, st, jt
+            self._use_input(shifted, cross)
+            return kept, self.fit_with([], {}), st, jt
         if not np.any(kept):
-            self._use_input(shifted)
+            self._use_input(shifted, cross)
             return kept, None, st, np.inf
-        acting = shifted.copy()
-        for i in drop:
-            acting[:, i] = self.tau_recorded[:, i]
-        self._use_input(acting)
+        self._use_input(*without(drop))
         trial, st, jt = self._delay_trial()
         return kept, trial, st, jt
 

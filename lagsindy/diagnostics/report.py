@@ -175,19 +175,25 @@ class DiagnosisReport:
         what ``final`` was fitted on, and what to predict or simulate it with.
 
         ``tau`` (n_samples, n_dof) shifted per column by ``input_delays`` (seconds
-        per coordinate; 0 where none) with :func:`lagsindy.delay.shift_input`; a
+        per coordinate; 0 where none) with :func:`lagsindy.delay.shift_input`
+        (``method="fourier"`` for per-joint delays, as diagnose applied them); a
         copy when no delay was found.
         """
         from ..delay import shift_input
 
         delays = [self.input_delays.get(c, 0.0) for c in self.coordinates]
+        # per-joint delays are applied by the band-limited shift (see
+        # lagsindy.diagnostics.joint_delay), the single delay by interpolation
+        per_joint = any(s.candidate.kind == "joint_delay" for s in self.steps)
         tau = np.asarray(tau, dtype=float)
         if tau.ndim != 2 or tau.shape[1] != len(delays):
             raise ValueError(
                 f"tau must have shape (n_samples, {len(delays)}) (one column per "
                 f"coordinate {self.coordinates}), got {tau.shape}"
             )
-        return shift_input(tau, t, delays, groups)
+        return shift_input(
+            tau, t, delays, groups, method="fourier" if per_joint else "linear"
+        )
 
     @property
     def effects(self) -> list:
