@@ -83,14 +83,15 @@ def shift_input(tau, t, delay, groups=None, *, method="linear"):
         Trajectory labels (contiguous rows); ``None``: one trajectory.
     method : {"linear", "fourier"}, default="linear"
         ``"fourier"``: a band-limited fractional shift (the phase of every
-        frequency turned by the delay, evenly sampled trajectories only, the
-        trajectory's end values held beyond its ends as with ``"linear"``). Linear
+        frequency turned by the delay, evenly sampled trajectories only; beyond a
+        trajectory's ends its mirror image stands in for the held values). Linear
         interpolation between two samples averages their noise (a shift by half a
         sample halves white noise's variance), so a noisy input shifted by a
         fraction of a sample is smoother than the recorded one whatever the true
         delay; the Fourier shift keeps the noise's variance (``diagnose``'s
         per-joint delays use it, so that smoothing is never taken for a delay).
-        Whole-sample shifts are the same with both, away from the ends.
+        Whole-sample shifts are the same with both, away from the first (last)
+        ``delay`` seconds.
 
     Returns
     -------
@@ -137,8 +138,8 @@ def shift_input(tau, t, delay, groups=None, *, method="linear"):
 
 def _shift_fourier(tau2, t, delays, groups):
     """:func:`_shift_many` by a band-limited shift (``method="fourier"``): each
-    trajectory padded with its end values beyond the largest shift (and to an even
-    FFT length), every frequency's phase turned by ``delay``, the padding cut."""
+    trajectory followed by its mirror image (periodic and continuous), every
+    frequency's phase turned by ``delay``, the mirror image cut."""
     out = np.empty((len(delays),) + tau2.shape)
     for _, sl in _blocks(groups, len(t)):
         ts = t[sl]
@@ -154,13 +155,16 @@ def _shift_fourier(tau2, t, delays, groups):
                 "method='fourier' needs evenly sampled trajectories; use "
                 "method='linear' on an uneven clock"
             )
-        pad = int(np.ceil(np.max(np.abs(delays)) / dt)) + 16
-        x = np.pad(tau2[sl], ((pad, pad), (0, 0)), mode="edge")
-        spectrum = np.fft.rfft(x, axis=0)
-        freq = np.fft.rfftfreq(x.shape[0], d=dt)
+        x = tau2[sl]
+        n = x.shape[0]
+        # the trajectory and its mirror image: a periodic signal without a jump
+        # (a jump from the last value to the first rings through the record)
+        ext = np.concatenate([x, x[::-1]], axis=0)
+        spectrum = np.fft.rfft(ext, axis=0)
+        freq = np.fft.rfftfreq(2 * n, d=dt)
         for k, delay in enumerate(delays):
             turned = spectrum * np.exp(-2j * np.pi * freq * delay)[:, None]
-            out[k, sl] = np.fft.irfft(turned, n=x.shape[0], axis=0)[pad:-pad]
+            out[k, sl] = np.fft.irfft(turned, n=2 * n, axis=0)[:n]
     return out
 
 
