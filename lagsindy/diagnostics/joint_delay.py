@@ -163,9 +163,7 @@ class _FoldSolver:
             diag = np.abs(np.diagonal(r))
             rank = int(np.sum(diag > 1e-10 * diag.max())) if diag.size else 0
             cols = perm[:rank]
-            self.parts.append(
-                (tr, te, q[:, :rank], r[:rank, :rank], A[te][:, cols])
-            )
+            self.parts.append((tr, te, q[:, :rank], r[:rank, :rank], A[te][:, cols]))
 
     def scores(self, B, scale):
         """``B`` of shape (n_candidates, n_rows * n_dof): mean squared held-out
@@ -184,7 +182,9 @@ def _force_columns(est, X):
     friction term the fit at a wrong delay dropped must not bias the search), or
     None when it kept no term."""
     Xa, _, _ = validate_state(est, X, reset=False, coordinates=est.coordinates_)
-    Xt = to_tensor(Xa, dtype=resolve_dtype(est.dtype), device=resolve_device(est.device))
+    Xt = to_tensor(
+        Xa, dtype=resolve_dtype(est.dtype), device=resolve_device(est.device)
+    )
     coef = est.fitted_.all_coef()
     n_lib = len(np.asarray(est.coef_))
     index = np.r_[np.flatnonzero(coef[:n_lib]), np.arange(n_lib, len(coef))]
@@ -334,9 +334,9 @@ def estimate_joint_delays(
                 last[j] = (scores, at_edge)
                 moved = max(moved, abs(new - delays[j]))
                 delays[j] = new
-                current[:, j] = shift_input(
-                    tau2[:, j], t, new, groups, method=method
-                )[rows]
+                current[:, j] = shift_input(tau2[:, j], t, new, groups, method=method)[
+                    rows
+                ]
             if verbose > 1:
                 print("  sweep", np.round(1e3 * delays, 3), flush=True)
             if moved <= SAME_DELAY * dt:

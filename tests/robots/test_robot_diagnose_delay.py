@@ -8,12 +8,11 @@ import warnings
 
 import numpy as np
 import pytest
+from _robot_fit_data import planar_data
 
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy, diagnose
 from lagsindy.delay import shift_input
 from lagsindy.robots import FRICTION_KINDS, ROBOT_CATALOGUE, example_urdf
-
-from _robot_fit_data import planar_data
 
 CATALOGUE = ["joint_delay", "viscous", "coulomb", "bias"]
 
@@ -189,9 +188,7 @@ def _arm7(delays, duration=6.0, seed=0):
     truth = lib.nominal_.copy()
     truth[-d:] = 0.05
     tau = lib.euler_lagrange_columns(q, qd, qdd) @ truth
-    tau += np.linspace(0.5, 0.2, d) * qd + np.linspace(0.4, 0.1, d) * np.tanh(
-        qd / 0.01
-    )
+    tau += np.linspace(0.5, 0.2, d) * qd + np.linspace(0.4, 0.1, d) * np.tanh(qd / 0.01)
     tau += 0.05
     tau = shift_input(tau, t, -np.asarray(delays))
     tau += 0.01 * tau.std(0) * rng.standard_normal(tau.shape)
