@@ -54,6 +54,9 @@ MIN_STEPS = 0.5
 # (in sampling intervals) below which an estimate has stopped moving.
 MAX_SWEEPS = 6
 SAME_DELAY = 1e-2
+# After the first sweep, each column tries the shifts within this many samples of
+# its estimate (all of them again when the best is at the window's edge).
+WINDOW = 3
 
 
 @dataclass
@@ -174,6 +177,26 @@ class _FoldSolver:
             err = a_te @ xi - B[:, te].T
             out[f] = np.mean(err**2, axis=0) / scale
         return out
+
+
+def _near(candidates, delay, window):
+    """Indices of the candidates within ``window`` shifts of ``delay`` (all of
+    them with ``window=None``)."""
+    if window is None:
+        return np.arange(len(candidates))
+    centre = int(np.argmin(np.abs(candidates - delay)))
+    lo, hi = max(0, centre - window), min(len(candidates), centre + window + 1)
+    if hi - lo < 3:
+        return np.arange(len(candidates))
+    return np.arange(lo, hi)
+
+
+def _column_scores(solver, current, shifted, j, near, scale):
+    """Held-out scores of column ``j`` shifted by each of the ``near`` candidates,
+    the other columns as in ``current``."""
+    B = np.repeat(current[None], len(near), axis=0)
+    B[:, :, j] = shifted[near, :, j]
+    return solver.scores(B.reshape(len(near), -1), scale)
 
 
 def _force_columns(est, X):
@@ -324,14 +347,18 @@ def estimate_joint_delays(
         solver = _FoldSolver(A, rows, folds, m)
         current = shift_input(tau2, t, delays, groups, method=method)[rows]
         last = {}
-        for _ in range(MAX_SWEEPS):
+        for sweep in range(MAX_SWEEPS):
             moved = 0.0
             for j in np.flatnonzero(driven):
-                B = np.repeat(current[None], len(candidates), axis=0)
-                B[:, :, j] = shifted[:, :, j]
-                scores = solver.scores(B.reshape(len(candidates), -1), scale)
-                new, at_edge = _vertex(candidates, scores.mean(axis=0))
-                last[j] = (scores, at_edge)
+                full = fit_no == 0 and sweep == 0
+                near = _near(candidates, delays[j], None if full else WINDOW)
+                scores = _column_scores(solver, current, shifted, j, near, scale)
+                new, at_edge = _vertex(candidates[near], scores.mean(axis=0))
+                if at_edge and len(near) < len(candidates):  # left the window
+                    near = _near(candidates, delays[j], None)
+                    scores = _column_scores(solver, current, shifted, j, near, scale)
+                    new, at_edge = _vertex(candidates[near], scores.mean(axis=0))
+                last[j] = (candidates[near], scores, at_edge)
                 moved = max(moved, abs(new - delays[j]))
                 delays[j] = new
                 current[:, j] = shift_input(tau2[:, j], t, new, groups, method=method)[
@@ -341,11 +368,11 @@ def estimate_joint_delays(
                 print("  sweep", np.round(1e3 * delays, 3), flush=True)
             if moved <= SAME_DELAY * dt:
                 break
-        for j, (scores, at_edge) in last.items():
-            fold_delays[:, j] = [_vertex(candidates, s)[0] for s in scores]
+        for j, (tried, scores, at_edge) in last.items():
+            fold_delays[:, j] = [_vertex(tried, s)[0] for s in scores]
             for f in range(k):  # the estimate without fold f's scores
                 others = np.delete(scores, f, axis=0) if k > 1 else scores
-                left_out[f, j] = _vertex(candidates, others.mean(axis=0))[0]
+                left_out[f, j] = _vertex(tried, others.mean(axis=0))[0]
             if at_edge:
                 edges.add(j)
         if verbose:
@@ -357,6 +384,8 @@ def estimate_joint_delays(
             )
         if new_support == support:
             break
+        if not np.any(np.abs(delays[driven]) >= MIN_STEPS * dt):
+            break  # nothing to propose: a refit would only move what is dropped
         support = new_support
     std = np.full(m, math.nan)
     if k > 1:

@@ -209,14 +209,15 @@ def test_seven_joint_arm_delays():
     delays[[1, 4]] = [0.004, 0.010]
     report = _arm7(delays)
     assert set(report.input_delays) == {"joint2", "joint5"}
-    # measured 3.94 and 10.03 ms
-    assert report.input_delays["joint2"] == pytest.approx(0.004, abs=5e-4)
-    assert report.input_delays["joint5"] == pytest.approx(0.010, abs=5e-4)
+    # measured 4.07 +- 0.02 and 9.30 +- 0.52 ms (10.03 with the spring kind among
+    # the candidates); issue #42 asks for 1 ms
+    assert report.input_delays["joint2"] == pytest.approx(0.004, abs=3e-4)
+    assert report.input_delays["joint5"] == pytest.approx(0.010, abs=1e-3)
 
 
 @pytest.mark.slow
 def test_seven_joint_arm_without_delays():
-    """Estimates of 0.81 and 0.54 ms on joints 3 and 6 pass the significance test
-    but are pruned: they do not improve the held-out criterion."""
+    """Estimates of a fraction of a millisecond on some joints pass the
+    significance test (joint 6: -0.81 ms) but not the held-out ones."""
     report = _arm7(np.zeros(7))
     assert report.input_delays == {}
