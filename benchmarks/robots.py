@@ -293,7 +293,7 @@ def diagnosis(est, states, tauf, split):
     from lagsindy.robots import ROBOT_CATALOGUE
 
     X = np.hstack(states)[:split]
-    catalogue = [k for k in ROBOT_CATALOGUE if k != "delay"]
+    catalogue = [k for k in ROBOT_CATALOGUE if k not in ("delay", "joint_delay")]
     if _tiny():
         catalogue = ["spring"]
     with _quiet(), _clock() as clock:

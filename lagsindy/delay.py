@@ -59,13 +59,14 @@ def _hashable(x):
     return x.item() if hasattr(x, "item") else x
 
 
-def shift_input(tau, t, delay, groups=None):
+def shift_input(tau, t, delay, groups=None, *, method="linear"):
     """The input acting at each sample: ``tau(t - delay)``, per trajectory.
 
-    Linear interpolation between samples, within each trajectory only. Where
-    ``t - delay`` falls before the first (after the last) sample of a trajectory,
-    the first (last) recorded value is held; drop the first ``delay`` seconds of
-    each trajectory (or the last ``-delay``) if those rows matter.
+    Linear interpolation between samples (``method="linear"``), within each
+    trajectory only. Where ``t - delay`` falls before the first (after the last)
+    sample of a trajectory, the first (last) recorded value is held; drop the first
+    ``delay`` seconds of each trajectory (or the last ``-delay``) if those rows
+    matter.
 
     Parameters
     ----------
@@ -73,11 +74,24 @@ def shift_input(tau, t, delay, groups=None):
         Recorded inputs.
     t : array-like of shape (n_samples,)
         Time stamps, increasing within each trajectory.
-    delay : float
+    delay : float or array-like of shape (n_inputs,)
         Seconds between recording an input and its action (> 0: the input acts
-        later than recorded). 0 returns a copy.
+        later than recorded). 0 returns a copy. One delay per column of ``tau``
+        shifts each input by its own (a robot's joints, whose drives lag
+        differently: :func:`lagsindy.diagnose` with ``"joint_delay"``).
     groups : array-like of shape (n_samples,), default=None
         Trajectory labels (contiguous rows); ``None``: one trajectory.
+    method : {"linear", "fourier"}, default="linear"
+        ``"fourier"``: a band-limited fractional shift (the phase of every
+        frequency turned by the delay, evenly sampled trajectories only; beyond a
+        trajectory's ends its mirror image stands in for the held values). Linear
+        interpolation between two samples averages their noise (a shift by half a
+        sample halves white noise's variance), so a noisy input shifted by a
+        fraction of a sample is smoother than the recorded one whatever the true
+        delay; the Fourier shift keeps the noise's variance (``diagnose``'s
+        per-joint delays use it, so that smoothing is never taken for a delay).
+        Whole-sample shifts are the same with both, away from the first (last)
+        ``delay`` seconds.
 
     Returns
     -------
@@ -90,21 +104,68 @@ def shift_input(tau, t, delay, groups=None):
     >>> t = np.arange(5) * 0.01
     >>> shift_input(t * 100, t, 0.02).tolist()
     [0.0, 0.0, 0.0, 1.0, 2.0]
+    >>> shift_input(np.c_[t, t] * 100, t, [0.0, 0.01])[:, 1].tolist()
+    [0.0, 0.0, 1.0, 2.0, 3.0]
     """
     tau = np.asarray(tau, dtype=float)
     flat = tau.ndim == 1
     tau2 = tau[:, None] if flat else tau
     t = np.asarray(t, dtype=float)
-    delay = float(delay)
-    if not math.isfinite(delay):
+    delays = np.asarray(delay, dtype=float)
+    if delays.ndim > 1 or (delays.ndim == 1 and delays.shape != (tau2.shape[1],)):
+        raise ValueError(
+            f"delay must be a number of seconds or one per column of tau "
+            f"({tau2.shape[1]}), got shape {delays.shape}"
+        )
+    if not np.all(np.isfinite(delays)):
         raise ValueError(f"delay must be a finite number of seconds, got {delay!r}")
     if t.shape != (tau2.shape[0],):
         raise ValueError(
             f"t must have one time stamp per row of tau ({tau2.shape[0]}), got shape "
             f"{t.shape}"
         )
-    out = _shift_many(tau2, t, np.array([delay]), groups)[0]
+    if method not in ("linear", "fourier"):
+        raise ValueError(f"method must be 'linear' or 'fourier', got {method!r}")
+    shift = _shift_many if method == "linear" else _shift_fourier
+    if delays.ndim == 0:
+        out = shift(tau2, t, delays[None], groups)[0]
+    else:  # one delay per column
+        out = np.empty_like(tau2)
+        for j, dj in enumerate(delays):
+            out[:, j] = shift(tau2[:, j : j + 1], t, dj[None], groups)[0, :, 0]
     return out[:, 0] if flat else out
+
+
+def _shift_fourier(tau2, t, delays, groups):
+    """:func:`_shift_many` by a band-limited shift (``method="fourier"``): each
+    trajectory followed by its mirror image (periodic and continuous), every
+    frequency's phase turned by ``delay``, the mirror image cut."""
+    out = np.empty((len(delays),) + tau2.shape)
+    for _, sl in _blocks(groups, len(t)):
+        ts = t[sl]
+        steps = np.diff(ts)
+        if len(ts) < 2 or np.any(steps <= 0):
+            raise ValueError(
+                "t must increase within each trajectory; pass groups= for stacked "
+                "trajectories"
+            )
+        dt = float(np.median(steps))
+        if np.max(np.abs(steps - dt)) > 1e-6 * dt:
+            raise ValueError(
+                "method='fourier' needs evenly sampled trajectories; use "
+                "method='linear' on an uneven clock"
+            )
+        x = tau2[sl]
+        n = x.shape[0]
+        # the trajectory and its mirror image: a periodic signal without a jump
+        # (a jump from the last value to the first rings through the record)
+        ext = np.concatenate([x, x[::-1]], axis=0)
+        spectrum = np.fft.rfft(ext, axis=0)
+        freq = np.fft.rfftfreq(2 * n, d=dt)
+        for k, delay in enumerate(delays):
+            turned = spectrum * np.exp(-2j * np.pi * freq * delay)[:, None]
+            out[k, sl] = np.fft.irfft(turned, n=2 * n, axis=0)[:n]
+    return out
 
 
 def _shift_many(tau2, t, delays, groups):

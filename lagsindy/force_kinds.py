@@ -73,7 +73,7 @@ DEFAULT_STRIBECK_VELOCITY = 0.1
 
 # Candidate kinds of diagnose's catalogue that are not forces; a force kind cannot
 # take these names (nor "custom", the kind of a hand-made ForceTerm).
-RESERVED_NAMES = ("gain", "conservative", "delay", "custom")
+RESERVED_NAMES = ("gain", "conservative", "delay", "joint_delay", "custom")
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*\Z")
 _NUMBERS = {1: "one", 2: "two", 3: "three", 4: "four"}
 

@@ -25,6 +25,9 @@ from .report import Candidate
 # after them (gain, conservative).
 _BEFORE_FORCES = ("delay",)
 _AFTER_FORCES = ("gain", "conservative")
+# Delay kinds: one for the whole input (in the default catalogue), one per input
+# column (named: a robot's joints; lagsindy.robots.ROBOT_CATALOGUE).
+_DELAYS = ("delay", "joint_delay")
 
 
 class _DefaultCatalogue(Sequence):
@@ -145,7 +148,7 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps, units=None):
                 )
                 if term.name not in present_forces:
                     out.append(Candidate(kind, term.name, tuple(tgt), term))
-        elif kind == "delay":
+        elif kind in _DELAYS:
             continue  # estimated before the other effects (see diagnose)
         elif kind == "gain":
             if tau is None:
@@ -174,7 +177,7 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps, units=None):
         else:
             raise ValueError(
                 f"unknown candidate kind {kind!r}; use some of "
-                f"{_BEFORE_FORCES + kind_names() + _AFTER_FORCES}"
+                f"{_DELAYS + kind_names() + _AFTER_FORCES}"
             )
     return out
 

@@ -35,6 +35,7 @@ _KIND_TEXT = {
     "gain": "input gain error",
     "conservative": "missing conservative term",
     "delay": "input delay",
+    "joint_delay": "input delay of one joint",
 }
 
 
@@ -137,6 +138,10 @@ class DiagnosisReport:
     settings : dict
         The diagnosis' settings; ``settings["units"]`` holds ``diagnose(units=)``,
         which labels the residuals in the text and the figure.
+    input_delays : dict of str to float
+        The delays accepted (``"delay"``, ``"joint_delay"``): seconds per
+        coordinate (the single delay on every driven one); empty when none.
+        :meth:`shift_input` applies them.
     bootstrap : BootstrapReport or None
         With ``diagnose(..., bootstrap=n)``: intervals and inclusion of every term of
         the final model (:func:`lagsindy.bootstrap` of the final configuration); the
@@ -162,7 +167,33 @@ class DiagnosisReport:
     stop_reason: str = ""
     settings: dict = field(default_factory=dict)
     bootstrap: object = None
+    input_delays: dict = field(default_factory=dict)
     _data: dict = field(default_factory=dict, repr=False)
+
+    def shift_input(self, tau, t, groups=None):
+        """The input acting at each sample under the delays the diagnosis found:
+        what ``final`` was fitted on, and what to predict or simulate it with.
+
+        ``tau`` (n_samples, n_dof) shifted per column by ``input_delays`` (seconds
+        per coordinate; 0 where none) with :func:`lagsindy.delay.shift_input`
+        (``method="fourier"`` for per-joint delays, as diagnose applied them); a
+        copy when no delay was found.
+        """
+        from ..delay import shift_input
+
+        delays = [self.input_delays.get(c, 0.0) for c in self.coordinates]
+        # per-joint delays are applied by the band-limited shift (see
+        # lagsindy.diagnostics.joint_delay), the single delay by interpolation
+        per_joint = any(s.candidate.kind == "joint_delay" for s in self.steps)
+        tau = np.asarray(tau, dtype=float)
+        if tau.ndim != 2 or tau.shape[1] != len(delays):
+            raise ValueError(
+                f"tau must have shape (n_samples, {len(delays)}) (one column per "
+                f"coordinate {self.coordinates}), got {tau.shape}"
+            )
+        return shift_input(
+            tau, t, delays, groups, method="fourier" if per_joint else "linear"
+        )
 
     @property
     def effects(self) -> list:
@@ -457,7 +488,7 @@ class DiagnosisReport:
                     )
                 elif cand.kind == "conservative":
                     var, xlabel = X[:, i], label(c, unit(c, 0))
-                elif cand.kind in ("gain", "delay"):
+                elif cand.kind in ("gain", "delay", "joint_delay"):
                     var, xlabel = self._data["tau"][:, i], label(f"tau_{c}", unit(c, 1))
                 else:
                     var, xlabel = X[:, n + i], label(f"{c}_dot", _rate(unit(c, 0)))

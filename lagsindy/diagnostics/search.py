@@ -66,14 +66,25 @@ def diagnose(
         than ``n_splits``, each is cut into ``n_splits`` time blocks.
     catalogue : sequence of str, default=all kinds
         Candidate kinds: ``"viscous"``, ``"relative"``, ``"drag"``, ``"coulomb"``,
-        ``"bias"``, ``"gain"``, ``"conservative"``, ``"delay"``. ``"delay"`` (forced
+        ``"bias"``, ``"gain"``, ``"conservative"``, ``"delay"``, ``"joint_delay"``
+        (and registered force kinds such as ``"spring"``). ``"delay"`` (forced
         data only) estimates a delay between the recorded input and the positions
         first (:func:`lagsindy.delay.estimate_delay`, up to 10 sampling intervals);
         it is kept, as the step ``"delay"`` with its estimate in ms, when the model
         refitted on the shifted input (:func:`lagsindy.delay.shift_input`) predicts
         held-out trajectories better; the other effects are then searched with the
         shifted input, and ``report.final`` is fitted on it (predict with
-        ``shift_input(tau, t, report.steps[0].coefficient / 1000)``).
+        ``report.shift_input(tau, t)``, which applies it as
+        :func:`lagsindy.delay.shift_input` does). ``"joint_delay"`` (not in the
+        default catalogue; in :data:`lagsindy.robots.ROBOT_CATALOGUE`) estimates
+        one delay per driven input column instead (a robot's joints, whose drives
+        lag differently; up to 20 sampling intervals): each is kept when it is at
+        least a tenth of a sampling interval and twice its standard error, the
+        delays together under the single delay's rule, and each only while setting
+        it back to 0 worsens the held-out criterion by ``min_improvement``; the
+        report has a step ``"delay(<joint>)"`` per delay kept (in ms) and
+        ``report.input_delays`` (seconds per coordinate). With both named, the
+        per-joint search runs instead of the single one.
     extra_terms : list of str or sympy.Expr, default=None
         More conservative candidates (Lagrangian terms), beside ``q**2`` for every
         coordinate and ``cos``/``sin`` of angles.
@@ -203,8 +214,10 @@ def diagnose(
     )
     with reuse_weak_columns():
         search = Search(est, Xa, tau_a, groups, settings)
-        if "delay" in catalogue and tau_a is not None and search.dt and search.dt > 0:
-            search.input_delay()  # step 0
+        delays = [k for k in ("joint_delay", "delay") if k in catalogue]
+        if delays and tau_a is not None and search.dt and search.dt > 0:
+            # step 0 (a delay per joint, when named, in place of one for all)
+            search.input_delay(per_joint=delays[0] == "joint_delay")
         search.total_ref = float(
             sum(search.scorer.w @ r for r in search.scorer.reference)
         )

@@ -50,14 +50,13 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
     if not search.passive:
         force_rms = np.maximum(force_rms, np.sqrt(np.mean(tau_recorded**2, axis=0)))
     steps = []
-    if search.delay is not None:
-        cand, estimate = search.delay
-        v_without = search.scorer_rec.score(support)[0]
+    v_without = search.scorer_rec.score(support)[0] if search.delay else None
+    for cand, delay, std in search.delay or []:
         steps.append(
             Step(
                 candidate=cand,
-                coefficient=1e3 * estimate.delay,
-                units=f"ms (+- {1e3 * estimate.std:.2g} ms)",
+                coefficient=1e3 * delay,
+                units=f"ms (+- {1e3 * std:.2g} ms)",
                 explained=float(1 - value**2 / v_without**2)
                 if np.isfinite(v_without) and v_without > 0
                 else 1.0,
@@ -161,6 +160,7 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
             ),
             "swaps": search.swaps,
         },
+        input_delays=_input_delays(search),
         _data={
             "X": search.Xa,
             "tau": tau_recorded,
@@ -168,6 +168,16 @@ def summarize(search, units, bootstrap, random_state) -> DiagnosisReport:
             "residual_after": residual_after,
         },
     )
+
+
+def _input_delays(search) -> dict:
+    """Seconds per coordinate of the accepted delay(s) (a single delay: on every
+    driven coordinate); empty when none was accepted."""
+    out = {}
+    for cand, delay, _ in search.delay or []:
+        for c in cand.coordinates:
+            out[c] = delay
+    return out
 
 
 def _model_effects(search, final, support, value, units, residual_after) -> list:

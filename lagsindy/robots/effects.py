@@ -21,9 +21,11 @@ from __future__ import annotations
 
 from .. import force_kinds
 
-#: What :func:`lagsindy.diagnose` should try on a robot arm: friction per joint, a
-#: spring per joint and an input delay.
-ROBOT_CATALOGUE = ("delay", "viscous", "coulomb", "bias", "spring")
+#: What :func:`lagsindy.diagnose` should try on a robot arm: an input delay per
+#: driven joint (``"joint_delay"``: each drive may lag by its own amount; a delay
+#: common to every joint is found as that delay on each), friction per joint and a
+#: spring per joint.
+ROBOT_CATALOGUE = ("joint_delay", "viscous", "coulomb", "bias", "spring")
 
 #: The friction kinds a robot fit declares by default (``dissipation=``).
 FRICTION_KINDS = ("viscous", "coulomb", "bias")

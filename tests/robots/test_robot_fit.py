@@ -219,6 +219,7 @@ def test_diagnose_finds_coupled_joints_and_no_delay():
         est.fit(X, tau)
         report = diagnose(est, X, tau, catalogue=[*ROBOT_CATALOGUE, "relative"])
     assert "delay" not in report.effects
+    assert report.input_delays == {}  # nor a delay per joint ("joint_delay")
     final = dict(
         zip(
             [f.name for f in report.final.dissipation_terms_],
