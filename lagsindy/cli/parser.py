@@ -33,7 +33,8 @@ def _catalogue_help() -> str:
     return (
         "comma-separated candidate kinds (default: "
         + ", ".join(["delay", *default, "gain", "conservative"])
-        + ("; also " + ", ".join(other) if other else "")
+        + "; also "
+        + ", ".join([*other, "joint_delay (a delay per driven coordinate)"])
         + ")"
     )
 
