@@ -635,17 +635,8 @@ def diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
 
     from .formulation.operator import reuse_weak_columns
 
-    n = len(tau)
-    t = np.zeros(n)
-    labels = np.zeros(n, dtype=np.int64)
-    for k, seg in enumerate(segments):
-        t[seg] = np.arange(len(seg)) * dt
-        labels[seg] = k
-    groups = labels if len(segments) >= 2 else None
-    # the formulation est's fit used, with the window it chose
-    base = pipeline.copy_with(
-        refit_config(est), verbose=0, formulation=pipeline.fitted_formulation(est)
-    )
+    t, groups = segment_clock(segments, len(tau), dt)
+    base = search_base(est)
     try:
         # Its refits differ only in the shifted input: with the weak form they
         # reuse the first one's feature integrals (the Gram matrices agree with
@@ -665,6 +656,26 @@ def diagnose_delay(est, X, tau, segments, dt, verbose, fitted_at_zero=None):
     if not worth_trying(estimate, dt):
         return None
     return estimate, shifted
+
+
+def segment_clock(segments, n, dt):
+    """A clock restarting at 0 in each segment (index arrays of ``n`` rows, sampling
+    interval ``dt``) and the rows' segment labels: ``(t, groups)``, ``groups``
+    ``None`` for one segment. What the delay searches of diagnose run on."""
+    t = np.zeros(n)
+    labels = np.zeros(n, dtype=np.int64)
+    for k, seg in enumerate(segments):
+        t[seg] = np.arange(len(seg)) * dt
+        labels[seg] = k
+    return t, (labels if len(segments) >= 2 else None)
+
+
+def search_base(est):
+    """The estimator a delay search refits: ``est``'s configuration (its rule, its
+    joint fit), quiet, with the formulation and window its fit used."""
+    return pipeline.copy_with(
+        refit_config(est), verbose=0, formulation=pipeline.fitted_formulation(est)
+    )
 
 
 def worth_trying(estimate, dt) -> bool:

@@ -30,13 +30,11 @@ import scipy.linalg
 from sklearn.base import clone
 from sklearn.model_selection import GroupKFold
 
-from .. import pipeline
 from .._torch import resolve_device, resolve_dtype, to_tensor
 from .._validation import validate_state
-from ..delay import shift_input, worth_trying
+from ..delay import search_base, segment_clock, shift_input, worth_trying
 from ..formulation.operator import reuse_weak_columns
 from ..formulation.probes import without_probes
-from ..joint import refit_config
 
 __all__ = ["JointDelayEstimate", "estimate_joint_delays"]
 
@@ -421,15 +419,8 @@ def diagnose_joint_delays(
     the significant delays)``, or None when no column's delay is significant or the
     estimate fails."""
     n = len(tau)
-    t = np.zeros(n)
-    labels = np.zeros(n, dtype=np.int64)
-    for k, seg in enumerate(segments):
-        t[seg] = np.arange(len(seg)) * dt
-        labels[seg] = k
-    groups = labels if len(segments) >= 2 else None
-    base = pipeline.copy_with(
-        refit_config(est), verbose=0, formulation=pipeline.fitted_formulation(est)
-    )
+    t, groups = segment_clock(segments, n, dt)
+    base = search_base(est)
     try:
         with warnings.catch_warnings(), reuse_weak_columns():
             warnings.simplefilter("ignore")
