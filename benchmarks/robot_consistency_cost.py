@@ -3,7 +3,10 @@
 Run from two checkouts (the one with the constraint in the batched resamples and one
 without) on the same machine and compare::
 
-    PYTHONPATH=<checkout> python benchmarks/robot_consistency_cost.py [--resamples N]
+    PYTHONPATH=<checkout> python -m benchmarks.robot_consistency_cost [--resamples N]
+    python -m benchmarks.robot_consistency_cost --quick   # 10 resamples
+
+Writes ``results/robot_consistency_cost.md`` (``_quick`` with ``--quick``).
 
 Prints, for the shipped two-link arm and the seven-joint arm (torques from lagsindy's
 own regressor with rotor inertias, viscous and Coulomb friction, an offset and 5 %
@@ -23,6 +26,9 @@ import numpy as np
 
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy, bootstrap
 from lagsindy.robots import example_urdf, feasibility
+
+from ._common import header, write
+from ._evaluate import tiny
 
 ARM7_JOINTS = [f"joint{i}" for i in range(1, 8)]
 
@@ -74,9 +80,12 @@ def _infeasible(library, samples):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--resamples", type=int, default=30)
+    parser.add_argument("--quick", action="store_true", help="10 resamples")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
-    saved = {}
+    if args.quick or tiny():
+        args.resamples = min(args.resamples, 3 if tiny() else 10)
+    saved, lines = {}, []
     for name, duration, rate in (("planar2", 2.0, 500.0), ("arm7", 2.0, 250.0)):
         lib, X, tau = _data(name, duration, rate)
         kinds = DissipationLibrary(["viscous", "coulomb", "bias"])
@@ -104,18 +113,20 @@ def main(argv=None):
             )
             t_boot = time.perf_counter() - t0
         bad = _infeasible(report.estimator.library_, report.samples[-40:])
-        print(
-            f"{name}: {len(X)} samples, {len(est.coef_)} base parameters; fit "
+        lines.append(
+            f"- {name}: {len(X)} samples, {len(est.coef_)} base parameters; fit "
             f"{t_fit:.2f} s, bootstrap of {args.resamples} {t_boot:.2f} s; "
             f"infeasible resamples (last 40 checked): {bad}; the unconstrained full "
-            f"fit is consistent: {own}",
-            flush=True,
+            f"fit is consistent: {own}"
         )
+        print(lines[-1], flush=True)
         saved[f"{name}_low"], saved[f"{name}_high"] = report.low, report.high
         saved[f"{name}_coef"] = report.coefficient
         saved[f"{name}_times"] = np.array([t_fit, t_boot])
     if args.out:
         np.savez(args.out, **saved)
+    name = "robot_consistency_cost" + ("_quick" if (args.quick or tiny()) else "")
+    write(f"{name}.md", header(__doc__.splitlines()[0]) + "\n".join(lines) + "\n")
     return 0
 
 

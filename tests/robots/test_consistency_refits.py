@@ -69,12 +69,12 @@ def test_bootstrap_resamples_are_consistent(short_noisy):
     X, tau = short_noisy
     est = _fit(X, tau)
     report = _quiet(
-        bootstrap, est, X, tau, n_resamples=30, method="percentile", random_state=0
+        bootstrap, est, X, tau, n_resamples=10, method="percentile", random_state=0
     )
     assert report.fast_path
     library = report.estimator.library_
     finite = [s for s in report.samples if np.all(np.isfinite(s))]
-    assert len(finite) >= 28
+    assert len(finite) >= 9  # unconstrained, 20 of 30 resamples were infeasible
     bad = []
     for s in finite:
         ok, worst = _consistent(library, s, est.dissipation_terms_)
