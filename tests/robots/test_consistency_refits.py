@@ -98,7 +98,7 @@ def test_bootstrap_full_refits_are_consistent(short_noisy, monkeypatch):
     est = _fit(X, tau, kinds=("viscous",))
     monkeypatch.setattr(boot_module, "fast_path_supported", lambda full: False)
     report = _quiet(
-        bootstrap, est, X, tau, n_resamples=3, method="percentile", random_state=1
+        bootstrap, est, X, tau, n_resamples=2, method="percentile", random_state=1
     )
     assert not report.fast_path
     # (full refits are other estimators, whose link parameters are not kept: the
