@@ -87,6 +87,7 @@ def test_bootstrap_resamples_are_consistent(short_noisy):
     assert ia.low >= 0.0
 
 
+@pytest.mark.slow  # full refits solve through pipeline.solve, constrained as the fit
 def test_bootstrap_full_refits_are_consistent(short_noisy, monkeypatch):
     """Without the fast path (every resample a full refit) the fit's constraint
     holds too."""

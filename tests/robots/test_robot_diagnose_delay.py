@@ -99,6 +99,7 @@ def test_no_joint_delay_on_a_delay_free_arm():
     np.testing.assert_array_equal(report.shift_input(tau, data.t), tau)
 
 
+@pytest.mark.slow  # one joint of two (the per-joint pruning has its own test)
 def test_one_delayed_joint_only():
     """0 and 8 ms: only the elbow's delay is proposed (the shoulder's estimate,
     -0.27 +- 0.11 ms, is below half a sample)."""
@@ -129,6 +130,7 @@ def test_a_spurious_joint_delay_is_pruned(monkeypatch):
     assert "delay(shoulder)" not in report.effects
 
 
+@pytest.mark.slow  # a catalogue precedence rule
 def test_joint_delay_replaces_the_single_delay_when_both_are_named(delayed):
     data, tau, _ = delayed
     report = _diagnosed(data, tau, catalogue=["delay", *CATALOGUE])
