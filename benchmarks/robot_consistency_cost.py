@@ -25,7 +25,7 @@ import warnings
 import numpy as np
 
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy, bootstrap
-from lagsindy.robots import example_urdf, feasibility
+from lagsindy.robots import example_urdf, feasibility, multisine
 
 from ._common import header, write
 from ._evaluate import tiny
@@ -39,13 +39,7 @@ def _data(name, duration, rate, seed=0):
     n = lib.tree_.n_dof
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration, 1.0 / rate)
-    q, qd, qdd = (np.zeros((len(t), n)) for _ in range(3))
-    for j in range(n):
-        for w in (0.7, 1.9, 3.1):
-            a, ph = rng.uniform(0.2, 0.5) / w**0.5, rng.uniform(0, 2 * np.pi)
-            q[:, j] += a * np.sin(w * t + ph)
-            qd[:, j] += a * w * np.cos(w * t + ph)
-            qdd[:, j] -= a * w**2 * np.sin(w * t + ph)
+    q, qd, qdd = multisine(t, n, random_state=rng)
     truth = lib.nominal_.copy()
     truth[-n:] = np.linspace(0.02, 0.0005, n)  # rotor inertias down to 5e-4
     tau = lib.euler_lagrange_columns(q, qd, qdd) @ truth + 0.3 * qd

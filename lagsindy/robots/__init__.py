@@ -15,7 +15,7 @@ from .base_parameters import (
 )
 from .effects import FRICTION_KINDS, ROBOT_CATALOGUE
 from .energy import RobotTerms, euler_lagrange_columns
-from .examples import example_urdf
+from .examples import example_urdf, multisine
 from .export import ConsistentParameters, consistent_parameters, feasibility, to_urdf
 from .fitting import BaseParameterLibrary, BaseTerms
 from .library import RobotLibrary
@@ -38,6 +38,7 @@ __all__ = [
     "consistent_parameters",
     "euler_lagrange_columns",
     "example_urdf",
+    "multisine",
     "feasibility",
     "fitted_to_urdf",
     "joint_coefficients",

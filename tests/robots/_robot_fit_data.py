@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 
 from lagsindy import CandidateLibrary
-from lagsindy.robots import example_urdf
+from lagsindy.robots import example_urdf, multisine
 
 EPS = 0.01  # the Coulomb kind's default smoothing velocity (tanh(qd / eps))
 
@@ -40,14 +40,7 @@ def planar_data(
     rng = np.random.default_rng(seed)
     lib = CandidateLibrary.from_urdf(example_urdf("planar2"))
     t = np.arange(0.0, duration, dt)
-    q = np.zeros((len(t), 2))
-    qd, qdd = np.zeros_like(q), np.zeros_like(q)
-    for j in range(2):
-        for w in (0.7, 1.9, 3.1):
-            a, ph = rng.uniform(0.2, 0.5) / w**0.5, rng.uniform(0, 2 * np.pi)
-            q[:, j] += a * np.sin(w * t + ph)
-            qd[:, j] += a * w * np.cos(w * t + ph)
-            qdd[:, j] -= a * w**2 * np.sin(w * t + ph)
+    q, qd, qdd = multisine(t, 2, random_state=rng)
     truth = lib.nominal_.copy()
     truth[-2:] = armature
     tau = lib.euler_lagrange_columns(q, qd, qdd) @ truth

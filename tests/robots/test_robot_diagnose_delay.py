@@ -12,7 +12,7 @@ from _robot_fit_data import planar_data
 
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy, diagnose
 from lagsindy.delay import shift_input
-from lagsindy.robots import FRICTION_KINDS, ROBOT_CATALOGUE, example_urdf
+from lagsindy.robots import FRICTION_KINDS, ROBOT_CATALOGUE, example_urdf, multisine
 
 CATALOGUE = ["joint_delay", "viscous", "coulomb", "bias"]
 
@@ -180,13 +180,7 @@ def _arm7(delays, duration=6.0, seed=0):
     rng = np.random.default_rng(seed)
     t = np.arange(0.0, duration, 0.001)
     d = 7
-    q, qd, qdd = (np.zeros((len(t), d)) for _ in range(3))
-    for j in range(d):
-        for w in (0.9, 2.1, 3.7):
-            a, ph = rng.uniform(0.15, 0.35) / w**0.5, rng.uniform(0, 2 * np.pi)
-            q[:, j] += a * np.sin(w * t + ph)
-            qd[:, j] += a * w * np.cos(w * t + ph)
-            qdd[:, j] -= a * w * w * np.sin(w * t + ph)
+    q, qd, qdd = multisine(t, d, (0.9, 2.1, 3.7), (0.15, 0.35), random_state=rng)
     truth = lib.nominal_.copy()
     truth[-d:] = 0.05
     tau = lib.euler_lagrange_columns(q, qd, qdd) @ truth
