@@ -250,7 +250,7 @@ class BaseParameterLibrary(_BuiltOnDemand, BaseEstimator):
         coef : ndarray of shape (P,)
             The unconstrained coefficients (base parameters, then dissipation); the
             dissipation terms they keep (non-zero) are the ones refitted.
-        dissipative : sequence of bool, shape (P - n_terms_,)
+        dissipative : sequence of bool, shape (P - ``n_terms_``,)
             Which dissipation coefficients must be non-negative.
 
         Returns
