@@ -65,6 +65,9 @@ class ConsistentFit:
         unconstrained fit was consistent). When not, the parameters are still
         feasible (every iterate is projected) but may not be the constrained
         optimum.
+    residual_ratio : float
+        The constrained fit's residual sum of squares over the unconstrained
+        one's (1 when the unconstrained fit was consistent).
     """
 
     coef: np.ndarray
@@ -73,6 +76,7 @@ class ConsistentFit:
     objective_increase: float
     n_iter: int
     converged: bool = True
+    residual_ratio: float = 1.0
 
 
 def _pi_of_j(j):
@@ -252,6 +256,7 @@ def constrained_refit(robot, base, gram, coef, n_terms, dissipative, support):
         parameters=pi,
         min_eigenvalue=feasibility(pi, n_bodies),
         objective_increase=float(f_con - f_unc),
+        residual_ratio=float((2 * f_con + 1) / max(2 * f_unc + 1, 1e-300)),
         n_iter=it,
         converged=converged,
     )

@@ -174,3 +174,50 @@ def test_a_consistent_refit_that_hits_its_cap_says_so(monkeypatch):
     monkeypatch.setattr(consistency, "MAX_ITER", 3)
     said = fit_warnings()
     assert len(said) == 1 and said[0].filename == __file__
+
+
+def _docs_record():
+    """The poorly exciting 2 s two-link record of docs/robots.md's bootstrap block."""
+    lib = CandidateLibrary.from_urdf(example_urdf("planar2"))
+    rng = np.random.default_rng(0)
+    t = np.arange(0.0, 2.0, 0.002)
+    w = np.array([[0.7, 1.9], [1.3, 3.1]])
+    q = 0.4 * np.sin(np.outer(t, w[0])) + 0.2 * np.cos(np.outer(t, w[1]))
+    qd = 0.4 * w[0] * np.cos(np.outer(t, w[0])) - 0.2 * w[1] * np.sin(np.outer(t, w[1]))
+    qdd = -0.4 * w[0] ** 2 * np.sin(np.outer(t, w[0])) - 0.2 * w[1] ** 2 * np.cos(
+        np.outer(t, w[1])
+    )
+    truth = lib.nominal_.copy()
+    truth[-2:] = [0.02, 0.0005]
+    tau = lib.euler_lagrange_columns(q, qd, qdd) @ truth + [0.6, 0.3] * qd
+    tau += 0.05 * tau.std(0) * rng.standard_normal(tau.shape)
+    return lib, np.hstack([q, qd, qdd]), tau
+
+
+def test_a_consistent_fit_much_worse_than_the_unconstrained_one_says_so():
+    """On the poorly exciting record the fit drops the shoulder's friction (0.6);
+    the unconstrained fit hides it in a negative inertia, the consistent one leaves
+    6.4 times its residual (measured) and says so; a well-excited record (ratio 1.0)
+    does not."""
+    from lagsindy.robots.fitting import RESIDUAL_RATIO
+
+    assert RESIDUAL_RATIO == 2.0
+
+    def said(lib, X, tau):
+        est = LagrangianSINDy(
+            lib, dissipation=DissipationLibrary(["viscous"]), formulation="strong"
+        )
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            est.fit(X, tau)
+        return [w for w in caught if "times the torque residual" in str(w.message)]
+
+    lib, X, tau = _docs_record()
+    found = said(lib, X, tau)
+    assert len(found) == 1 and found[0].filename == __file__
+    assert "6.4 times" in str(found[0].message)
+    data = planar_data(duration=3.0)
+    assert (
+        said(CandidateLibrary.from_urdf(example_urdf("planar2")), data.X, data.tau)
+        == []
+    )
