@@ -36,6 +36,10 @@ MAX_ITER = 5000
 # Negative pseudo-inertia eigenvalues (relative to the largest mass) taken as
 # round-off when the sparse solution is checked for consistency.
 ROUND_OFF = 1e-9
+# The smallest residual (relative to the torques' weighted sum of squares in the
+# fit's Gram statistics) a constrained fit's residual is compared with
+# (ConsistentFit.residual_ratio): an exact fit of noise-free torques leaves none.
+RESIDUAL_FLOOR = 1e-4
 # ADMM step, relative to the mean curvature of the least squares.
 RHO = 0.003  # measured on the 7-joint arm: 1.0 converges 10 times slower
 # Fitted base parameters whose nearest consistent full parameters miss them by more
@@ -67,7 +71,9 @@ class ConsistentFit:
         optimum.
     residual_ratio : float
         The constrained fit's residual sum of squares over the unconstrained
-        one's (1 when the unconstrained fit was consistent).
+        one's, or over ``RESIDUAL_FLOOR`` of the torques' sum of squares when that
+        is larger (an exact fit of noise-free torques leaves nothing to compare
+        with); 1 when the unconstrained fit was consistent.
     """
 
     coef: np.ndarray
@@ -256,7 +262,7 @@ def constrained_refit(robot, base, gram, coef, n_terms, dissipative, support):
         parameters=pi,
         min_eigenvalue=feasibility(pi, n_bodies),
         objective_increase=float(f_con - f_unc),
-        residual_ratio=float((2 * f_con + 1) / max(2 * f_unc + 1, 1e-300)),
+        residual_ratio=float((2 * f_con + 1) / max(2 * f_unc + 1, RESIDUAL_FLOOR)),
         n_iter=it,
         converged=converged,
     )

@@ -102,7 +102,7 @@ class BaseTerms:
 
 # A consistent refit that leaves more than this many times the unconstrained
 # residual sum of squares is reported (measured: 1.0 on well-excited two-link
-# records, 1.09 on 2 s of the seven-joint arm, 6.4 on the poorly exciting 2 s
+# records, 1.09 on 2 s of the seven-joint arm, 5.8 on the poorly exciting 2 s
 # two-link record of docs/robots.md, whose fit dropped the shoulder's friction).
 RESIDUAL_RATIO = 2.0
 
