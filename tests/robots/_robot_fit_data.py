@@ -54,3 +54,16 @@ def planar_data(
     return ArmData(
         np.hstack([q, qd, qdd]), tau, t, truth, viscous, coulomb, offset, spring
     )
+
+
+def two_sines(duration, dt=0.002):
+    """Times and ``(q, qd, qdd)`` of the two-link arm along two sines per joint
+    (the motion of docs/robots.md's examples): ``t, q, qd, qdd``."""
+    t = np.arange(0.0, duration, dt)
+    w = np.array([[0.7, 1.9], [1.3, 3.1]])
+    q = 0.4 * np.sin(np.outer(t, w[0])) + 0.2 * np.cos(np.outer(t, w[1]))
+    qd = 0.4 * w[0] * np.cos(np.outer(t, w[0])) - 0.2 * w[1] * np.sin(np.outer(t, w[1]))
+    qdd = -0.4 * w[0] ** 2 * np.sin(np.outer(t, w[0])) - 0.2 * w[1] ** 2 * np.cos(
+        np.outer(t, w[1])
+    )
+    return t, q, qd, qdd

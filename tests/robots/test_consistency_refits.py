@@ -12,7 +12,7 @@ import warnings
 
 import numpy as np
 import pytest
-from _robot_fit_data import planar_data
+from _robot_fit_data import planar_data, two_sines
 
 from lagsindy import (
     CandidateLibrary,
@@ -158,7 +158,6 @@ def test_a_consistent_refit_that_hits_its_cap_says_so(monkeypatch):
     two-link arm, 5 % torque noise, rotor inertia 5e-4) makes the unconstrained
     fit infeasible, so the fit runs ADMM."""
     from benchmarks.robot_consistency_cost import _data
-
     from lagsindy.robots import consistency
 
     lib, X, tau = _data("planar2", 1.0, 250.0)
@@ -180,13 +179,7 @@ def _docs_record():
     """The poorly exciting 2 s two-link record of docs/robots.md's bootstrap block."""
     lib = CandidateLibrary.from_urdf(example_urdf("planar2"))
     rng = np.random.default_rng(0)
-    t = np.arange(0.0, 2.0, 0.002)
-    w = np.array([[0.7, 1.9], [1.3, 3.1]])
-    q = 0.4 * np.sin(np.outer(t, w[0])) + 0.2 * np.cos(np.outer(t, w[1]))
-    qd = 0.4 * w[0] * np.cos(np.outer(t, w[0])) - 0.2 * w[1] * np.sin(np.outer(t, w[1]))
-    qdd = -0.4 * w[0] ** 2 * np.sin(np.outer(t, w[0])) - 0.2 * w[1] ** 2 * np.cos(
-        np.outer(t, w[1])
-    )
+    _, q, qd, qdd = two_sines(2.0)
     truth = lib.nominal_.copy()
     truth[-2:] = [0.02, 0.0005]
     tau = lib.euler_lagrange_columns(q, qd, qdd) @ truth + [0.6, 0.3] * qd

@@ -6,7 +6,7 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from _robot_fit_data import planar_data
+from _robot_fit_data import planar_data, two_sines
 
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy
 from lagsindy.evaluator import TermEvaluator, TorchTerms, subset_terms
@@ -200,13 +200,7 @@ def test_diagnose_finds_coupled_joints_and_no_delay():
     from lagsindy import diagnose
 
     lib = CandidateLibrary.from_urdf(example_urdf("planar2"))
-    t = np.arange(0.0, 6.0, 0.002)
-    w = np.array([[0.7, 1.9], [1.3, 3.1]])
-    q = 0.4 * np.sin(np.outer(t, w[0])) + 0.2 * np.cos(np.outer(t, w[1]))
-    qd = 0.4 * w[0] * np.cos(np.outer(t, w[0])) - 0.2 * w[1] * np.sin(np.outer(t, w[1]))
-    qdd = -0.4 * w[0] ** 2 * np.sin(np.outer(t, w[0])) - 0.2 * w[1] ** 2 * np.cos(
-        np.outer(t, w[1])
-    )
+    t, q, qd, qdd = two_sines(6.0)
     tau = lib.euler_lagrange_columns(q, qd, qdd) @ lib.nominal_ + [0.6, 0.3] * qd
     tau += 0.8 * (qd[:, :1] - qd[:, 1:]) * [1.0, -1.0]
     tau += 0.01 * tau.std(0) * np.random.default_rng(0).standard_normal(tau.shape)
