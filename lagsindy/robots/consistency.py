@@ -133,7 +133,9 @@ def _project_psd(u, n_bodies):
     return np.einsum("bij,kij->bk", j, _SVEC).reshape(-1)
 
 
-def constrained_refit(robot, base, gram, coef, n_terms, dissipative, support):
+def constrained_refit(
+    robot, base, gram, coef, n_terms, dissipative, support, max_iter=None
+):
     """Refit ``coef`` on the Gram statistics with consistent link parameters.
 
     The convex problem in the bodies' pseudo-inertias (as ``svec``), rotor inertias
@@ -156,6 +158,8 @@ def constrained_refit(robot, base, gram, coef, n_terms, dissipative, support):
         Which dissipation coefficients must be non-negative.
     support : array-like of bool, shape (P - n_terms,)
         Which dissipation features the sparse solve kept (the others stay 0).
+    max_iter : int, default=None
+        ADMM's iteration cap (None: ``MAX_ITER``).
 
     Returns
     -------
@@ -208,7 +212,7 @@ def constrained_refit(robot, base, gram, coef, n_terms, dissipative, support):
         v, w = project(u0), np.zeros(n_u)
         size = max(np.linalg.norm(v), 1e-300)
         converged = False
-        for it in range(1, MAX_ITER + 1):
+        for it in range(1, (max_iter or MAX_ITER) + 1):
             u = scipy.linalg.cho_solve(factor, lin + rho * (v - w))
             v_old = v
             v = project(u + w)
