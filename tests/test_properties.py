@@ -30,8 +30,11 @@ from lagsindy.systems import cart_pendulum, make_dataset, single_pendulum
 # 200 examples per property with LAGSINDY_FULL_PROPERTIES=1 (the thorough run, about
 # 2 minutes of CPU more); 50 in the default suite, which must stay under 5 minutes.
 MAX_EXAMPLES = 200 if os.environ.get("LAGSINDY_FULL_PROPERTIES") else 50
+# The default suite draws the same examples on every run and machine (a CI failure
+# must reproduce); the thorough run explores new ones each time.
 SETTINGS = settings(
     max_examples=MAX_EXAMPLES,
+    derandomize=not os.environ.get("LAGSINDY_FULL_PROPERTIES"),
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow],
 )
@@ -167,7 +170,11 @@ def test_valid_input_never_crashes_and_gives_finite_coefficients(data):
         # warns): a strong lam without the refit, or a refit whose thresholding
         # removes the terms that carry tau (5 rows of the cart, threshold 0.125).
         # Measured over 200 examples: 0 all-zero models, 0 with residual_ == 1.
-        assert np.any(est.coef_) or est.residual_ == 1.0
+        # Or friction carries tau: 6 rows of the pendulum with lam=1 leave the
+        # Lagrangian zero and the automatic friction (viscous, Coulomb) at a
+        # relative residual of 0.061; that fit warns that the Lagrangian is zero.
+        carried = np.any(est.coef_) or np.any(est.dissipation_coef_)
+        assert carried or est.residual_ == 1.0
 
 
 # ----------------------------------------------------------------- invalid input
