@@ -96,6 +96,26 @@ class _SymbolicNumeric:
         return self._floats
 
 
+def _with_forces(dynamics, model, generalized):
+    """``(q, qd) -> (M, h - Q)`` from a term function's own ``dynamics(q, qd) -> (M,
+    h)`` and the generalized forces ``Q`` (sympy, lambdified with NumPy); None when
+    NumPy cannot evaluate the forces (the caller keeps the torch path)."""
+    if not any(g != 0 for g in generalized):
+        return dynamics
+    q, qd, _ = model.symbols
+    try:
+        forces = _lambdify_entries([*q, *qd], generalized)
+        forces(*np.full((2 * model.n_dof, 1), 0.5))
+    except Exception:  # a function NumPy lacks
+        return None
+
+    def mass_and_rest(q_, qd_):
+        mass, bias = dynamics(q_, qd_)
+        return mass, bias - np.stack(forces(*q_.T, *qd_.T), axis=-1)
+
+    return mass_and_rest
+
+
 class _TermNumeric:
     """Numeric evaluation of ``L = sum_k c_k phi_k`` through the terms' evaluator."""
 
@@ -112,6 +132,11 @@ class _TermNumeric:
         self.coef = np.asarray(model.lagrangian_coef, dtype=float)
         weights = np.concatenate([self.coef, np.ones(len(forces))])
         self.mass_and_rest = self.evaluator.numpy_model(weights)
+        own = getattr(model.lagrangian_terms, "numpy_dynamics", None)
+        if callable(own):  # the terms evaluate their own model: a robot's
+            # rigid-body algorithms, far cheaper per call than torch on one state
+            fast = _with_forces(own(self.coef), model, generalized)
+            self.mass_and_rest = fast or self.mass_and_rest
 
     def energy(self, q, qd):
         q_t, qd_t = torch.as_tensor(q), torch.as_tensor(qd)
