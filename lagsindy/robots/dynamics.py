@@ -89,7 +89,8 @@ class RigidBodyDynamics:
     Examples
     --------
     >>> import numpy as np
-    >>> from lagsindy.robots import RigidBodyDynamics, build_tree, example_urdf
+    >>> from lagsindy.robots import build_tree, example_urdf
+    >>> from lagsindy.robots.dynamics import RigidBodyDynamics
     >>> tree = build_tree(example_urdf("planar2"))
     >>> dyn = RigidBodyDynamics(tree, tree.parameters())
     >>> mass, bias = dyn(np.zeros((1, 2)), np.zeros((1, 2)))

@@ -236,3 +236,28 @@ def test_numpy_dynamics_checks_its_coefficients():
     terms = _library("planar2").torch_terms()
     with pytest.raises(ValueError, match="one entry per term"):
         terms.numpy_dynamics(np.ones(3))
+
+
+def test_the_docstring_example_runs():
+    import doctest
+
+    from lagsindy.robots import dynamics
+
+    result = doctest.testmod(dynamics)
+    assert result.failed == 0 and result.attempted > 0
+
+
+@pytest.mark.slow  # the benchmark script end to end at a tiny size (~30 s)
+def test_robot_simulation_benchmark_tiny(tmp_path, monkeypatch):
+    import benchmarks._common as common
+    from benchmarks import robot_simulation
+
+    monkeypatch.setenv("LAGSINDY_BENCH_TINY", "1")
+    monkeypatch.setattr(common, "RESULTS", tmp_path)
+    assert robot_simulation.main(["--quick"]) == 0
+    text = (tmp_path / "robot_simulation_quick.md").read_text()
+    assert "python -m benchmarks.robot_simulation --quick" in text
+    rows = [line for line in text.splitlines() if line.startswith("| planar2")]
+    rows += [line for line in text.splitlines() if line.startswith("| arm7")]
+    assert len(rows) == 2
+    assert BaseTerms.numpy_dynamics is not None  # the switch was undone
