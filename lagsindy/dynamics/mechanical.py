@@ -100,18 +100,28 @@ def _with_forces(dynamics, model, generalized):
     """``(q, qd) -> (M, h - Q)`` from a term function's own ``dynamics(q, qd) -> (M,
     h)`` and the generalized forces ``Q`` (sympy, lambdified with NumPy); None when
     NumPy cannot evaluate the forces (the caller keeps the torch path)."""
-    if not any(g != 0 for g in generalized):
+    acting = [i for i, g in enumerate(generalized) if g != 0]
+    if not acting:
         return dynamics
     q, qd, _ = model.symbols
+    one = sp.Dummy("one")  # every entry an array of the states' length, even a constant
     try:
-        forces = _lambdify_entries([*q, *qd], generalized)
-        forces(*np.full((2 * model.n_dof, 1), 0.5))
+        f = sp.lambdify(
+            [*q, *qd, one], [one * generalized[i] for i in acting], "numpy", cse=True
+        )
+        f(*np.full((2 * model.n_dof + 1, 1), 0.5))
     except Exception:  # a function NumPy lacks
         return None
+    every = len(acting) == model.n_dof
 
     def mass_and_rest(q_, qd_):
         mass, bias = dynamics(q_, qd_)
-        return mass, bias - np.stack(forces(*q_.T, *qd_.T), axis=-1)
+        values = np.stack(f(*q_.T, *qd_.T, np.ones(q_.shape[0])), axis=-1)
+        if every:
+            return mass, bias - values
+        bias = bias.copy()
+        bias[:, acting] -= values
+        return mass, bias
 
     return mass_and_rest
 

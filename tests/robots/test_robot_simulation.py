@@ -102,6 +102,20 @@ def test_accelerations_equal_the_generic_path(name):
     assert _rel(fast, slow) < 1e-10  # measured 1e-14 or below
 
 
+def test_forces_on_some_joints_only():
+    lib = _library("mixed")
+    rng = np.random.default_rng(8)
+    coef = lib.nominal_.copy()
+    coef[-4:] = 0.01
+    forces = ["0", "-0.4*rail_dot - 0.1*tanh(rail_dot/0.01)", "0", "0.2"]
+    model = MechanicalModel.from_terms(lib.coordinates_, lib.torch_terms(), coef,
+                                       forces=forces)  # fmt: skip
+    q, qd = rng.uniform(-1, 1, (2, 10, 4))
+    fast_mass, fast_rest = model._mass_and_rest(q, qd)
+    mass, rest = _generic(model)(q, qd)
+    assert _rel(fast_mass, mass) < 1e-10 and _rel(fast_rest, rest) < 1e-10
+
+
 def test_base_terms_subset_equals_the_generic_path():
     # what a fit simulates: a subset of the terms (base parameters), zeros elsewhere
     lib = _library("arm7")
