@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
+CHUNK = 2048  # states per evaluation of RigidBodyDynamics (memory, not speed)
+
 # Levi-Civita: cross(a, b)_i = sum_jk EPS[i, j, k] a_j b_k; skew(a) = a @ SKEW
 _EPS = np.zeros((3, 3, 3))
 for _i, _j, _k in ((0, 1, 2), (1, 2, 0), (2, 0, 1)):
@@ -173,6 +175,15 @@ class RigidBodyDynamics:
         self.calls += 1
         q = np.asarray(q, dtype=float)
         qd = np.asarray(qd, dtype=float)
+        if q.shape[0] > CHUNK:  # bounded temporaries (a few 6 x 6 per body and state)
+            parts = [
+                self._evaluate(q[s : s + CHUNK], qd[s : s + CHUNK])
+                for s in range(0, q.shape[0], CHUNK)
+            ]
+            return tuple(np.concatenate(p) for p in zip(*parts))
+        return self._evaluate(q, qd)
+
+    def _evaluate(self, q, qd):
         n, nb = q.shape[0], self.n_bodies
         rot, pos = self.kinematics(q)
         # joint screws in the base frame: revolute [R a; p x R a], prismatic [0; R a]

@@ -102,6 +102,18 @@ def test_accelerations_equal_the_generic_path(name):
     assert _rel(fast, slow) < 1e-10  # measured 1e-14 or below
 
 
+def test_many_states_are_evaluated_in_chunks(monkeypatch):
+    from lagsindy.robots import dynamics
+
+    terms = _library("arm6").torch_terms()
+    dyn = terms.numpy_dynamics(np.random.default_rng(0).normal(size=terms.n_terms))
+    q, qd = np.random.default_rng(1).uniform(-1, 1, (2, 25, 6))
+    whole = dyn(q, qd)
+    monkeypatch.setattr(dynamics, "CHUNK", 7)
+    for a, b in zip(dyn(q, qd), whole):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_forces_on_some_joints_only():
     lib = _library("mixed")
     rng = np.random.default_rng(8)
