@@ -1,4 +1,4 @@
-r"""A robot's forward dynamics on a few states at a time: rigid-body algorithms in NumPy.
+r"""A robot's forward dynamics on a few states at a time: rigid-body algorithms, NumPy.
 
 Simulating a fitted robot model evaluates its mass matrix ``M(q)`` and bias
 ``h(q, qd)`` on one state (or a few) per right-hand-side call. The torch term
@@ -46,6 +46,14 @@ for _a in range(3):
     _CRM[_a, 3:, 3:] = _s
     _CRM[3 + _a, 3:, :3] = _s  # v0 x (angular part)
 _CRM = _CRM.reshape(6, 36)
+# Y.ravel() = [E.ravel(), (E [p]x).ravel()] @ _Y_MAP for the motion transform from
+# the base frame to a body's, Y = [[E, 0], [-E [p]x, E]]
+_Y_MAP = np.zeros((18, 6, 6))
+for _r in range(3):
+    for _c in range(3):
+        _Y_MAP[3 * _r + _c, _r, _c] = _Y_MAP[3 * _r + _c, 3 + _r, 3 + _c] = 1.0
+        _Y_MAP[9 + 3 * _r + _c, 3 + _r, _c] = -1.0
+_Y_MAP = _Y_MAP.reshape(18, 36)
 
 
 def _skew(a):
@@ -135,8 +143,16 @@ class RigidBodyDynamics:
             axes[i] = axis
         self._local = local
         self._axes = axes  # joint axes in the body frames
-        self._revolute = revolute[:, None]  # (nb, 1)
-        self._prismatic = 1.0 - self._revolute
+        # a joint's screw in the base frame from its axis u = R a and the outer
+        # product p u^T: revolute [u; p x u], prismatic [0; u]
+        screw_map = np.zeros((nb, 12, 6))
+        for i in range(nb):
+            if revolute[i]:
+                screw_map[i, np.arange(3), np.arange(3)] = 1.0
+                screw_map[i, 3:, 3:] = _EPS.transpose(1, 2, 0).reshape(9, 3)
+            else:
+                screw_map[i, np.arange(3), 3 + np.arange(3)] = 1.0
+        self._screw_map = screw_map
         self._inertia = np.stack([spatial_inertia(p) for p in parameters])
         # ancestor[i, j]: body j is body i or one of its ancestors
         ancestor = np.eye(nb)
@@ -146,7 +162,8 @@ class RigidBodyDynamics:
         self._ancestor = ancestor
         self._descendant = np.ascontiguousarray(ancestor.T)
         # M_jk = S_j . Ic_k S_k when j <= k in the tree; the other triangle by symmetry
-        self._upper = np.ascontiguousarray(ancestor.T)  # [j, k]: j ancestor-or-self of k
+        # [j, k]: body j is body k or one of its ancestors
+        self._upper = np.ascontiguousarray(ancestor.T)
         self._strict = self._upper - np.eye(nb)
         arm = np.zeros(d) if armature is None else np.asarray(armature, float)
         self._armature = np.diag(arm.reshape(d))
@@ -163,15 +180,17 @@ class RigidBodyDynamics:
         qb = q[:, self.coordinate]  # (n, nb)
         weights = np.stack([np.ones_like(qb), np.sin(qb), 1.0 - np.cos(qb), qb], -1)
         local = (weights[:, :, None, :] @ self._local)[:, :, 0].reshape(n, -1, 4, 4)
-        world = [None] * self.n_bodies
+        world = np.empty((n, self.n_bodies, 4, 4))
         for i, parent in enumerate(self.parent):
-            world[i] = local[:, i] if parent < 0 else world[parent] @ local[:, i]
-        world = np.stack(world, 1)
+            if parent < 0:
+                world[:, i] = local[:, i]
+            else:
+                np.matmul(world[:, parent], local[:, i], out=world[:, i])
         return world[..., :3, :3], world[..., :3, 3]
 
     def __call__(self, q, qd):
-        """``M`` (n, n_dof, n_dof) and ``h`` (n, n_dof) at states ``q``, ``qd`` (n, n_dof),
-        so that ``M qdd + h`` are the joint torques (gravity included)."""
+        """``M`` (n, n_dof, n_dof) and ``h`` (n, n_dof) at the states ``q``, ``qd``
+        (n, n_dof), so that ``M qdd + h`` are the joint torques (gravity included)."""
         self.calls += 1
         q = np.asarray(q, dtype=float)
         qd = np.asarray(qd, dtype=float)
@@ -188,19 +207,15 @@ class RigidBodyDynamics:
         rot, pos = self.kinematics(q)
         # joint screws in the base frame: revolute [R a; p x R a], prismatic [0; R a]
         axis = (rot @ self._axes[:, :, None])[..., 0]  # (n, nb, 3)
-        # p x u as the row p^T [u]x
-        moment = (pos[..., None, :] @ (axis @ _SKEW).reshape(n, nb, 3, 3))[..., 0, :]
-        screw = np.concatenate(
-            [axis * self._revolute, moment * self._revolute + axis * self._prismatic],
-            -1,
-        )  # (n, nb, 6)
+        outer = (pos[..., :, None] * axis[..., None, :]).reshape(n, nb, 9)
+        screw = (np.concatenate([axis, outer], -1)[..., None, :] @ self._screw_map)[
+            ..., 0, :
+        ]  # (n, nb, 6)
         # inertias in the base frame: I_w = Y^T I Y, Y = X_(i <- 0)
         rt = np.swapaxes(rot, -1, -2)
-        px = (pos @ _SKEW).reshape(n, nb, 3, 3)
-        y = np.zeros((n, nb, 6, 6))
-        y[..., :3, :3] = rt
-        y[..., 3:, 3:] = rt
-        y[..., 3:, :3] = -(rt @ px)
+        rpx = rt @ (pos @ _SKEW).reshape(n, nb, 3, 3)
+        y = np.concatenate([rt.reshape(n, nb, 9), rpx.reshape(n, nb, 9)], -1) @ _Y_MAP
+        y = y.reshape(n, nb, 6, 6)
         inertia = np.swapaxes(y, -1, -2) @ self._inertia @ y  # (n, nb, 6, 6)
         # composite inertias and the mass matrix (bodies' order)
         composite = (self._descendant @ inertia.reshape(n, nb, 36)).reshape(n, nb, 6, 6)
