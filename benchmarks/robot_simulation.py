@@ -21,10 +21,10 @@ the record's torques, from its first state, in one process by both paths:
 
 The input is the record's torque at ``--input-rate`` (100 Hz by default; the
 integrator steps to every sample, so the number of right-hand-side calls grows with
-it). Measured: right-hand-side evaluations per second on one state (mass matrix, bias and
-forces, then the solve; the two paths alternated, median of repeats), the wall time
-of the simulation with each path, the number of right-hand-side calls, and the
-largest relative difference of the trajectories. The generic path costs about 0.1 s
+it). Measured: right-hand-side evaluations per second on one state (mass matrix,
+bias and forces, then the solve; the two paths alternated, median of repeats), the
+wall time of the simulation with each path, the number of right-hand-side calls, and
+the largest relative difference of the trajectories. The generic path costs about 0.1 s
 per call on the seven-joint arm, so there it simulates only the first
 ``--generic-horizon`` seconds; the ratio is taken on that same horizon.
 """

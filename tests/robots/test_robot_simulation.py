@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from _robot_fit_data import planar_data
 
 from lagsindy import (
     CandidateLibrary,
@@ -26,8 +27,6 @@ from lagsindy import (
 from lagsindy.evaluator import TermEvaluator
 from lagsindy.robots import BaseTerms, RobotTerms
 from lagsindy.robots.dynamics import RigidBodyDynamics
-
-from _robot_fit_data import planar_data
 
 DATA = Path(__file__).resolve().parent / "data"
 ROBOTS = {
