@@ -32,6 +32,7 @@ per call on the seven-joint arm, so there it simulates only the first
 from __future__ import annotations
 
 import argparse
+import os
 import time
 import warnings
 
@@ -40,7 +41,7 @@ import numpy as np
 from lagsindy import CandidateLibrary, DissipationLibrary, LagrangianSINDy
 from lagsindy.robots import BaseTerms, example_urdf, multisine
 
-from ._common import header, write
+from ._common import command, header, write
 from ._evaluate import tiny
 
 ARM7_JOINTS = [f"joint{i}" for i in range(1, 8)]
@@ -201,7 +202,7 @@ def main(argv=None):
     if tiny():
         horizon = 0.05
     repeats, rate_seconds = (3, 0.3) if quick else (7, 1.0)
-    rows = []
+    rows, load = [], [os.getloadavg()[0]]
     for name in ("planar2", "arm7"):
         generic = args.generic_horizon
         if generic is None:
@@ -211,8 +212,10 @@ def main(argv=None):
         rows.append(
             measure(name, horizon, generic, rate_seconds, repeats, args.input_rate)
         )
+        load.append(os.getloadavg()[0])
         print(table(rows[-1:]), flush=True)
-    text = header(__doc__.splitlines()[0]) + table(rows)
+    title = __doc__.splitlines()[0]
+    text = header(title, command("robot_simulation", argv)) + table(rows)
     text += (
         "\nRHS/s: right-hand-side evaluations per second on one state (median of "
         f"{repeats} alternated runs of {rate_seconds:g} s); simulate: "
@@ -220,7 +223,10 @@ def main(argv=None):
         f"{args.input_rate:g} Hz (DOP853, rtol 1e-9, a step to every sample), "
         "wall time and right-hand-side calls; same horizon: both paths over the "
         "generic path's horizon; trajectories differ: largest relative difference "
-        "of the states over that horizon.\n"
+        "of the states over that horizon. Load average (1 min) at the start and "
+        f"after each arm: {', '.join(f'{x:.1f}' for x in load)}: wall times are single "
+        "runs under the machine's varying load, the right-hand-side rates medians "
+        "of alternated runs (the steadier ratio).\n"
     )
     name = "robot_simulation" + ("_quick" if quick else "")
     write(f"{name}.md", text)
