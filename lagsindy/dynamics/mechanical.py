@@ -96,6 +96,36 @@ class _SymbolicNumeric:
         return self._floats
 
 
+def _with_forces(dynamics, model, generalized):
+    """``(q, qd) -> (M, h - Q)`` from a term function's own ``dynamics(q, qd) -> (M,
+    h)`` and the generalized forces ``Q`` (sympy, lambdified with NumPy); None when
+    NumPy cannot evaluate the forces (the caller keeps the torch path)."""
+    acting = [i for i, g in enumerate(generalized) if g != 0]
+    if not acting:
+        return dynamics
+    q, qd, _ = model.symbols
+    one = sp.Dummy("one")  # every entry an array of the states' length, even a constant
+    try:
+        f = sp.lambdify(
+            [*q, *qd, one], [one * generalized[i] for i in acting], "numpy", cse=True
+        )
+        f(*np.full((2 * model.n_dof + 1, 1), 0.5))
+    except Exception:  # a function NumPy lacks
+        return None
+    every = len(acting) == model.n_dof
+
+    def mass_and_rest(q_, qd_):
+        mass, bias = dynamics(q_, qd_)
+        values = np.stack(f(*q_.T, *qd_.T, np.ones(q_.shape[0])), axis=-1)
+        if every:
+            return mass, bias - values
+        bias = bias.copy()
+        bias[:, acting] -= values
+        return mass, bias
+
+    return mass_and_rest
+
+
 class _TermNumeric:
     """Numeric evaluation of ``L = sum_k c_k phi_k`` through the terms' evaluator."""
 
@@ -112,6 +142,11 @@ class _TermNumeric:
         self.coef = np.asarray(model.lagrangian_coef, dtype=float)
         weights = np.concatenate([self.coef, np.ones(len(forces))])
         self.mass_and_rest = self.evaluator.numpy_model(weights)
+        own = getattr(model.lagrangian_terms, "numpy_dynamics", None)
+        if callable(own):  # the terms evaluate their own model: a robot's
+            # rigid-body algorithms, far cheaper per call than torch on one state
+            fast = _with_forces(own(self.coef), model, generalized)
+            self.mass_and_rest = fast or self.mass_and_rest
 
     def energy(self, q, qd):
         q_t, qd_t = torch.as_tensor(q), torch.as_tensor(qd)

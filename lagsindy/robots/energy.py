@@ -245,6 +245,41 @@ class RobotTerms:
                 ]
             )
 
+    def numpy_dynamics(self, coef, indices=None):
+        """The model ``L = sum_k coef[k] phi_k`` as a NumPy function of the states.
+
+        Its Lagrangian is a rigid-body tree's whose link parameters (and rotor
+        inertias) are the coefficients, so the rigid-body algorithms evaluate it
+        (:class:`~lagsindy.robots.dynamics.RigidBodyDynamics`): the same mass matrix
+        and bias as the torch terms to round-off, at a fraction of the cost per call
+        on one or a few states (what simulation needs).
+
+        Parameters
+        ----------
+        coef : array-like of shape (n_terms,) or (len(indices),)
+        indices : sequence of int, optional
+            The terms ``coef`` belongs to (a subset's, :class:`BaseTerms`); the
+            other terms' coefficients are 0.
+
+        Returns
+        -------
+        RigidBodyDynamics
+            ``f(q, qd) -> (M, h)`` with ``M`` (n, n_dof, n_dof) and ``h`` (n, n_dof).
+        """
+        from .dynamics import RigidBodyDynamics
+
+        coef = np.asarray(coef, dtype=float).ravel()
+        idx = np.arange(self.n_terms) if indices is None else np.asarray(indices, int)
+        if coef.shape != idx.shape:
+            raise ValueError(
+                f"coef must have one entry per term ({idx.size}), got {coef.shape}"
+            )
+        full = np.zeros(self.n_terms)
+        np.add.at(full, idx, coef)
+        k = 10 * len(self.tree.bodies)
+        rotor = full[k:] if self.armature else None
+        return RigidBodyDynamics(self.tree, full[:k], rotor, self.gravity)
+
     def fn(self, q, qd):
         """Term values for one sample: (n_dof,), (n_dof,) -> (n_terms,)."""
         return self.fn_batch(q, qd)

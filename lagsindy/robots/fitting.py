@@ -96,6 +96,11 @@ class BaseTerms:
         """``h_k = N_k qd - O_k`` of every term, (n_samples, n_terms, n_dof)."""
         return self.columns(q, qd, torch.zeros_like(qd)).transpose(1, 2)
 
+    def numpy_dynamics(self, coef):
+        """``(M, h)`` of ``sum_k coef[k] phi_k`` as a NumPy function of the states
+        (:meth:`RobotTerms.numpy_dynamics`: the rigid-body algorithms)."""
+        return self.terms.numpy_dynamics(coef, self.indices)
+
     def __repr__(self) -> str:
         return f"BaseTerms({len(self.indices)} of {len(self.terms.names)} robot terms)"
 
