@@ -336,12 +336,14 @@ class BaseParameterLibrary(_BuiltOnDemand, BaseEstimator):
                 UserWarning,
                 stacklevel=outside_stacklevel(),
             )
-        if not found.converged:
+        if found.stalled:
             from .consistency import MAX_ITER
 
             warnings.warn(
                 f"the physically consistent refit stopped at its {MAX_ITER}-iteration "
-                "cap before converging: the link parameters are feasible but may "
+                "cap before converging (its residual still fell by "
+                f"{found.progress:.1e} over the last iterations): the link "
+                "parameters are feasible but may "
                 "not be the best consistent ones (the constrained optimum is on the "
                 "edge of the feasible set); compare est.score with "
                 "consistent=False",

@@ -253,6 +253,9 @@ def test_friction_dropped_by_the_unconstrained_solve_is_readmitted():
     assert abs(coef["viscous(elbow)"] - 0.3) < 0.01  # measured 0.301
     assert any("re-admitted ['viscous(shoulder)']" in m for m in said)
     assert not any("times the torque residual" in m for m in said)
+    # the final refit reaches ADMM's cap with its residual settled (it fell by
+    # 1.1e-5 of itself over the last 1,000 iterations, measured): no cap warning
+    assert not any("iteration cap" in m for m in said)
     assert est.score(*_docs_record()[1:]) > 0.997  # measured 0.99747; 0.9735 before
     _, coef, said = _readmission(FRICTION_KINDS)
     assert coef["viscous(shoulder)"] > 0.45
@@ -261,3 +264,21 @@ def test_friction_dropped_by_the_unconstrained_solve_is_readmitted():
         "viscous(elbow)",
     ]
     assert any("re-admitted ['viscous(shoulder)']" in m for m in said)
+
+
+def test_admm_at_its_cap_is_stalled_only_while_the_residual_still_falls():
+    """At the cap, the warning is for a residual still falling by more than
+    STALL_PROGRESS over the last STALL_WINDOW iterations (measured per 1,000
+    iterations: 2.9e-3 on the docs' 2 s record before re-admission, 1.2e-6 on the
+    7-joint benchmark's fit)."""
+    from lagsindy.robots.consistency import STALL_PROGRESS, ConsistentFit
+
+    assert STALL_PROGRESS == 1e-4
+
+    def fit(converged, progress):
+        return ConsistentFit(
+            np.zeros(1), np.zeros(1), np.zeros(1), 0.0, 5000, converged, 1.0, progress
+        )
+
+    assert fit(False, 2e-4).stalled and not fit(False, 5e-5).stalled
+    assert not fit(True, 0.0).stalled
