@@ -52,7 +52,9 @@ class MappedTerms(BaseTerms):
 
     def subset(self, indices) -> MappedTerms:
         idx = [int(k) for k in indices]
-        return MappedTerms(self.terms, self.matrix[:, idx], [self.names[k] for k in idx])
+        return MappedTerms(
+            self.terms, self.matrix[:, idx], [self.names[k] for k in idx]
+        )
 
     def _pick(self, out):
         return out @ self._matrix.to(device=out.device, dtype=out.dtype)
