@@ -125,6 +125,8 @@ class Search:
         )
         self.target = None if passive else n_features
         self.known = known_columns(est.library_)  # held at their value (robots)
+        for name in getattr(est.library_, "nonnegative_", ()):  # rotor inertias
+            self.nonneg[index[name]] = True
 
         self.mass, self.mass_all = _mass_samples(op, Xt, folds)
 

@@ -112,8 +112,8 @@ def propose_payload(search) -> PayloadFound:
     nonneg = np.zeros(n_features, dtype=bool)
     for k, f in enumerate(forces):
         nonneg[len(names) + k] = f.dissipative
-    if "payload_m" in index:
-        nonneg[index["payload_m"]] = True  # a mass
+    for name in extended.nonnegative_:  # rotor inertias, the payload's mass
+        nonneg[index[name]] = True
     tau_t = search.Xt.new_tensor(search.tau_a)
     strong = _Statistics(op, search.Xt, tau_t, None, search.folds, "strong")
     weak = None

@@ -131,6 +131,26 @@ class Payload:
         self.matrix = base.matrix[rows][:, len(rotor) :]
         self.labels = [base.labels[k] for k in rows]
 
+    def parameters(self, values) -> np.ndarray:
+        """The payload's 10 parameters from fitted terms: a point mass at the
+        fitted centre (unidentified coordinates 0; no mass when the mass is not
+        identified), corrected on the identified columns so that the terms are the
+        fitted ones (the torques are; what the data do not identify is the point
+        mass's)."""
+        values = np.asarray(values, dtype=float)
+        estimate = self.estimate(values)
+        m = estimate["mass"] if np.isfinite(estimate["mass"]) else 0.0
+        c = np.nan_to_num(estimate["com"])
+        inertia = m * (c @ c * np.eye(3) - np.outer(c, c))
+        point = np.array(
+            [m, *(m * c), inertia[0, 0], inertia[0, 1], inertia[1, 1],
+             inertia[0, 2], inertia[1, 2], inertia[2, 2]]
+        )  # fmt: skip
+        out = point.copy()
+        keep = [KINDS.index(k) for k in self.kinds]
+        out[keep] += values - self.matrix @ point
+        return out
+
     @property
     def names(self) -> list:
         """The payload terms' names: ``payload_<kind>``."""
@@ -221,6 +241,9 @@ class KnownInertiaLibrary(_BuiltOnDemand, BaseEstimator):
     nominal_ : ndarray of shape (n_terms,)
         The URDF's model: 1 for ``urdf``, 0 for the others.
     payload_ : Payload or None
+    nonnegative_ : list of str
+        Terms physically non-negative (rotor inertias, a payload's mass): the
+        consistent fit and :func:`lagsindy.diagnose`'s held-out refits keep them so.
     matrix_ : ndarray of shape (n_robot_terms, n_terms)
         Each term as a combination of the robot library's terms (link parameters
         and rotor inertias): full parameters ``pi = matrix_ @ coef``.
@@ -236,6 +259,7 @@ class KnownInertiaLibrary(_BuiltOnDemand, BaseEstimator):
         "payload_",
         "matrix_",
         "n_terms_",
+        "nonnegative_",
     )
 
     def __init__(self, robot=None, payload=None, random_state=0):
@@ -276,6 +300,8 @@ class KnownInertiaLibrary(_BuiltOnDemand, BaseEstimator):
         self.unpenalized_ = [] if penalize else [n for n in names if n != KNOWN]
         self.nominal_ = np.r_[1.0, np.zeros(len(names) - 1)]
         self.n_terms_ = len(names)
+        self.nonnegative_ = [n for n in names if n.startswith("Ia_")]
+        self.nonnegative_ += [n for n in names if n == "payload_m"]
         return self
 
     def _payload_body(self, robot) -> int:
@@ -310,8 +336,35 @@ class KnownInertiaLibrary(_BuiltOnDemand, BaseEstimator):
     def parameters(self, coef) -> np.ndarray:
         """Full robot parameters (link parameters, then rotor inertias) of fitted
         coefficients: the URDF's, the rotor inertias and the payload added to its
-        body (the payload's unidentifiable parameters 0)."""
-        return self.matrix_ @ np.asarray(coef, dtype=float)[: self.n_terms_]
+        body (:meth:`Payload.parameters`: what the data do not identify completed
+        as a point mass at the fitted centre)."""
+        coef = np.asarray(coef, dtype=float)[: self.n_terms_]
+        n = 0 if self.payload_ is None else len(self.payload_.names)
+        out = self.matrix_[:, : self.n_terms_ - n] @ coef[: self.n_terms_ - n]
+        if n:
+            body = self.payload_.body
+            out[10 * body : 10 * body + 10] += self.payload_.parameters(coef[-n:])
+        return out
+
+    def link_parameters(self, coef) -> np.ndarray:
+        """Alias of :meth:`parameters` (the name :func:`lagsindy.robots.fitted_to_urdf`
+        calls)."""
+        return self.parameters(coef)
+
+    @property
+    def labels_(self) -> list:
+        """What each term is, in words (:func:`lagsindy.robots.parameter_table`)."""
+        self._ensure_built()
+        out = []
+        for name in self.terms_:
+            if name == KNOWN:
+                out.append("the URDF's link parameters (held at 1)")
+            elif name.startswith("payload_"):
+                label = self.payload_.labels[self.payload_.names.index(name)]
+                out.append(f"payload on {self.payload_.link}: {label}")
+            else:
+                out.append(name)
+        return out
 
     def payload_estimate(self, coef, covariance=None):
         """:meth:`Payload.estimate` of the payload terms of ``coef`` (None without
@@ -332,9 +385,8 @@ class KnownInertiaLibrary(_BuiltOnDemand, BaseEstimator):
             return solution
         coef = np.asarray(solution.coef, dtype=float)
         lower = np.full(len(coef), -np.inf)
-        for k, name in enumerate(self.terms_):
-            if name.startswith("Ia_") or name == "payload_m":
-                lower[k] = 0.0
+        for name in self.nonnegative_:
+            lower[self.terms_.index(name)] = 0.0
         n = self.n_terms_
         for k, t in enumerate(problem.dissipation_terms):
             if t.dissipative:
