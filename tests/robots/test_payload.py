@@ -20,6 +20,7 @@ from lagsindy import (
     LagrangianSINDy,
     bootstrap,
     diagnose,
+    refine,
 )
 from lagsindy.cases.forces import hold_known
 from lagsindy.robots import (
@@ -227,3 +228,15 @@ def test_diagnose_skips_the_payload_when_links_are_estimated(tmp_path):
     assert report.payload is None
     assert all(not s.candidate.name.startswith("payload") for s in report.steps)
     assert any("inertia='base'" in n for n in report.settings["notes"])
+
+
+def test_refine_holds_the_known_term(tmp_path):
+    X, tau, _, _ = record(tmp_path, duration=4.0)
+    est = fit(X, tau, payload="end")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = refine(est, X, tau, groups=np.zeros(len(X)), max_iter=3)
+    assert out.refinement_.held == "urdf"
+    assert out.coef_[0] == 1.0
+    # measured 0.7997 (refined) from 0.7996
+    assert out.coef_[3] == pytest.approx(MASS, abs=2e-3)
