@@ -240,3 +240,20 @@ def test_refine_holds_the_known_term(tmp_path):
     assert out.coef_[0] == 1.0
     # measured 0.7997 (refined) from 0.7996
     assert out.coef_[3] == pytest.approx(MASS, abs=2e-3)
+
+
+def test_payload_parameters_reproduce_the_terms():
+    robot = CandidateLibrary.from_urdf(example_urdf("planar2"), inertia="urdf")
+    lib = KnownInertiaLibrary(robot, payload="end").build()
+    payload = lib.payload_
+    values = np.array([0.8, 0.05, -0.2, 0.2])  # Iyy above a point mass's 0.034
+    full = payload.parameters(values)
+    assert np.allclose(payload.matrix @ full, values)
+    # what the data do not identify: the point mass at (0.0625, 0, -0.25)
+    assert full[1:4] == pytest.approx([0.05, 0.0, -0.2])
+    assert full[9] == pytest.approx(0.8 * 0.0625**2)  # Izz of the point mass
+    coef = np.r_[1.0, 0.0, 0.0, values]
+    whole = lib.parameters(coef)
+    nominal = robot.build().nominal_
+    assert np.allclose(whole[10:20] - nominal[10:20], full)
+    assert np.allclose(whole[:10], nominal[:10])
