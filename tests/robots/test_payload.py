@@ -135,11 +135,11 @@ def test_predict_simulate_equation_and_files_include_the_known_term(tmp_path):
     assert np.abs(est.predict(X) - clean).max() < 1e-6 * np.abs(clean).max()
     assert "1*urdf" in est.equation(4).replace(" ", "")
     # simulate: the learned model along the recorded motion's torques
-    rows = slice(0, 250)
+    rows = slice(0, 25)  # (the robot's forward dynamics is slow: 0.2 s a step)
     x0 = np.r_[X[0, :2], X[0, 2:4]]
     sim = est.simulate(x0, t[rows], tau=clean[rows])
     q_sim = np.asarray(sim)[:, :2]
-    assert np.abs(q_sim - X[rows, :2]).max() < 1e-3  # measured 1e-6 rad
+    assert np.abs(q_sim - X[rows, :2]).max() < 1e-7  # measured 2.7e-8 rad
     # model file
     back = LagrangianSINDy.load(est.save(tmp_path / "arm.json"))
     assert back.library_.terms_ == est.library_.terms_
@@ -231,15 +231,15 @@ def test_diagnose_skips_the_payload_when_links_are_estimated(tmp_path):
 
 
 def test_refine_holds_the_known_term(tmp_path):
-    X, tau, _, _ = record(tmp_path, duration=4.0)
+    X, tau, _, _ = record(tmp_path, duration=1.0)
     est = fit(X, tau, payload="end")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        out = refine(est, X, tau, groups=np.zeros(len(X)), max_iter=3)
+        out = refine(est, X, tau, groups=np.zeros(len(X)), horizon=10, max_iter=1)
     assert out.refinement_.held == "urdf"
     assert out.coef_[0] == 1.0
-    # measured 0.7997 (refined) from 0.7996
-    assert out.coef_[3] == pytest.approx(MASS, abs=2e-3)
+    # measured 0.7984 (refined, 1 s of data) from 0.7985
+    assert out.coef_[3] == pytest.approx(MASS, abs=5e-3)
 
 
 def test_payload_parameters_reproduce_the_terms():
