@@ -139,7 +139,7 @@ def test_predict_simulate_equation_and_files_include_the_known_term(tmp_path):
     x0 = np.r_[X[0, :2], X[0, 2:4]]
     sim = est.simulate(x0, t[rows], tau=clean[rows])
     q_sim = np.asarray(sim)[:, :2]
-    assert np.abs(q_sim - X[rows, :2]).max() < 1e-7  # measured 2.7e-8 rad
+    assert np.abs(q_sim - X[rows, :2]).max() < 3e-7  # measured 5.9e-8 rad
     # model file
     back = LagrangianSINDy.load(est.save(tmp_path / "arm.json"))
     assert back.library_.terms_ == est.library_.terms_
