@@ -16,7 +16,6 @@ pytest.importorskip("scipy.signal")
 
 from benchmarks.robots import EDGE, filtered_states  # noqa: E402
 from benchmarks.robots_data import ARM7, ARM7_JOINTS, simulate  # noqa: E402
-
 from lagsindy import (  # noqa: E402
     CandidateLibrary,
     DissipationLibrary,
@@ -45,9 +44,7 @@ def arm_record(tmp_path, mass):
         offset=np.array([0.10, -0.20, 0.05, 0.15, -0.05, 0.02, 0.04]),
         spring=None, noise_q=1e-4, noise_tau_rel=0.01, random_state=0,
     )  # fmt: skip
-    q, qd, qdd, tau = (
-        x[EDGE:-EDGE] for x in filtered_states(data.t, data.q, data.tau)
-    )
+    q, qd, qdd, tau = (x[EDGE:-EDGE] for x in filtered_states(data.t, data.q, data.tau))
     return np.hstack([q, qd, qdd]), tau
 
 
