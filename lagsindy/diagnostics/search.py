@@ -85,7 +85,11 @@ def diagnose(
         it back to 0 worsens the held-out criterion by ``min_improvement``; the
         report has a step ``"delay(<joint>)"`` per delay kept (in ms) and
         ``report.input_delays`` (seconds per coordinate). With both named, the
-        per-joint search runs instead of the single one.
+        per-joint search runs instead of the single one. ``"payload"`` (in
+        :data:`lagsindy.robots.ROBOT_CATALOGUE`; robots fitted with
+        ``inertia="urdf"``) tries the end body's inertial parameters first
+        (:mod:`lagsindy.diagnostics.payload`): the step ``"payload(<link>)"`` and
+        ``report.payload``.
     extra_terms : list of str or sympy.Expr, default=None
         More conservative candidates (Lagrangian terms), beside ``q**2`` for every
         coordinate and ``cos``/``sin`` of angles.

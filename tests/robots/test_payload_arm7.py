@@ -58,7 +58,7 @@ def held_fit(X, tau):
         return est.fit(X, tau)
 
 
-CATALOGUE = [k for k in ROBOT_CATALOGUE if k != "joint_delay"] + ["payload"]
+CATALOGUE = [k for k in ROBOT_CATALOGUE if k != "joint_delay"]
 
 
 @pytest.mark.slow  # 50 s CPU of diagnose (measured; 28 s without a payload)
