@@ -497,6 +497,8 @@ class DiagnosisReport:
                     )
                 elif cand.kind == "conservative":
                     var, xlabel = X[:, i], label(c, unit(c, 0))
+                elif cand.kind == "payload":  # inertial: against an acceleration
+                    var, xlabel = X[:, 2 * n + i], label(f"{c}_ddot", None)
                 elif cand.kind in ("gain", "delay", "joint_delay"):
                     var, xlabel = self._data["tau"][:, i], label(f"tau_{c}", unit(c, 1))
                 else:

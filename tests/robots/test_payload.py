@@ -203,6 +203,9 @@ def test_diagnose_proposes_the_payload(tmp_path):
     assert "payload_m" in report.lagrangian_changes["added"]
     assert "payload(forearm)" in str(report)
     assert report.effects == ["payload(forearm)"]  # nothing else was missing
+    pytest.importorskip("matplotlib")
+    fig = report.plot(tmp_path / "payload.png")
+    assert fig.axes[0].get_xlabel() == "shoulder_ddot"
 
 
 def test_diagnose_proposes_no_payload_when_there_is_none(tmp_path):
