@@ -264,3 +264,14 @@ def test_payload_parameters_reproduce_the_terms():
 
 def test_payload_is_in_the_robot_catalogue():
     assert "payload" in ROBOT_CATALOGUE
+
+
+def test_held_inertia_needs_torques(tmp_path):
+    X, _, _, _ = record(tmp_path, mass=0.0, duration=1.0)
+    lib = CandidateLibrary.from_urdf(example_urdf("planar2"), inertia="urdf")
+    with pytest.raises(ValueError, match="needs the forces"):
+        LagrangianSINDy(lib, formulation="strong").fit(X)
+    with pytest.raises(ValueError, match="'base' or 'urdf'"):
+        CandidateLibrary.from_urdf(
+            example_urdf("planar2"), inertia="cad"
+        ).regression_library()
