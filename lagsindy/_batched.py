@@ -159,6 +159,18 @@ def _to_poly(expr, symbols: dict, q, feats: _Features) -> dict:
     raise _Unsupported(expr)
 
 
+def _sparse_matrix(indices, values, size):
+    """A coalesced sparse COO matrix, its invariants checked.
+
+    The global check is set explicitly around the construction: torch 2.11 warned
+    "Sparse invariant checks are implicitly disabled" at every construction when
+    only ``check_invariants=`` was passed (seen in a ``--quiet`` command's stderr).
+    """
+    with torch.sparse.check_sparse_tensor_invariants(enable=True):
+        matrix = torch.sparse_coo_tensor(indices, values, size, check_invariants=True)
+        return matrix.coalesce()
+
+
 class _Kernel:
     """One batched output: ``out[r] = sum_u S[r, u] * monomial_u`` at every sample.
 
@@ -244,12 +256,11 @@ class _Kernel:
             def long(a):
                 return torch.as_tensor(a, dtype=torch.long, device=like.device)
 
-            matrix = torch.sparse_coo_tensor(
+            matrix = _sparse_matrix(
                 long(self.indices),
                 torch.as_tensor(self.values, dtype=like.dtype, device=like.device),
                 (self.n_out, self.n_rows),
-                check_invariants=True,
-            ).coalesce()
+            )
             hit = (
                 long(self.table_feature),
                 long(self.table_index),
@@ -273,14 +284,13 @@ class _Kernel:
                 idx = self.indices[:, keep].copy()
                 idx[0] -= b * size
                 hit.append(
-                    torch.sparse_coo_tensor(
+                    _sparse_matrix(
                         torch.as_tensor(idx, dtype=torch.long, device=like.device),
                         torch.as_tensor(
                             self.values[keep], dtype=like.dtype, device=like.device
                         ),
                         (size, self.n_rows),
-                        check_invariants=True,
-                    ).coalesce()
+                    )
                 )
             self._cache[key] = hit
         return hit

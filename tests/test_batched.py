@@ -208,3 +208,21 @@ def test_a_kernel_without_entries_writes_zeros():
     blocks = [torch.full((kernel.n_out, 50), float("nan"), dtype=torch.float64)]
     kernel.evaluate_blocks(base, blocks)
     assert torch.equal(blocks[0], torch.zeros_like(blocks[0]))
+
+
+def test_building_kernels_warns_nothing_and_leaves_torch_settings():
+    """torch 2.11 warned "Sparse invariant checks are implicitly disabled" at each
+    sparse matrix built without the global check set (a ``--quiet`` command printed
+    it); the check is now set around the construction and restored after."""
+    import warnings
+
+    from lagsindy.systems import cart_pendulum
+
+    lib = cart_pendulum().paper_library().build()
+    fn = compile_terms(lib.terms_, lib.coordinates_)
+    q = torch.rand(7, 2, dtype=torch.float64)
+    before = torch.sparse.check_sparse_tensor_invariants.is_enabled()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        lagrangian_columns(fn, q, torch.rand_like(q), torch.rand_like(q))
+    assert torch.sparse.check_sparse_tensor_invariants.is_enabled() == before

@@ -101,6 +101,8 @@ class BalancedGram:
         row_scale=None,
     ):
         self.n_features = int(n_features)
+        # rows per coordinate of the statistics (samples, or test windows)
+        self.n_samples = int(n_samples)
         n_dof = gram.shape[0]
         mean_sq = torch.diagonal(gram, dim1=1, dim2=2)[:, : self.n_features] / n_samples
         mean_sq = torch.clamp(mean_sq, min=0)
