@@ -30,7 +30,13 @@ from . import _validation as val
 from ._stacklevel import outside_stacklevel
 from ._torch import to_numpy, to_tensor
 from .cases import Problem, SparseSolve, solve_case
-from .cases.forces import better_support, fits_better, misses_an_equation
+from .cases.forces import (
+    better_support,
+    fits_better,
+    hold_known,
+    known_columns,
+    misses_an_equation,
+)
 from .dissipation import DissipationLibrary, reduce_forces
 from .evaluator import library_terms
 from .formulation import feature_operator
@@ -243,6 +249,10 @@ def problem(
     n_features = setup.n_features
     if not bool(torch.isfinite(stats.gram).all()):
         val.raise_not_finite(stats.gram, setup.library.terms_, Xt, tau)
+    known = known_columns(setup.library)  # held terms: moved to the target
+    if known:
+        held = hold_known(stats.gram, known, setup.case)
+        stats = dataclasses.replace(stats, gram=held)
     balanced = BalancedGram(
         stats.gram,
         stats.n_rows,
@@ -251,6 +261,7 @@ def problem(
         project_psd=stats.corrected,
     )
     identifiable = balanced.identifiable().cpu().numpy()
+    identifiable[list(known)] = False
     if not identifiable.any():
         raise ValueError(
             "no candidate term varies on the data (every Euler-Lagrange column is "
@@ -303,6 +314,8 @@ def solve(
     if support is not None:
         p.identifiable = p.identifiable & np.asarray(support, dtype=bool)
     solution = constrained(setup, p, solve_case(setup.case, p))
+    for k, v in known_columns(setup.library).items():
+        solution.coef[k] = v
     solution.row_scale = p.balanced.row_scale
     if warn and setup.case != "acceleration":
         free = np.flatnonzero(p.identifiable)

@@ -444,6 +444,9 @@ def refine(
         )
         held = names[k]
         free = np.delete(free, k)
+    for name in getattr(fitted.library, "known_terms_", None) or {}:
+        if forced and name in names:  # a known term (a robot's URDF model): held
+            held, free = name, free[free != names.index(name)]
     if free.size == 0:
         raise ValueError("the model has a single term: nothing to refine")
 

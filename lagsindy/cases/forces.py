@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from .._torch import to_numpy
 from . import Problem, Solution
@@ -123,3 +124,37 @@ def misses_an_equation(gram, coef) -> bool:
     closer needs no second solve."""
     r, energy = equation_residuals(gram, coef)
     return bool(np.any(r >= MORE_TERMS_MATERIAL * energy))
+
+
+def known_columns(library) -> dict:
+    """``{column: value}`` of the library's known terms (``known_terms_``, by name:
+    e.g. a robot's URDF Lagrangian at coefficient 1 with
+    ``RobotLibrary(inertia="urdf")``); empty for other libraries."""
+    known = getattr(library, "known_terms_", None) or {}
+    return {list(library.terms_).index(name): float(v) for name, v in known.items()}
+
+
+def hold_known(gram, known: dict, case: str = "forces"):
+    """Gram statistics with the ``known`` columns (``{column: value}``) moved to the
+    target: the target becomes ``tau - sum_k value_k A_k`` and the known columns
+    zero (so no solve can use them; their coefficients are set afterwards).
+
+    ``gram`` is (..., P + 1, P + 1), the features then the target (a tensor or an
+    array): the result is ``S^T gram S`` with ``S`` the identity except
+    ``S[k, k] = 0`` and ``S[k, target] = -value_k``. Linear in ``gram``, so sums
+    over folds, trajectories and resamples commute with it.
+    """
+    if case != "forces":
+        raise ValueError(
+            "this library holds known terms (a robot library with inertia='urdf'), "
+            "which needs the forces: fit(X, tau) (case I)"
+        )
+    width = gram.shape[-1]
+    s = np.eye(width)
+    for k, v in known.items():
+        s[k, k] = 0.0
+        s[k, width - 1] = -v
+    if isinstance(gram, np.ndarray):
+        return s.T @ gram @ s
+    t = torch.as_tensor(s, dtype=gram.dtype, device=gram.device)
+    return t.T @ gram @ t

@@ -148,8 +148,8 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps, units=None):
                 )
                 if term.name not in present_forces:
                     out.append(Candidate(kind, term.name, tuple(tgt), term))
-        elif kind in _DELAYS:
-            continue  # estimated before the other effects (see diagnose)
+        elif kind in _DELAYS or kind == "payload":
+            continue  # tried before the other effects (see diagnose)
         elif kind == "gain":
             if tau is None:
                 continue
@@ -177,7 +177,7 @@ def _catalogue(est, kinds, extra_terms, angles, tau, eps, units=None):
         else:
             raise ValueError(
                 f"unknown candidate kind {kind!r}; use some of "
-                f"{_DELAYS + kind_names() + _AFTER_FORCES}"
+                f"{_DELAYS + ('payload',) + kind_names() + _AFTER_FORCES}"
             )
     return out
 

@@ -15,6 +15,7 @@ import pandas as pd
 import torch
 
 from .._torch import to_tensor
+from ..cases.forces import known_columns
 from ..delay import diagnose_delay
 from .catalogue import _DISSIPATIVE, _NONNEGATIVE, _catalogue, _effect_coefficient
 from .joint_delay import diagnose_joint_delays
@@ -123,6 +124,9 @@ class Search:
             est, index, n_features, n_lib, passive
         )
         self.target = None if passive else n_features
+        self.known = known_columns(est.library_)  # held at their value (robots)
+        for name in getattr(est.library_, "nonnegative_", ()):  # rotor inertias
+            self.nonneg[index[name]] = True
 
         self.mass, self.mass_all = _mass_samples(op, Xt, folds)
 
@@ -180,6 +184,7 @@ class Search:
             self.fixed_col,
             self.nonneg,
             self.mass,
+            self.known,
         )
 
     def support_of(self, model):

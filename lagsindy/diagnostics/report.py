@@ -36,6 +36,7 @@ _KIND_TEXT = {
     "conservative": "missing conservative term",
     "delay": "input delay",
     "joint_delay": "input delay of one joint",
+    "payload": "payload on the end body",
 }
 
 
@@ -142,6 +143,12 @@ class DiagnosisReport:
         The delays accepted (``"delay"``, ``"joint_delay"``): seconds per
         coordinate (the single delay on every driven one); empty when none.
         :meth:`shift_input` applies them.
+    payload : dict or None
+        With ``"payload"`` in the catalogue and a payload kept (a robot fitted with
+        ``inertia="urdf"``): ``link``, ``mass`` (kg), ``com`` (centre of mass in the
+        link's frame, m; ``nan`` where the data cannot identify it), ``mass_std``,
+        ``com_std`` (standard errors: weighted least squares, delta method) and the
+        fitted payload ``terms``; also the first step ``payload(<link>)``.
     bootstrap : BootstrapReport or None
         With ``diagnose(..., bootstrap=n)``: intervals and inclusion of every term of
         the final model (:func:`lagsindy.bootstrap` of the final configuration); the
@@ -168,6 +175,7 @@ class DiagnosisReport:
     settings: dict = field(default_factory=dict)
     bootstrap: object = None
     input_delays: dict = field(default_factory=dict)
+    payload: dict | None = None
     _data: dict = field(default_factory=dict, repr=False)
 
     def shift_input(self, tau, t, groups=None):
@@ -350,7 +358,8 @@ class DiagnosisReport:
         if self.degenerate_folds:
             lines.append(
                 "excluded degenerate folds (refit mass matrix singular or indefinite, "
-                "cannot predict accelerations): " + "; ".join(self.degenerate_folds)
+                "cannot predict accelerations): "
+                + "; ".join(self.degenerate_folds)
                 + (
                     " (from other models' scores; the final model's uses every fold)"
                     if not self.settings.get("final_degenerate", True)
@@ -488,6 +497,8 @@ class DiagnosisReport:
                     )
                 elif cand.kind == "conservative":
                     var, xlabel = X[:, i], label(c, unit(c, 0))
+                elif cand.kind == "payload":  # inertial: against an acceleration
+                    var, xlabel = X[:, 2 * n + i], label(f"{c}_ddot", None)
                 elif cand.kind in ("gain", "delay", "joint_delay"):
                     var, xlabel = self._data["tau"][:, i], label(f"tau_{c}", unit(c, 1))
                 else:

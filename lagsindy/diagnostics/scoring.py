@@ -18,6 +18,7 @@ from sklearn.model_selection import GroupKFold
 
 from .. import pipeline
 from .._torch import to_numpy
+from ..cases.forces import hold_known
 from ..dissipation import DEFAULT_EPS, DissipationLibrary
 from ..evaluator import is_term_function, library_terms
 from ..force_kinds import get as get_kind
@@ -233,7 +234,12 @@ class _NoWindows(Exception):
 class _Scorer:
     """Held-out score of any support over the columns of :class:`_Statistics`."""
 
-    def __init__(self, stats, n_features, target, fixed_col, nonneg, weights, mass):
+    def __init__(
+        self, stats, n_features, target, fixed_col, nonneg, weights, mass, known=None
+    ):
+        self.known = dict(known or {})  # column: value held (a robot's URDF model)
+        if self.known:
+            stats = _HeldStatistics(stats, self.known)
         self.stats = stats
         self.n_features = n_features
         self.target = target  # column index (case I) or None
@@ -280,14 +286,18 @@ class _Scorer:
             )
         return np.asarray(out)
 
+    def _free(self, support):
+        return [j for j in support if j != self.fixed_col and j not in self.known]
+
     def coefficients(self, support):
         """Full-data LS coefficients (unscaled) of ``support``, as {column: value}."""
-        free = [j for j in support if j != self.fixed_col]
+        free = self._free(support)
         g = self._combine(self.stats.fit.sum(0))
         active, coef = self._solve(g, free)
         out = {j: c / self.col[j] for j, c in zip(active, coef)}
         if self.fixed_col is not None:
             out[self.fixed_col] = 1.0
+        out.update({j: v for j, v in self.known.items() if j in support})
         return out
 
     def score(self, support):
@@ -295,7 +305,7 @@ class _Scorer:
         key = tuple(sorted(support))
         if key in self._cache:
             return self._cache[key]
-        free = [j for j in key if j != self.fixed_col]
+        free = self._free(key)
         K = self.stats.raw.shape[0]
         total = self._combine(self.stats.fit.sum(0))
         sse, ref, bad = np.zeros(K), np.zeros(K), []
@@ -326,7 +336,19 @@ class _Scorer:
                 c[j] = v / self.col[j]
         if self.fixed_col is not None and self.fixed_col < n_lib:
             c[self.fixed_col] = 1.0
+        for j, v in self.known.items():
+            c[j] = v
         return _mass_definite(self.mass[k], c)
+
+
+class _HeldStatistics:
+    """A :class:`_Statistics`' ``raw`` and ``fit`` with known columns moved to the
+    target (:func:`lagsindy.cases.forces.hold_known`), as every fit's solve does."""
+
+    def __init__(self, stats, known):
+        self.kind = stats.kind
+        self.raw = hold_known(stats.raw, known)
+        self.fit = hold_known(stats.fit, known)
 
 
 def _mass_definite(mass, c):
@@ -365,7 +387,9 @@ def _mass_samples(op, Xt, folds):
 _WEIGHT_FLOOR = 0.1
 
 
-def _weighted_scorer(stats, start_coef, n_features, target, fixed_col, nonneg, mass):
+def _weighted_scorer(
+    stats, start_coef, n_features, target, fixed_col, nonneg, mass, known=None
+):
     """A :class:`_Scorer` whose equations are weighted by the starting model's forces.
 
     Each coordinate's weight is the inverse energy of the starting model's force
@@ -393,7 +417,7 @@ def _weighted_scorer(stats, start_coef, n_features, target, fixed_col, nonneg, m
     scale = np.maximum(model, meas)
     scale = np.maximum(scale, _WEIGHT_FLOOR * scale.max()) ** 2
     w = 1.0 / np.where(scale > 0, scale, 1.0)
-    sc = _Scorer(stats, n_features, target, fixed_col, nonneg, w, mass)
+    sc = _Scorer(stats, n_features, target, fixed_col, nonneg, w, mass, known)
     ref = []
     for g in stats.raw:
         magk = np.sqrt(np.clip(np.einsum("ipp->ip", g)[:, :n_features], 0, None))

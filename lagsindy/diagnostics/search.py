@@ -12,11 +12,12 @@ import numpy as np
 from sklearn.utils.validation import check_is_fitted
 
 from .._validation import validate_state, validate_tau
+from ..formulation.operator import reuse_weak_columns
 from ..partitioned import collect, is_partitioned
 from ..pipeline import on_fit_clock
-from ..formulation.operator import reuse_weak_columns
 from .catalogue import DEFAULT_CATALOGUE, velocity_eps
 from .loop import DiagnosisSettings, Search
+from .payload import add_payload, propose_payload
 from .report import DiagnosisReport
 from .summary import summarize
 
@@ -84,7 +85,11 @@ def diagnose(
         it back to 0 worsens the held-out criterion by ``min_improvement``; the
         report has a step ``"delay(<joint>)"`` per delay kept (in ms) and
         ``report.input_delays`` (seconds per coordinate). With both named, the
-        per-joint search runs instead of the single one.
+        per-joint search runs instead of the single one. ``"payload"`` (in
+        :data:`lagsindy.robots.ROBOT_CATALOGUE`; robots fitted with
+        ``inertia="urdf"``) tries the end body's inertial parameters first
+        (:mod:`lagsindy.diagnostics.payload`): the step ``"payload(<link>)"`` and
+        ``report.payload``.
     extra_terms : list of str or sympy.Expr, default=None
         More conservative candidates (Lagrangian terms), beside ``q**2`` for every
         coordinate and ``cos``/``sin`` of angles.
@@ -213,7 +218,12 @@ def diagnose(
         units=tuple(sorted((units or {}).items())),
     )
     with reuse_weak_columns():
-        search = Search(est, Xa, tau_a, groups, settings)
+        search = first = Search(est, Xa, tau_a, groups, settings)
+        payload = None
+        if "payload" in catalogue and tau_a is not None:  # the rigid body first
+            payload = propose_payload(search)
+            if payload.model is not None:
+                search = Search(payload.model, Xa, tau_a, groups, settings)
         delays = [k for k in ("joint_delay", "delay") if k in catalogue]
         if delays and tau_a is not None and search.dt and search.dt > 0:
             # step 0 (a delay per joint, when named, in place of one for all)
@@ -231,6 +241,8 @@ def diagnose(
     # outside the block: a bootstrap's refits of resampled rows would only add
     # statistics that nothing reuses
     report = summarize(search, units, bootstrap, random_state)  # step 3
+    if payload is not None:
+        add_payload(report, payload, first, search)
     if report.degenerate_folds:
         warnings.warn(
             "diagnose excluded degenerate folds from some models' held-out scores "

@@ -46,6 +46,10 @@ FIELDS = (
     "independent",
     "matrix",
 )
+#: Fields of a library with the URDF's link parameters held (``inertia="urdf"``):
+#: ``inertia`` and ``payload`` (the payload's body as given, or null); its
+#: ``independent`` are then the payload's link-parameter columns, ``matrix`` empty.
+HELD_FIELDS = ("inertia", "payload")
 
 
 def library_document(library) -> dict:
@@ -60,7 +64,8 @@ def library_document(library) -> dict:
     -------
     dict
     """
-    if not hasattr(library, "base_"):
+    held = hasattr(library, "known_terms_")
+    if not hasattr(library, "base_") and not held:
         raise ValueError(
             "a model file stores sympy terms or a URDF library; this model's terms "
             f"are another torch term function ({type(library).__name__}): keep it "
@@ -80,8 +85,13 @@ def library_document(library) -> dict:
     random_state = library.random_state
     if not isinstance(random_state, int | np.integer):
         random_state = None  # the stored grouping does not need it
-    base = library.base_
-    return {
+    if held:
+        payload = library.payload_
+        independent = [] if payload is None else payload.columns
+        matrix = []
+    else:
+        independent, matrix = library.base_.independent, library.base_.matrix
+    out = {
         "urdf": text,
         "urdf_name": path.name,
         "joints": list(robot.coordinates_),
@@ -93,9 +103,12 @@ def library_document(library) -> dict:
         "penalize": bool(robot.penalize),
         "consistent": bool(robot.consistent),
         "random_state": None if random_state is None else int(random_state),
-        "independent": [int(i) for i in base.independent],
-        "matrix": [[float(v) for v in row] for row in base.matrix],
+        "independent": [int(i) for i in independent],
+        "matrix": [[float(v) for v in row] for row in matrix],
     }
+    if held:
+        out.update(inertia="urdf", payload=library.payload)
+    return out
 
 
 def _check_urdf_text(text):
@@ -178,9 +191,11 @@ def library_from_document(doc, coordinates=None, terms=None):
     from .fitting import BaseParameterLibrary
     from .library import RobotLibrary
 
-    if not isinstance(doc, dict) or set(doc) != set(FIELDS):
+    held = isinstance(doc, dict) and "inertia" in doc
+    fields = set(FIELDS) | (set(HELD_FIELDS) if held else set())
+    if not isinstance(doc, dict) or set(doc) != fields:
         got = sorted(doc)[:12] if isinstance(doc, dict) else type(doc).__name__
-        _fail(f"must be an object with exactly the fields {sorted(FIELDS)}, got {got}")
+        _fail(f"must be an object with exactly the fields {sorted(fields)}, got {got}")
     text, name = doc["urdf"], doc["urdf_name"]
     if not isinstance(text, str) or not isinstance(name, str) or len(name) > 200:
         _fail("'urdf' and 'urdf_name' must be strings")
@@ -220,6 +235,8 @@ def library_from_document(doc, coordinates=None, terms=None):
         robot.build()
     except (ValueError, KeyError, TypeError) as exc:
         _fail(f"its URDF does not rebuild the library: {exc}")
+    if held:
+        return _held_library(doc, robot, independent, random_state, coordinates, terms)
     names = list(robot.terms_)
     k_mat = np.asarray(rows, dtype=float).reshape(len(rows), -1)
     idx = np.asarray(independent, dtype=int)
@@ -248,12 +265,38 @@ def library_from_document(doc, coordinates=None, terms=None):
     library = BaseParameterLibrary(
         robot, random_state=0 if random_state is None else random_state, base=base
     ).build()
+    _check_same(library, coordinates, terms)
+    return library
+
+
+def _held_library(doc, robot, independent, random_state, coordinates, terms):
+    """The :class:`~lagsindy.robots.known.KnownInertiaLibrary` of a document with
+    ``inertia="urdf"``; its payload's columns must be the stored ones."""
+    from .known import KnownInertiaLibrary
+
+    payload = doc["payload"]
+    if doc["inertia"] != "urdf" or not (payload is None or isinstance(payload, str)):
+        _fail("'inertia' must be 'urdf' and 'payload' a link name, 'end' or null")
+    robot.set_params(inertia="urdf")
+    library = KnownInertiaLibrary(
+        robot, payload=payload, random_state=0 if random_state is None else random_state
+    ).build()
+    found = [] if library.payload_ is None else list(library.payload_.columns)
+    if found != list(independent):
+        _fail(
+            f"the payload's identifiable parameters rebuilt ({found}) are not the "
+            f"stored ones ({independent})"
+        )
+    _check_same(library, coordinates, terms)
+    return library
+
+
+def _check_same(library, coordinates, terms):
     if (coordinates is not None and library.coordinates_ != list(coordinates)) or (
         terms is not None and library.terms_ != list(terms)
     ):
         raise ValueError(
             "the model file's coordinates and terms are not those of the robot "
             f"library it describes (coordinates {library.coordinates_}, "
-            f"{len(library.terms_)} base parameters {library.terms_[:3]}...)"
+            f"{len(library.terms_)} terms {library.terms_[:3]}...)"
         )
-    return library

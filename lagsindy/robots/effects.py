@@ -23,9 +23,11 @@ from .. import force_kinds
 
 #: What :func:`lagsindy.diagnose` should try on a robot arm: an input delay per
 #: driven joint (``"joint_delay"``: each drive may lag by its own amount; a delay
-#: common to every joint is found as that delay on each), friction per joint and a
-#: spring per joint.
-ROBOT_CATALOGUE = ("joint_delay", "viscous", "coulomb", "bias", "spring")
+#: common to every joint is found as that delay on each), friction per joint, a
+#: spring per joint and, for fits that hold the URDF's link parameters
+#: (``inertia="urdf"``), a payload on the end body (``"payload"``; skipped with a
+#: note for fits of base parameters, which a payload cannot add to).
+ROBOT_CATALOGUE = ("joint_delay", "viscous", "coulomb", "bias", "spring", "payload")
 
 #: The friction kinds a robot fit declares by default (``dissipation=``).
 FRICTION_KINDS = ("viscous", "coulomb", "bias")

@@ -99,6 +99,20 @@ class RobotLibrary(_BuiltOnDemand, BaseEstimator):
         :mod:`lagsindy.robots.consistency`). ``False``: the unconstrained least
         squares, with a warning saying how far its base parameters are from
         consistent ones (``library_.violation_``).
+    inertia : {"base", "urdf"}, default="base"
+        ``"base"``: the fit estimates the link parameters (on their base parameters,
+        :meth:`regression_library`). ``"urdf"``: the URDF's link parameters are
+        trusted (a CAD model, an earlier identification): the fit holds the URDF's
+        rigid-body Lagrangian as a known term ``urdf`` at coefficient 1 and
+        estimates only rotor inertias, friction and effects
+        (:class:`lagsindy.robots.known.KnownInertiaLibrary`); consistency then
+        means non-negative rotor inertias and dissipative coefficients. Needs
+        forces (case I). This is where :func:`lagsindy.diagnose` can propose a
+        payload (candidate kind ``"payload"``).
+    payload : {None, "end"} or str, default=None
+        With ``inertia="urdf"``: also fit a payload's inertial parameters on the end
+        body (``"end"``) or on the named link's body, the identifiable ones given
+        the other links held (:class:`lagsindy.robots.known.Payload`).
 
     Attributes
     ----------
@@ -134,6 +148,8 @@ class RobotLibrary(_BuiltOnDemand, BaseEstimator):
         gravity=GRAVITY,
         penalize=False,
         consistent=True,
+        inertia="base",
+        payload=None,
     ):
         self.path = path
         self.joints = joints
@@ -142,6 +158,8 @@ class RobotLibrary(_BuiltOnDemand, BaseEstimator):
         self.gravity = gravity
         self.penalize = penalize
         self.consistent = consistent
+        self.inertia = inertia
+        self.payload = payload
 
     def _key(self):
         return repr(
@@ -179,11 +197,24 @@ class RobotLibrary(_BuiltOnDemand, BaseEstimator):
         return None if self.path is None else list(self._ensure_built().coordinates_)
 
     def regression_library(self, random_state=0):
-        """The library a :class:`~lagsindy.LagrangianSINDy` fit regresses on: the
-        base parameters (:class:`lagsindy.robots.fitting.BaseParameterLibrary`),
-        built."""
+        """The library a :class:`~lagsindy.LagrangianSINDy` fit regresses on, built:
+        the base parameters (:class:`lagsindy.robots.fitting.BaseParameterLibrary`),
+        or with ``inertia="urdf"`` the URDF's model as a known term
+        (:class:`lagsindy.robots.known.KnownInertiaLibrary`)."""
         from .fitting import BaseParameterLibrary
+        from .known import KnownInertiaLibrary
 
+        if self.inertia not in ("base", "urdf"):
+            raise ValueError(f"inertia must be 'base' or 'urdf', got {self.inertia!r}")
+        if self.inertia == "urdf":
+            return KnownInertiaLibrary(
+                self, payload=self.payload, random_state=random_state
+            ).build()
+        if self.payload is not None:
+            raise ValueError(
+                "payload= needs inertia='urdf': with the link parameters estimated "
+                "(inertia='base'), a payload is part of the end link's base parameters"
+            )
         return BaseParameterLibrary(self, random_state=random_state).build()
 
     def _ensure_built(self):

@@ -15,7 +15,7 @@ def _base_library(est):
     library = getattr(est, "library_", None)
     if library is None:
         raise ValueError("the estimator is not fitted: call fit(X, tau) first")
-    if not hasattr(library, "base_") or not hasattr(library, "link_parameters"):
+    if not hasattr(library, "link_parameters"):
         raise ValueError(
             "this estimator was not fitted with a URDF library "
             "(CandidateLibrary.from_urdf): it has no link parameters to write"
@@ -93,7 +93,9 @@ def parameter_table(est, intervals=None):
     frame = pd.DataFrame(
         {
             "parameter": list(library.terms_),
-            "combination": list(library.base_.labels),
+            "combination": list(
+                library.base_.labels if hasattr(library, "base_") else library.labels_
+            ),
             "value": np.asarray(est.coef_, float),
             "urdf": np.asarray(library.nominal_, float),
         }

@@ -168,6 +168,7 @@ def batch_supported(setup, dtype) -> bool:
     ``1 / L``, float64); the others are solved one resample at a time."""
     return (
         setup.case == "forces"
+        and not getattr(setup.library, "known_terms_", None)  # held terms: alone
         and setup.solver.alpha is None
         and setup.solver.max_stages >= 1
         and dtype == torch.float64
