@@ -59,6 +59,12 @@ class MappedTerms(BaseTerms):
     def _pick(self, out):
         return out @ self._matrix.to(device=out.device, dtype=out.dtype)
 
+    def numpy_dynamics(self, coef):
+        """``(M, h)`` of ``sum_k coef[k] phi_k`` as a NumPy function of the states:
+        the robot terms' model with coefficients ``matrix @ coef``
+        (:meth:`RobotTerms.numpy_dynamics`)."""
+        return self.terms.numpy_dynamics(self.matrix @ np.asarray(coef, float))
+
     def __repr__(self) -> str:
         return f"MappedTerms({len(self.names)} combinations of robot terms)"
 
