@@ -300,7 +300,11 @@ def diagnosis(est, states, tauf, split):
         report = diagnose(est, X, tauf[:split], catalogue=catalogue)
     return dict(
         clock=clock,
-        steps=[(s.candidate.name, float(s.coefficient)) for s in report.steps],
+        steps=[
+            (s.candidate.name, float(s.coefficient))
+            for s in report.steps
+            if s.how != "start"  # the fitted model's own terms, refitted
+        ],
     )
 
 

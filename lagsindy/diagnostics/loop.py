@@ -24,12 +24,12 @@ from .scoring import (
     _adjusted_tau,
     _columns,
     _fit_model,
-    _kept_terms,
     _mass_definite,
     _mass_samples,
     _NoWindows,
     _start_coefficients,
     _Statistics,
+    _support_in,
     _time_folds,
     _weighted_scorer,
 )
@@ -188,14 +188,7 @@ class Search:
         )
 
     def support_of(self, model):
-        index = self.index
-        s = {index[name] for name in _kept_terms(model)}
-        s |= {
-            index[f.name]
-            for f, c in zip(model.dissipation_terms_, model.dissipation_coef_)
-            if c
-        }
-        return s
+        return _support_in(self.index, model)
 
     def valid(self, support):
         coef = self.scorer.coefficients(support)

@@ -32,12 +32,12 @@ from ..formulation.probes import without_probes
 from .report import Candidate, Step
 from .scoring import (
     _fit_model,
-    _kept_terms,
     _mass_definite,
     _mass_samples,
     _NoWindows,
     _residual,
     _Statistics,
+    _support_in,
     _weighted_scorer,
 )
 
@@ -78,16 +78,6 @@ def payload_applies(est) -> str | None:
             else ("payload: not tried: the library is not a robot's (from_urdf)")
         )
     return "" if library.payload is not None else None
-
-
-def _support(index, model):
-    s = {index[name] for name in _kept_terms(model)}
-    s |= {
-        index[f.name]
-        for f, c in zip(model.dissipation_terms_, model.dissipation_coef_)
-        if c
-    }
-    return s
 
 
 def propose_payload(search) -> PayloadFound:
@@ -141,7 +131,7 @@ def propose_payload(search) -> PayloadFound:
 
     sc_s = scorer(strong)
     sc = scorer(weak) if weak is not None else sc_s
-    s0 = _support(index, est)
+    s0 = _support_in(index, est)
     s1 = s0 | {index[n] for n in payload_names}
     j0, folds0, _ = sc.score(s0)
     j1, folds1, _ = sc.score(s1)
@@ -174,7 +164,7 @@ def propose_payload(search) -> PayloadFound:
         warnings.simplefilter("ignore")
         new.fit(search.Xf, search.tau_a, groups=search.groups)
     new.set_params(verbose=est.verbose)
-    sr = _support(index, new)
+    sr = _support_in(index, new)
     jr = sc.score(sr)[0]
     coef = np.zeros(n_lib)
     for k, c in enumerate(new.coef_):

@@ -87,6 +87,18 @@ def _kept_terms(model) -> set:
     return {name for name, c in zip(names, model.coef_) if c}
 
 
+def _support_in(index, model) -> set:
+    """The columns (``index``: name -> column) of the terms and forces the fitted
+    ``model`` keeps."""
+    s = {index[name] for name in _kept_terms(model)}
+    s |= {
+        index[f.name]
+        for f, c in zip(model.dissipation_terms_, model.dissipation_coef_)
+        if c
+    }
+    return s
+
+
 def _start_coefficients(est, index, n_features, n_lib, passive):
     """The starting model's coefficients over the columns, and the fixed column.
 

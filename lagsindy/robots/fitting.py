@@ -188,7 +188,22 @@ def _least_squares(gram, mask):
     return np.linalg.lstsq(sub, gram[:-1, -1][mask], rcond=None)[0]
 
 
-class BaseParameterLibrary(_BuiltOnDemand, BaseEstimator):
+class _OnRobot(_BuiltOnDemand):
+    """What the libraries a fit regresses on instead of a :class:`RobotLibrary`
+    share: the robot's coordinates, and building on first use."""
+
+    @property
+    def coordinates(self):
+        """The coordinate joints (the robot library's)."""
+        return None if self.robot is None else self.robot.coordinates
+
+    def _ensure_built(self):
+        if "_terms" not in self.__dict__:
+            self.build()
+        return self
+
+
+class BaseParameterLibrary(_OnRobot, BaseEstimator):
     """The base parameters of a :class:`RobotLibrary` as a candidate library.
 
     Parameters
@@ -249,16 +264,6 @@ class BaseParameterLibrary(_BuiltOnDemand, BaseEstimator):
         self.nominal_ = base.values(robot.nominal_)
         self.n_terms_ = len(self.terms_)
         self._representatives = {}
-        return self
-
-    @property
-    def coordinates(self):
-        """The coordinate joints (the robot library's)."""
-        return None if self.robot is None else self.robot.coordinates
-
-    def _ensure_built(self):
-        if "_terms" not in self.__dict__:
-            self.build()
         return self
 
     def _other_term(self, term):

@@ -25,8 +25,7 @@ from sklearn.base import BaseEstimator
 
 from .._stacklevel import outside_stacklevel
 from .base_parameters import base_parameters_from_columns, exciting_states
-from .fitting import BaseTerms
-from .library import _BuiltOnDemand
+from .fitting import BaseTerms, _OnRobot
 
 #: The known term's name in :class:`KnownInertiaLibrary`.
 KNOWN = "urdf"
@@ -217,7 +216,7 @@ class Payload:
         }
 
 
-class KnownInertiaLibrary(_BuiltOnDemand, BaseEstimator):
+class KnownInertiaLibrary(_OnRobot, BaseEstimator):
     """The library a fit regresses on when the URDF's link parameters are trusted.
 
     Terms: ``urdf`` (the URDF's rigid-body Lagrangian, known: coefficient 1), the
@@ -322,16 +321,6 @@ class KnownInertiaLibrary(_BuiltOnDemand, BaseEstimator):
             f"payload={self.payload!r} is not a link of a moving body; use 'end' or "
             f"one of {names}"
         )
-
-    @property
-    def coordinates(self):
-        """The coordinate joints (the robot library's)."""
-        return None if self.robot is None else self.robot.coordinates
-
-    def _ensure_built(self):
-        if "_terms" not in self.__dict__:
-            self.build()
-        return self
 
     def _other_term(self, term):
         raise ValueError(
