@@ -27,6 +27,7 @@ import numpy as np
 import pandas as pd
 from sklearn.base import clone
 
+from .._stacklevel import outside_stacklevel
 from ..formulation.operator import EulerLagrangeOperator
 from ..formulation.probes import without_probes
 from .report import Candidate, Step
@@ -169,12 +170,20 @@ def propose_payload(search) -> PayloadFound:
     coef = np.zeros(n_lib)
     for k, c in enumerate(new.coef_):
         coef[k] = c
-    if not (jr < (1 - st.min_improvement) * j0 and _mass_definite(mass_all, coef)):
+    better = jr < (1 - st.min_improvement) * j0
+    if not (better and _mass_definite(mass_all, coef)):
+        why = (
+            f"the refitted model does not predict held-out data better ({j0:.4g} "
+            f"-> {jr:.4g})"
+            if not better
+            else f"the refitted model's mass matrix is singular or indefinite on the "
+            f"data (held-out {j0:.4g} -> {jr:.4g}): the load's terms took up "
+            "something else"
+        )
         return PayloadFound(
             candidate=cand, heldout=(j0, jr), explained=explained,
             note=f"payload({extended.payload_.link}) explains {explained:.1%} of the "
-            f"held-out criterion but the refitted model does not predict held-out "
-            f"data better ({j0:.4g} -> {jr:.4g})",
+            f"held-out criterion but {why}",
         )  # fmt: skip
     cov = _covariance(sc_s, sr, [index[n] for n in payload_names], strong, search)
     estimate = new.library_.payload_estimate(new.coef_, cov)
@@ -218,6 +227,10 @@ def _describe(estimate) -> str:
     return f"kg{err}; centre ({com}) m in {estimate['link']}"
 
 
+# Effects a load's gravity resembles on small swings (sin q ~ q, cos q ~ 1).
+STAND_INS = ("spring", "bias")
+
+
 def add_payload(report, found, first, search):
     """Put the payload into the report of the diagnosis that started from its
     model: the step ``payload(<link>)`` first (coefficient: the mass; units: its
@@ -227,6 +240,23 @@ def add_payload(report, found, first, search):
     if found.note:
         report.settings.setdefault("notes", []).append(found.note)
     if found.model is None:
+        stand_ins = [
+            s.candidate.name
+            for s in report.steps
+            if s.how != "start" and s.candidate.kind in STAND_INS
+        ]
+        if stand_ins:
+            warnings.warn(
+                f"diagnose kept {stand_ins} after the payload of the end link was "
+                "tried first and not kept: on small swings a load's gravity acts on "
+                "the joints like springs and offsets, so these may stand in for a "
+                "load (or the load for them: with a spring beside a load the "
+                "payload alone explains too little). Compare fits with "
+                "from_urdf(..., inertia='urdf', payload='end') and with these "
+                "effects declared",
+                UserWarning,
+                stacklevel=outside_stacklevel(),
+            )
         return report
     est = first.est
     names = found.candidate.term

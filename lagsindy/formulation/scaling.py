@@ -40,21 +40,42 @@ def balance_rows(mean_sq: np.ndarray) -> np.ndarray:
     return rows[0] if single else rows
 
 
+def _linked(nonzero) -> bool:
+    """Whether the coordinates whose equations hold some column are linked through
+    shared columns (``nonzero``: (n_dof, p) bool)."""
+    rows = [i for i in range(nonzero.shape[0]) if nonzero[i].any()]
+    if len(rows) < 2:
+        return True
+    reached, frontier = {rows[0]}, [rows[0]]
+    while frontier:
+        cols = nonzero[frontier].any(axis=0)
+        frontier = [i for i in rows if i not in reached and (nonzero[i] & cols).any()]
+        reached.update(frontier)
+    return len(reached) == len(rows)
+
+
 def _balance(mean_sq):
     n_prob, n_dof = mean_sq.shape[:2]
     rows = np.ones((n_prob, n_dof), dtype=mean_sq.dtype)
     live = np.ones(n_prob, dtype=bool)
+    # Equations that share no column (a robot's joints with its URDF model held:
+    # each joint's rotor inertia and friction on its own equation) have no common
+    # scale: averaging each row over every active column drove their scales apart
+    # by a constant factor per iteration (1e-88 against 1e88); such rows average
+    # over their own columns.
+    own = (mean_sq > 0).sum(axis=2)
+    apart = np.array([not _linked(m > 0) for m in mean_sq])
     for _ in range(BALANCE_MAX_ITER):
         cols = np.sqrt(np.add.reduce(mean_sq / rows[:, :, None] ** 2, axis=1) / n_dof)
         active = cols > 0
-        count = active.sum(axis=1)
+        count = np.where(apart[:, None], own, active.sum(axis=1)[:, None])
         safe = np.where(active, cols, 1.0)
         ratio = np.where(active[:, None, :], mean_sq / safe[:, None, :] ** 2, 0.0)
-        new = np.sqrt(np.add.reduce(ratio, axis=2) / np.maximum(count, 1)[:, None])
+        new = np.sqrt(np.add.reduce(ratio, axis=2) / np.maximum(count, 1))
         new = np.where(new > 0, new, 1.0)
         new = new / np.exp(np.add.reduce(np.log(new), axis=1) / n_dof)[:, None]
         close = (np.abs(new - rows) <= 1e-10 * np.abs(rows)).all(axis=1)
-        step = live & (count > 0)
+        step = live & (active.sum(axis=1) > 0)
         rows = np.where(step[:, None], new, rows)
         live &= step & ~close
         if not live.any():

@@ -177,3 +177,21 @@ def test_null_combinations_are_eigenvalues_below_the_relative_floor(
     assert [w.category for w in caught] == ([IdentifiabilityWarning] if warns else [])
     if warns:
         assert "1 combination(s) of candidate terms" in str(caught[0].message)
+
+
+def test_equations_sharing_no_column_keep_finite_scales():
+    """Two equations with no common column (a robot's joints with the URDF model
+    held: each joint's rotor inertia and friction only on its own equation) have no
+    common scale; averaging each row over every active column drove them apart by a
+    constant factor per iteration (measured: 9e-89 and 1.1e88). Each row now
+    averages over its own columns; a linked pattern keeps its scales."""
+    from lagsindy.formulation.scaling import balance_rows
+
+    apart = np.array(
+        [[0.0, 1.1578, 0.0, 0.2421, 0.0, 0.0], [0.0, 0.0, 2.4909, 0.0, 0.2928, 0.1221]]
+    )
+    np.testing.assert_allclose(balance_rows(apart), [1.0, 1.0], rtol=1e-9)
+    linked = apart.copy()
+    linked[:, 0] = [0.5, 3.0]  # one column on both equations links them
+    rows = balance_rows(linked)
+    assert np.all(np.isfinite(rows)) and 1e-3 < rows[0] / rows[1] < 1e3
