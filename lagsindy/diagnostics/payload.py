@@ -81,9 +81,13 @@ def payload_applies(est) -> str | None:
     return "" if library.payload is not None else None
 
 
-def propose_payload(search) -> PayloadFound:
+def propose_payload(search, second=False) -> PayloadFound:
     """Try the payload candidate on the starting model of ``search`` (a
-    :class:`~lagsindy.diagnostics.loop.Search` over case I data)."""
+    :class:`~lagsindy.diagnostics.loop.Search` over case I data). ``second``: the
+    second path of :func:`lagsindy.diagnose`, where a spring beside the load leaves
+    the load alone explaining little (and its refit taking up the spring): kept when
+    it lowers the held-out criteria at all; that path's final model must then
+    predict held-out data better than the first path's."""
     est, st = search.est, search.settings
     note = payload_applies(est)
     if note is not None:
@@ -141,7 +145,7 @@ def propose_payload(search) -> PayloadFound:
                      tuple(search.coords), tuple(payload_names))  # fmt: skip
     explained = float(1 - j1**2 / j0**2) if np.isfinite(j0) and j0 > 0 else 0.0
     ok = np.isfinite(folds0) & np.isfinite(folds1)
-    better = (
+    better = (j1 < j0 and p1 < p0) if second else (
         explained >= st.min_explained
         and bool(ok.any() and np.all(folds1[ok] < folds0[ok]))
         and j1 < (1 - st.min_improvement) * j0
@@ -171,7 +175,7 @@ def propose_payload(search) -> PayloadFound:
     for k, c in enumerate(new.coef_):
         coef[k] = c
     better = jr < (1 - st.min_improvement) * j0
-    if not (better and _mass_definite(mass_all, coef)):
+    if not (better and (second or _mass_definite(mass_all, coef))):
         why = (
             f"the refitted model does not predict held-out data better ({j0:.4g} "
             f"-> {jr:.4g})"
@@ -231,6 +235,20 @@ def _describe(estimate) -> str:
 STAND_INS = ("spring", "bias")
 
 
+def _final_estimate(final, found):
+    """The payload of the ``final`` model: ``found`` (with its standard errors)
+    when the later steps left its terms as they were, else the final model's values
+    (refitted beside the effects added after it: a spring beside the load; their
+    standard errors are not estimated, ``nan``)."""
+    lib = final.library_
+    names = list(lib.terms_)
+    values = {n: float(final.coef_[names.index(n)]) for n in found["terms"]}
+    if all(np.isclose(values[n], v, rtol=1e-9, atol=0) for n, v in
+           found["terms"].items()):  # fmt: skip
+        return found
+    return lib.payload_estimate(final.coef_)
+
+
 def add_payload(report, found, first, search):
     """Put the payload into the report of the diagnosis that started from its
     model: the step ``payload(<link>)`` first (coefficient: the mass; units: its
@@ -284,7 +302,9 @@ def add_payload(report, found, first, search):
             how="added",
         ),
     )
-    report.payload = found.estimate
+    report.payload = _final_estimate(report.final, found.estimate)
+    report.steps[0].coefficient = report.payload["mass"]
+    report.steps[0].units = _describe(report.payload)
     report.initial = est
     report.heldout_error_before = float(first.j0)
     report.pointwise_before = float(first.p0)
