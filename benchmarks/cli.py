@@ -169,7 +169,10 @@ def main(argv=None):
                 print(name, "fit", _stats([r["total"] for r in runs]), flush=True)
     load_after = os.getloadavg()
 
-    text = _common.header("The command line: time to an error, and to a fit")
+    text = _common.header(
+        "The command line: time to an error, and to a fit",
+        _common.command("cli", argv),
+    )
     text += (
         f"Record: forced double pendulum, {size['trajectories']} trajectories x "
         f"{size['duration']:g} s at 100 Hz = {n_rows} rows of positions and inputs "
