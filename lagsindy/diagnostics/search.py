@@ -225,13 +225,7 @@ def diagnose(
             if payload.model is not None:
                 search = Search(payload.model, Xa, tau_a, groups, settings)
         delays = [k for k in ("joint_delay", "delay") if k in catalogue]
-        if delays and tau_a is not None and search.dt and search.dt > 0:
-            # step 0 (a delay per joint, when named, in place of one for all)
-            search.input_delay(per_joint=delays[0] == "joint_delay")
-        search.total_ref = float(
-            sum(search.scorer.w @ r for r in search.scorer.reference)
-        )
-        _search_effects(search, revise, max_effects)
+        _search_effects(search, delays, revise, max_effects)
         if payload is not None and payload.model is None and _stand_ins(search):
             # Springs or offsets were kept where the payload, tried first, was not:
             # a load beside a spring explains too little alone. Second path: the
@@ -240,12 +234,7 @@ def diagnose(
             forced = propose_payload(first, second=True)
             if forced.model is not None:
                 other = Search(forced.model, Xa, tau_a, groups, settings)
-                if delays and tau_a is not None and other.dt and other.dt > 0:
-                    other.input_delay(per_joint=delays[0] == "joint_delay")
-                other.total_ref = float(
-                    sum(other.scorer.w @ r for r in other.scorer.reference)
-                )
-                _search_effects(other, revise, max_effects)
+                _search_effects(other, delays, revise, max_effects)
                 if other.value < (1 - min_improvement) * search.value:
                     search, payload = other, forced
     # outside the block: a bootstrap's refits of resampled rows would only add
@@ -269,8 +258,14 @@ def diagnose(
     return report
 
 
-def _search_effects(search, revise, max_effects):
-    """Steps 1 and 2 of :func:`diagnose` on ``search``."""
+def _search_effects(search, delays, revise, max_effects):
+    """Steps 0 to 2 of :func:`diagnose` on ``search``."""
+    if delays and search.tau_a is not None and search.dt and search.dt > 0:
+        # step 0 (a delay per joint, when named, in place of one for all)
+        search.input_delay(per_joint=delays[0] == "joint_delay")
+    search.total_ref = float(
+        sum(search.scorer.w @ r for r in search.scorer.reference)
+    )
     # A starting model that cannot predict accelerations (singular mass matrix:
     # a link's terms pruned) is revised jointly whatever ``revise`` says.
     if (revise or not search.start_valid) and search.diss:

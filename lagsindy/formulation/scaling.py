@@ -63,8 +63,15 @@ def _balance(mean_sq):
     # scale: averaging each row over every active column drove their scales apart
     # by a constant factor per iteration (1e-88 against 1e88); such rows average
     # over their own columns.
-    own = (mean_sq > 0).sum(axis=2)
-    apart = np.array([not _linked(m > 0) for m in mean_sq])
+    nonzero = mean_sq > 0
+    own = nonzero.sum(axis=2)
+    # resamples share one pattern: each distinct pattern is checked once
+    linked = {}
+    for m in nonzero:
+        key = m.tobytes()
+        if key not in linked:
+            linked[key] = _linked(m)
+    apart = np.array([not linked[m.tobytes()] for m in nonzero])
     for _ in range(BALANCE_MAX_ITER):
         cols = np.sqrt(np.add.reduce(mean_sq / rows[:, :, None] ** 2, axis=1) / n_dof)
         active = cols > 0

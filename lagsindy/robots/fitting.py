@@ -173,9 +173,7 @@ def _significant(gram, coef, n_terms, n_rows, dissipative) -> list:
             continue
         mask = every.copy()
         mask[n_terms + k] = False
-        fit = np.zeros(p)
-        fit[mask] = _least_squares(gram, mask)
-        gain = _residual(gram, fit) - rss
+        gain = _residual(gram, _least_squares(gram, mask)) - rss
         material = gain >= READMIT_SHARE * rss and gain >= READMIT_FLOOR
         if material and gain >= READMIT_T2 * noise:
             out.append(int(k))
@@ -183,9 +181,13 @@ def _significant(gram, coef, n_terms, n_rows, dissipative) -> list:
 
 
 def _least_squares(gram, mask):
-    """Unconstrained least-squares coefficients of the features in ``mask``."""
+    """Unconstrained least-squares coefficients of the features in ``mask`` (0 for
+    the others)."""
+    mask = np.asarray(mask, bool)
+    out = np.zeros(mask.size)
     sub = gram[:-1, :-1][np.ix_(mask, mask)]
-    return np.linalg.lstsq(sub, gram[:-1, -1][mask], rcond=None)[0]
+    out[mask] = np.linalg.lstsq(sub, gram[:-1, -1][mask], rcond=None)[0]
+    return out
 
 
 class _OnRobot(_BuiltOnDemand):
@@ -305,8 +307,7 @@ class BaseParameterLibrary(_OnRobot, BaseEstimator):
         if significant:
             mask = coef != 0
             mask[n + np.asarray(significant)] = True
-            coef = np.zeros_like(coef)
-            coef[mask] = _least_squares(gram, mask)
+            coef = _least_squares(gram, mask)
             solution.coef = coef.copy()
             if problem.solver.verbose:
                 names = [problem.dissipation_terms[k].name for k in significant]
@@ -413,8 +414,7 @@ class BaseParameterLibrary(_OnRobot, BaseEstimator):
 
         def fit(support, max_iter=None):
             mask = np.concatenate([np.ones(n, bool), support])
-            start = np.zeros_like(coef)
-            start[mask] = _least_squares(gram, mask)
+            start = _least_squares(gram, mask)
             return self.consistent_refit(gram, start, dissipative, max_iter)
 
         every = fit(np.ones_like(kept))
